@@ -1,0 +1,55 @@
+# beavr_sim: two commands for a fresh machine -- `make demo` and `make test`.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+VENV := .venv
+PY := $(VENV)/bin/python
+# python3.12 from PATH, else from pyenv (a non-login shell may lack pyenv's shims on PATH).
+PYTHON312 ?= $(shell command -v python3.12 2>/dev/null || ls -1d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 2>/dev/null | tail -n 1)
+EXTRAS ?= viz,dev
+STAMP := $(VENV)/.installed
+
+.PHONY: help venv sysdeps demo test bench lint clean
+
+help:
+	@echo "make demo   - create .venv (Python 3.12), install, run the scripted twin demo with the browser view"
+	@echo "make test   - create .venv if needed, run the test suite"
+	@echo "make bench  - run the simulation benchmark (JSON)"
+	@echo "make lint   - ruff"
+
+$(STAMP): pyproject.toml
+	@if [ -z "$(PYTHON312)" ]; then echo "python3.12 not found: install Python 3.12 (e.g. pyenv install 3.12) or set PYTHON312=/path/to/python3.12" >&2; exit 1; fi
+	@test -x $(PY) || $(PYTHON312) -m venv $(VENV)
+	$(PY) -m pip install --upgrade --quiet pip
+	$(PY) -m pip install --quiet -e ".[$(EXTRAS)]"
+	@touch $(STAMP)
+
+venv: $(STAMP) sysdeps
+
+# Headless rendering needs Mesa's EGL and GL libraries. Installed here when missing and we are root;
+# otherwise the exact packages are named.
+sysdeps:
+	@if ! /sbin/ldconfig -p 2>/dev/null | grep -q 'libEGL.so.1' || ! /sbin/ldconfig -p 2>/dev/null | grep -q 'libGL.so.1'; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing Mesa EGL/GL for headless rendering"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libgl1 libgl1-mesa-dri libgles2 >/dev/null; \
+	  else \
+	    echo "Headless rendering needs: sudo apt-get install libegl1 libgl1 libgl1-mesa-dri libgles2" >&2; exit 1; \
+	  fi; \
+	fi
+
+demo: venv
+	MUJOCO_GL=egl $(PY) -m beavr_sim.demo
+
+test: venv
+	MUJOCO_GL=egl $(PY) -m pytest -q
+
+bench: venv
+	MUJOCO_GL=egl $(PY) -m beavr_sim.bench sim
+
+lint: venv
+	$(PY) -m ruff check beavr_sim tests
+	$(PY) -m ruff format --check beavr_sim tests
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -1,0 +1,26 @@
+"""Where the project's model files live, in a source checkout or an installed wheel."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+_PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def assets_dir() -> Path:
+    """The ``assets/`` folder: ``beavr_sim/_assets`` in a wheel, the repository's otherwise."""
+    for candidate in (_PACKAGE_DIR / "_assets", _PACKAGE_DIR.parent / "assets"):
+        if (candidate / "mjcf").is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"beavr_sim assets not found next to {_PACKAGE_DIR}; reinstall the package "
+        "(pip install -e .) from a full checkout."
+    )
+
+
+def mjcf_path(*parts: str) -> Path:
+    """Path of a file under ``assets/mjcf``, checked to exist."""
+    path = assets_dir().joinpath("mjcf", *parts)
+    if not path.is_file():
+        raise FileNotFoundError(f"MJCF file missing: {path}")
+    return path

@@ -1,0 +1,182 @@
+"""The one gymnasium env of beavr_sim, parameterised by task and embodiment.
+
+Observations follow LeRobot's gym-env convention: ``agent_pos`` (measured joint positions,
+per effector arm then hand, float32) and, when cameras are on, ``pixels`` (camera name ->
+HxWx3 uint8). Actions are joint position targets in the same order. ``terminated`` means
+task success or failure, ``truncated`` the time limit; ``info["is_success"]`` is always set.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from beavr_sim.envs.scene import CAMERA_NAMES, build_scene_spec
+from beavr_sim.naming import check_name
+from beavr_sim.robots import Embodiment, make_embodiment
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.tasks.base import Task, TaskStatus
+from beavr_sim.tasks.registry import task_class
+
+#: Largest physics step; the env picks the largest step <= this that divides the control period.
+MAX_PHYSICS_DT = 0.002
+RENDER_MODES = ("rgb_array",)
+
+
+class BeavrEnv(gym.Env):
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}
+
+    def __init__(
+        self,
+        task: str = "Playground",
+        embodiment: str = DEFAULT_EMBODIMENT,
+        render_mode: str | None = None,
+        cameras: Sequence[str] | None = None,
+        control_hz: float = 30.0,
+        max_episode_seconds: float | None = None,
+        camera_height: int = 480,
+        camera_width: int = 640,
+    ):
+        super().__init__()
+        if render_mode is not None:
+            check_name("render_mode", render_mode, RENDER_MODES)
+        self.render_mode = render_mode
+        self.cameras = tuple(check_name("camera", c, CAMERA_NAMES) for c in (cameras or ()))
+        if not (math.isfinite(control_hz) and control_hz > 0):
+            raise ValueError(f"control_hz must be a positive number, got {control_hz!r}")
+        if camera_height <= 0 or camera_width <= 0:
+            raise ValueError(f"camera size must be positive, got {camera_height}x{camera_width}")
+        self.camera_height, self.camera_width = int(camera_height), int(camera_width)
+
+        self.embodiment: Embodiment = make_embodiment(embodiment)
+        self.task: Task = task_class(task)(self.embodiment)
+        if self.task.embodiments is not None:
+            check_name(f"embodiment for task {task}", embodiment, self.task.embodiments)
+        self.max_episode_seconds = float(
+            self.task.max_episode_seconds if max_episode_seconds is None else max_episode_seconds
+        )
+        if not self.max_episode_seconds > 0:
+            raise ValueError(f"max_episode_seconds must be positive, got {max_episode_seconds!r}")
+
+        spec = build_scene_spec(self.embodiment, self.camera_height, self.camera_width)
+        self.task.build(spec)
+        self.control_hz = float(control_hz)
+        self.n_substeps = max(1, math.ceil(1.0 / (self.control_hz * MAX_PHYSICS_DT)))
+        spec.option.timestep = 1.0 / (self.control_hz * self.n_substeps)
+        self.model: mujoco.MjModel = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self.joints = self.embodiment.bind(self.model)
+        self.task.bind(self.model)
+        self.metadata = {**self.metadata, "render_fps": self.control_hz}
+
+        n = self.joints.size
+        self.action_space = spaces.Box(
+            low=self.joints.lower.astype(np.float32), high=self.joints.upper.astype(np.float32), dtype=np.float32
+        )
+        obs_spaces: dict[str, spaces.Space] = {
+            "agent_pos": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float32)
+        }
+        if self.cameras:
+            obs_spaces["pixels"] = spaces.Dict(
+                {
+                    c: spaces.Box(0, 255, shape=(self.camera_height, self.camera_width, 3), dtype=np.uint8)
+                    for c in self.cameras
+                }
+            )
+        self.observation_space = spaces.Dict(obs_spaces)
+        self._renderer: mujoco.Renderer | None = None
+        self._elapsed_steps = 0
+        self._status = TaskStatus()
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self.joints.qpos_adr] = self.joints.home
+        self.data.ctrl[self.joints.actuator_ids] = self.joints.home
+        self.task.initialize_episode(self.model, self.data, self.np_random)
+        mujoco.mj_forward(self.model, self.data)
+        self._elapsed_steps = 0
+        self._status = self.task.evaluate(self.model, self.data)
+        return self._observation(), self._info(clipped=())
+
+    def step(self, action):
+        target = self._validate_action(action)
+        clipped_target = np.clip(target, self.joints.lower, self.joints.upper)
+        clipped = tuple(self.joints.names[i] for i in np.flatnonzero(clipped_target != target))
+        self.data.ctrl[self.joints.actuator_ids] = clipped_target
+        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        self._elapsed_steps += 1
+        self._status = self.task.evaluate(self.model, self.data)
+        terminated = bool(self._status.success or self._status.failure)
+        truncated = bool(self.elapsed_seconds >= self.max_episode_seconds - 1e-9) and not terminated
+        return self._observation(), 0.0 + float(self._status.success), terminated, truncated, self._info(clipped)
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        return self.render_camera(self.cameras[0] if self.cameras else "front")
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def elapsed_seconds(self) -> float:
+        return self._elapsed_steps / self.control_hz
+
+    @property
+    def agent_pos(self) -> np.ndarray:
+        return self.data.qpos[self.joints.qpos_adr].astype(np.float32)
+
+    def render_camera(self, camera: str) -> np.ndarray:
+        """One HxWx3 uint8 frame from a named camera (shadows and reflections off)."""
+        check_name("camera", camera, CAMERA_NAMES)
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, self.camera_height, self.camera_width)
+        self._renderer.update_scene(self.data, camera=camera)
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return self._renderer.render().copy()
+
+    def _validate_action(self, action) -> np.ndarray:
+        expected = self.action_space.shape
+        try:
+            target = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"action must be a numeric array of shape {expected}, got {type(action).__name__}") from exc
+        if target.shape != expected:
+            raise ValueError(
+                f"action has shape {target.shape}, expected {expected}: joint targets for "
+                f"{', '.join(e.name + ' (' + str(len(e.joints)) + ')' for e in self.embodiment.effectors)}"
+            )
+        if not np.all(np.isfinite(target)):
+            bad = [self.joints.names[i] for i in np.flatnonzero(~np.isfinite(target))]
+            raise ValueError(f"action of shape {expected} has NaN/inf targets for joints {bad}")
+        return target
+
+    def _observation(self) -> dict[str, Any]:
+        obs: dict[str, Any] = {"agent_pos": self.agent_pos}
+        if self.cameras:
+            obs["pixels"] = {c: self.render_camera(c) for c in self.cameras}
+        return obs
+
+    def _info(self, clipped: tuple[str, ...]) -> dict[str, Any]:
+        return {
+            "is_success": bool(self._status.success),
+            "is_failure": bool(self._status.failure),
+            "task": self.task.name,
+            "embodiment": self.embodiment.name,
+            "elapsed_seconds": self.elapsed_seconds,
+            "action_clipped": bool(clipped),
+            "clipped_joints": clipped,
+            **{f"task/{k}": v for k, v in self._status.details.items()},
+        }

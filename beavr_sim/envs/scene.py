@@ -1,0 +1,93 @@
+"""Scene composition with ``mujoco.MjSpec``: floor, table, light, cameras, robots, task objects."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from beavr_sim.robots import Embodiment
+from beavr_sim.robots.embodiment import TABLE_TOP_Z
+
+#: Table top, in the world frame: x from TABLE_X[0] to TABLE_X[1], y within +-TABLE_HALF_Y.
+TABLE_X = (-0.25, 0.85)
+TABLE_HALF_Y = 0.75
+TABLE_THICKNESS = 0.04
+CAMERA_NAMES = ("front", "overhead")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """A fixed camera: position and a point it looks at (world frame), vertical field of view."""
+
+    pos: tuple[float, float, float]
+    target: tuple[float, float, float]
+    fovy_deg: float
+
+
+CAMERAS = {
+    # Facing the robot from the far side of the table, as the paper's front camera.
+    "front": CameraConfig(pos=(1.45, 0.0, 1.35), target=(0.35, 0.0, TABLE_TOP_Z + 0.1), fovy_deg=55.0),
+    # Straight down on the workspace.
+    "overhead": CameraConfig(pos=(0.4, 0.0, 2.05), target=(0.4, 0.0, TABLE_TOP_Z), fovy_deg=60.0),
+}
+
+
+def _look_at_quat(pos: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera quaternion looking from ``pos`` to ``target`` with world +z up in the image."""
+    forward = target - pos
+    forward /= np.linalg.norm(forward)
+    up_world = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    x_cam = np.cross(forward, up_world)
+    x_cam /= np.linalg.norm(x_cam)
+    y_cam = np.cross(-forward, x_cam)
+    R_world_cam = np.column_stack([x_cam, y_cam, -forward])  # MuJoCo cameras look along -z
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, R_world_cam.flatten())
+    return quat
+
+
+def build_scene_spec(embodiment: Embodiment, height: int, width: int) -> mujoco.MjSpec:
+    """The scene without task objects: everything every task shares."""
+    spec = mujoco.MjSpec()
+    spec.modelname = f"beavr_sim_{embodiment.name}"
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.visual.global_.offwidth = max(width, 640)
+    spec.visual.global_.offheight = max(height, 480)
+    spec.visual.quality.shadowsize = 2048
+
+    world = spec.worldbody
+    spec.add_texture(
+        name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        rgb1=[0.32, 0.34, 0.36], rgb2=[0.27, 0.29, 0.31], width=256, height=256,
+    )
+    spec.add_material(name="floor", textures=["", "grid"], texrepeat=[4, 4], reflectance=0.0)
+    spec.add_material(name="table", rgba=[0.62, 0.5, 0.38, 1.0])
+    world.add_light(name="key", pos=[0.6, -0.6, 2.6], dir=[-0.2, 0.25, -1.0], diffuse=[0.7, 0.7, 0.7],
+                    castshadow=False)
+    world.add_light(name="fill", pos=[0.0, 0.8, 2.4], dir=[0.2, -0.4, -1.0], diffuse=[0.35, 0.35, 0.35],
+                    castshadow=False)
+    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], material="floor")
+
+    table = world.add_body(name="table", pos=[(TABLE_X[0] + TABLE_X[1]) / 2, 0.0, TABLE_TOP_Z])
+    half_x = (TABLE_X[1] - TABLE_X[0]) / 2
+    table.add_geom(name="table_top", type=mujoco.mjtGeom.mjGEOM_BOX, material="table",
+                   size=[half_x, TABLE_HALF_Y, TABLE_THICKNESS / 2], pos=[0, 0, -TABLE_THICKNESS / 2])
+    leg_h = (TABLE_TOP_Z - TABLE_THICKNESS) / 2
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            table.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, material="table", contype=0, conaffinity=0,
+                           size=[0.03, 0.03, leg_h],
+                           pos=[sx * (half_x - 0.05), sy * (TABLE_HALF_Y - 0.05), -TABLE_THICKNESS - leg_h])
+
+    for name in CAMERA_NAMES:
+        cam = CAMERAS[name]
+        world.add_camera(name=name, pos=list(cam.pos), fovy=cam.fovy_deg,
+                         quat=list(_look_at_quat(np.array(cam.pos), np.array(cam.target))))
+
+    embodiment.attach_to(spec)
+    for effector in embodiment.spec.effectors:
+        # The base bolts onto the table; their primitives overlap by construction.
+        spec.add_exclude(bodyname1="table", bodyname2=effector.prefix + "link_base")
+    return spec
