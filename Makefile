@@ -4,8 +4,10 @@ SHELL := /bin/bash
 
 VENV := .venv
 PY := $(VENV)/bin/python
-# python3.12 from PATH, else from pyenv (a non-login shell may lack pyenv's shims on PATH).
-PYTHON312 ?= $(shell command -v python3.12 2>/dev/null || ls -1d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 2>/dev/null | tail -n 1)
+# The first Python 3.12 that actually runs: pyenv's install folders (a non-login shell may lack
+# pyenv's shims, and a shim may point at another version), then python3.12 on PATH.
+PYTHON312 ?= $(shell for c in $$(ls -1d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 2>/dev/null | sort -rV) $$(command -v python3.12 2>/dev/null) /usr/bin/python3.12 /usr/local/bin/python3.12; do \
+	  if "$$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1; then echo "$$c"; break; fi; done)
 EXTRAS ?= viz,dev
 STAMP := $(VENV)/.installed
 
