@@ -7,11 +7,13 @@ import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-REFERENCE_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "reference"
+from beavr_sim.reference import find_reference_dir
 
 
 @pytest.fixture(scope="session")
 def reference_dir() -> Path:
-    if not REFERENCE_DIR.is_dir():
-        pytest.skip(f"reference models not found at {REFERENCE_DIR} (../shared/reference beside the checkout)")
-    return REFERENCE_DIR
+    found = find_reference_dir()
+    if found is None:
+        pytest.skip("reference models not found: ../shared/reference beside the checkout "
+                    "(or $BEAVR_REFERENCE_DIR) is absent")
+    return found

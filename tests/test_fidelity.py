@@ -14,63 +14,20 @@ import numpy as np
 import pytest
 
 from beavr_sim.envs.scene import build_scene_spec
+from beavr_sim.reference import REFERENCE_DISTAL_BODY, build_reference_model, reference_joint_name
 from beavr_sim.robots import EMBODIMENTS, make_embodiment
 
-# our body -> reference body (Menagerie LEAP names)
-REF_DISTAL = {"thumb_distal": "thumb_fingertip", "index_distal": "fingertip",
-              "middle_distal": "fingertip_2", "ring_distal": "fingertip_3"}
 N_CONFIGS = 200
 TOLERANCE_M = 1e-3
-
-
-def _reference_hand(reference_dir, side: str) -> mujoco.MjSpec:
-    spec = mujoco.MjSpec.from_file(str(reference_dir / "menagerie_leap_hand" / f"{side}_hand.xml"))
-    # The reference palm meshes are missing (see reference/README.md); drop all mesh geoms.
-    for geom in list(spec.geoms):
-        if geom.type == mujoco.mjtGeom.mjGEOM_MESH:
-            spec.delete(geom)
-    for mesh in list(spec.meshes):
-        spec.delete(mesh)
-    for light in list(spec.lights):
-        spec.delete(light)
-    return spec
-
-
-def _relative_pose(model, data, site_name, body_name):
-    """Pose of body ``body_name`` in the frame of site ``site_name``: (pos, quat)."""
-    R_site = data.site(site_name).xmat.reshape(3, 3)
-    R_body = data.body(body_name).xmat.reshape(3, 3)
-    pos = R_site.T @ (data.body(body_name).xpos - data.site(site_name).xpos)
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, (R_site.T @ R_body).flatten())
-    return pos, quat
 
 
 def _build_pair(reference_dir, embodiment_name):
     embodiment = make_embodiment(embodiment_name)
     ours = build_scene_spec(embodiment, 480, 640).compile()
-    ours_data = mujoco.MjData(ours)
-    mujoco.mj_kinematics(ours, ours_data)
-
-    ref_spec = mujoco.MjSpec()
-    for eff_spec, eff in zip(embodiment.spec.effectors, embodiment.effectors, strict=True):
-        arm = mujoco.MjSpec.from_file(str(reference_dir / "menagerie_ufactory_xarm7" / "xarm7_nohand.xml"))
-        arm.delete(arm.key("home"))
-        base = ref_spec.worldbody.add_frame(pos=list(eff_spec.base_pos))
-        # Our link_base frame is the Menagerie link_base frame; Menagerie lifts it 0.12 m.
-        arm.body("link_base").pos = [0, 0, 0]
-        ref_spec.attach(arm, prefix=eff_spec.prefix, frame=base)
-        hand = _reference_hand(reference_dir, eff.side)
-        pos, quat = _relative_pose(ours, ours_data, eff.ee_site, eff_spec.prefix + "palm")
-        hand.body("palm_lower").pos = list(pos)
-        hand.body("palm_lower").quat = list(quat)
-        ref_spec.attach(hand, prefix=eff_spec.prefix, site=ref_spec.site(eff_spec.prefix + "attachment_site"))
-    return embodiment, ours, ref_spec.compile()
+    return embodiment, ours, build_reference_model(embodiment, ours, reference_dir)
 
 
-def _ref_joint(name: str) -> str:
-    prefix, _, local = name.rpartition("/")
-    return f"{prefix}/{local.removeprefix('leap_')}"
+_ref_joint = reference_joint_name
 
 
 @pytest.mark.parametrize("embodiment_name", sorted(EMBODIMENTS))
@@ -94,7 +51,7 @@ def test_flange_and_fingertips_match_reference(reference_dir, embodiment_name):
             worst = max(worst, np.linalg.norm(d_ours.site(eff.ee_site).xpos - d_ref.site(p + "attachment_site").xpos))
             for site in eff.fingertip_sites:
                 body = ours.body(ours.site(site).bodyid[0]).name.removeprefix(p)
-                ref_body = d_ref.body(p + REF_DISTAL[body])
+                ref_body = d_ref.body(p + REFERENCE_DISTAL_BODY[body])
                 expected = ref_body.xpos + ref_body.xmat.reshape(3, 3) @ ours.site(site).pos
                 worst = max(worst, np.linalg.norm(d_ours.site(site).xpos - expected))
     assert worst < TOLERANCE_M, f"worst flange/fingertip error {worst * 1000:.3f} mm"

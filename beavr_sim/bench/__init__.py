@@ -1,0 +1,1 @@
+"""Benchmarks (``python -m beavr_sim.bench <name>``): speed targets are checked here, not in tests."""

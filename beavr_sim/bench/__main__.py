@@ -1,0 +1,30 @@
+"""``python -m beavr_sim.bench sim [--seconds S]``: prints one JSON object."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import beavr_sim  # noqa: F401  (registers the envs)
+
+BENCHMARKS = ("sim",)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
+    parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
+    parser.add_argument("--seconds", type=float, default=2.0, help="time per measurement (default 2)")
+    parser.add_argument("--frames", type=int, default=20, help="rendered frames to time (default 20)")
+    args = parser.parse_args(argv)
+    if args.benchmark == "sim":
+        from beavr_sim.bench.sim import run
+
+        print(f"benchmarking simulation ({args.seconds:g} s per measurement)...", file=sys.stderr)
+        result = run(seconds=args.seconds, render_frames=args.frames)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
