@@ -10,7 +10,7 @@ import os
 if not os.environ.get("DISPLAY") and not os.environ.get("MUJOCO_GL"):
     os.environ["MUJOCO_GL"] = "egl"
 
-from beavr_sim.envs.registration import register_envs  # noqa: E402
+from beavr_sim.envs.registration import register_envs
 
 __version__ = "0.1.0"
 

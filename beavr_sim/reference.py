@@ -42,7 +42,9 @@ def _reference_hand(reference_dir: Path, side: str, keep_meshes: bool) -> mujoco
     spec = mujoco.MjSpec.from_file(str(reference_dir / "menagerie_leap_hand" / f"{side}_hand.xml"))
     # The reference palm meshes are missing (reference/README.md): drop those geoms at least.
     for geom in list(spec.geoms):
-        if geom.type == mujoco.mjtGeom.mjGEOM_MESH and (not keep_meshes or geom.meshname.startswith("palm")):
+        if geom.type == mujoco.mjtGeom.mjGEOM_MESH and (
+            not keep_meshes or geom.meshname.startswith("palm")
+        ):
             spec.delete(geom)
     for mesh in list(spec.meshes):
         if not keep_meshes or mesh.name.startswith("palm"):
@@ -70,7 +72,9 @@ def build_reference_model(
     spec = mujoco.MjSpec()
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     for eff_spec, eff in zip(embodiment.spec.effectors, embodiment.effectors, strict=True):
-        arm = mujoco.MjSpec.from_file(str(reference_dir / "menagerie_ufactory_xarm7" / "xarm7_nohand.xml"))
+        arm = mujoco.MjSpec.from_file(
+            str(reference_dir / "menagerie_ufactory_xarm7" / "xarm7_nohand.xml")
+        )
         arm.delete(arm.key("home"))
         if not keep_meshes:
             for geom in list(arm.geoms):
@@ -87,5 +91,7 @@ def build_reference_model(
         pos, quat = _pose_in_site_frame(ours_data, eff.ee_site, eff_spec.prefix + "palm")
         hand.body("palm_lower").pos = list(pos)
         hand.body("palm_lower").quat = list(quat)
-        spec.attach(hand, prefix=eff_spec.prefix, site=spec.site(eff_spec.prefix + "attachment_site"))
+        spec.attach(
+            hand, prefix=eff_spec.prefix, site=spec.site(eff_spec.prefix + "attachment_site")
+        )
     return spec.compile()

@@ -14,6 +14,8 @@ from beavr_sim.reference import find_reference_dir
 def reference_dir() -> Path:
     found = find_reference_dir()
     if found is None:
-        pytest.skip("reference models not found: ../shared/reference beside the checkout "
-                    "(or $BEAVR_REFERENCE_DIR) is absent")
+        pytest.skip(
+            "reference models not found: ../shared/reference beside the checkout "
+            "(or $BEAVR_REFERENCE_DIR) is absent"
+        )
     return found

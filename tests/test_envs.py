@@ -30,8 +30,13 @@ def test_check_env_state_only(env_id, embodiment):
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_check_env_with_cameras_and_render(env_id):
-    env = gym.make(env_id, render_mode="rgb_array", cameras=["front", "overhead"], camera_height=48,
-                   camera_width=64)
+    env = gym.make(
+        env_id,
+        render_mode="rgb_array",
+        cameras=["front", "overhead"],
+        camera_height=48,
+        camera_width=64,
+    )
     check_env(env.unwrapped, skip_render_check=False)
     obs, _ = env.reset(seed=1)
     assert set(obs["pixels"]) == {"front", "overhead"}
@@ -43,8 +48,10 @@ def test_check_env_with_cameras_and_render(env_id):
     env.close()
 
 
-@pytest.mark.parametrize("embodiment,n_joints", [("xarm7_leap_right", 23), ("xarm7_leap_left", 23),
-                                                 ("xarm7_leap_bimanual", 46)])
+@pytest.mark.parametrize(
+    "embodiment,n_joints",
+    [("xarm7_leap_right", 23), ("xarm7_leap_left", 23), ("xarm7_leap_bimanual", 46)],
+)
 def test_spaces_and_introspection(embodiment, n_joints):
     env = gym.make("beavr_sim/Playground-v0", embodiment=embodiment)
     obs, info = env.reset(seed=0)
@@ -67,7 +74,9 @@ def test_spaces_and_introspection(embodiment, n_joints):
     right = u.embodiment.effector("right") if embodiment != "xarm7_leap_left" else None
     if right is not None:
         sl = u.joints.slices["right"]
-        np.testing.assert_allclose(np.rad2deg(obs["agent_pos"][sl][:7]), [0, -25, -1, 26, 0, 50, 0], atol=1e-4)
+        np.testing.assert_allclose(
+            np.rad2deg(obs["agent_pos"][sl][:7]), [0, -25, -1, 26, 0, 50, 0], atol=1e-4
+        )
         np.testing.assert_allclose(obs["agent_pos"][sl][7:], 0.0, atol=1e-6)
     env.close()
 
@@ -78,8 +87,12 @@ def test_action_order_maps_one_to_one_to_joints():
     obs, _ = env.reset(seed=0)
     names = env.unwrapped.joints.names
     # index abduction (motor 0) is moved away from the middle finger so nothing collides
-    for joint, delta in (("right/joint4", 0.3), ("right/leap_0", -0.3), ("right/leap_1", 0.3),
-                         ("right/leap_13", 0.3)):
+    for joint, delta in (
+        ("right/joint4", 0.3),
+        ("right/leap_0", -0.3),
+        ("right/leap_1", 0.3),
+        ("right/leap_13", 0.3),
+    ):
         i = names.index(joint)
         obs, _ = env.reset(seed=0)
         action = obs["agent_pos"].copy()
@@ -104,7 +117,9 @@ def test_holds_home_pose_without_contacts():
 
 
 def test_unknown_names_list_valid_choices():
-    with pytest.raises(UnknownNameError, match=r"Did you mean 'xarm7_leap_right'.*xarm7_leap_bimanual"):
+    with pytest.raises(
+        UnknownNameError, match=r"Did you mean 'xarm7_leap_right'.*xarm7_leap_bimanual"
+    ):
         gym.make("beavr_sim/Playground-v0", embodiment="xarm7_leap_rigth")
     from beavr_sim.envs.beavr_env import BeavrEnv
 

@@ -48,7 +48,12 @@ def test_flange_and_fingertips_match_reference(reference_dir, embodiment_name):
         mujoco.mj_kinematics(ref, d_ref)
         for eff in embodiment.effectors:
             p = eff.name + "/"
-            worst = max(worst, np.linalg.norm(d_ours.site(eff.ee_site).xpos - d_ref.site(p + "attachment_site").xpos))
+            worst = max(
+                worst,
+                np.linalg.norm(
+                    d_ours.site(eff.ee_site).xpos - d_ref.site(p + "attachment_site").xpos
+                ),
+            )
             for site in eff.fingertip_sites:
                 body = ours.body(ours.site(site).bodyid[0]).name.removeprefix(p)
                 ref_body = d_ref.body(p + REFERENCE_DISTAL_BODY[body])
@@ -67,8 +72,12 @@ def test_joint_axes_ranges_masses_inertias_match_reference(reference_dir, embodi
         d_o, d_r = mujoco.MjData(ours), mujoco.MjData(ref)
         mujoco.mj_kinematics(ours, d_o)
         mujoco.mj_kinematics(ref, d_r)
-        np.testing.assert_allclose(d_o.xaxis[j_ours.id], d_r.xaxis[j_ref.id], atol=1e-5, err_msg=name)
+        np.testing.assert_allclose(
+            d_o.xaxis[j_ours.id], d_r.xaxis[j_ref.id], atol=1e-5, err_msg=name
+        )
         b_ours, b_ref = ours.body(j_ours.bodyid[0]), ref.body(j_ref.bodyid[0])
         np.testing.assert_allclose(b_ours.mass, b_ref.mass, rtol=1e-4, err_msg=name)
-        np.testing.assert_allclose(np.sort(b_ours.inertia), np.sort(b_ref.inertia), rtol=1e-3, err_msg=name)
+        np.testing.assert_allclose(
+            np.sort(b_ours.inertia), np.sort(b_ref.inertia), rtol=1e-3, err_msg=name
+        )
         np.testing.assert_allclose(b_ours.ipos, b_ref.ipos, atol=1e-5, err_msg=name)

@@ -14,8 +14,12 @@ BENCHMARKS = ("sim",)
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
-    parser.add_argument("--seconds", type=float, default=2.0, help="time per measurement (default 2)")
-    parser.add_argument("--frames", type=int, default=20, help="rendered frames to time (default 20)")
+    parser.add_argument(
+        "--seconds", type=float, default=2.0, help="time per measurement (default 2)"
+    )
+    parser.add_argument(
+        "--frames", type=int, default=20, help="rendered frames to time (default 20)"
+    )
     args = parser.parse_args(argv)
     if args.benchmark == "sim":
         from beavr_sim.bench.sim import run

@@ -40,8 +40,11 @@ def _physics_rate(model: mujoco.MjModel, data: mujoco.MjData, seconds: float) ->
 
 def run(seconds: float = 2.0, render_frames: int = 20, height: int = 480, width: int = 640) -> dict:
     result: dict = {
-        "machine": {"python": platform.python_version(), "mujoco": mujoco.__version__,
-                    "processor": platform.processor() or platform.machine()},
+        "machine": {
+            "python": platform.python_version(),
+            "mujoco": mujoco.__version__,
+            "processor": platform.processor() or platform.machine(),
+        },
         "seconds_per_measurement": seconds,
         "embodiments": {},
     }
@@ -69,7 +72,9 @@ def run(seconds: float = 2.0, render_frames: int = 20, height: int = 480, width:
         }
         env.close()
 
-    env = gym.make("beavr_sim/Playground-v0", render_mode="rgb_array", camera_height=height, camera_width=width)
+    env = gym.make(
+        "beavr_sim/Playground-v0", render_mode="rgb_array", camera_height=height, camera_width=width
+    )
     env.reset(seed=0)
     u = env.unwrapped
     u.render_camera("front")  # create the GL context outside the timing
@@ -85,7 +90,9 @@ def run(seconds: float = 2.0, render_frames: int = 20, height: int = 480, width:
         result["reference"] = "skipped: ../shared/reference not found"
     else:
         single = gym.make("beavr_sim/Playground-v0").unwrapped
-        ref = build_reference_model(single.embodiment, single.model, reference_dir, keep_meshes=True)
+        ref = build_reference_model(
+            single.embodiment, single.model, reference_dir, keep_meshes=True
+        )
         ref.opt.timestep = single.model.opt.timestep
         ref_data = mujoco.MjData(ref)
         mujoco.mj_forward(ref, ref_data)

@@ -77,7 +77,9 @@ class BeavrEnv(gym.Env):
 
         n = self.joints.size
         self.action_space = spaces.Box(
-            low=self.joints.lower.astype(np.float32), high=self.joints.upper.astype(np.float32), dtype=np.float32
+            low=self.joints.lower.astype(np.float32),
+            high=self.joints.upper.astype(np.float32),
+            dtype=np.float32,
         )
         obs_spaces: dict[str, spaces.Space] = {
             "agent_pos": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float32)
@@ -85,7 +87,9 @@ class BeavrEnv(gym.Env):
         if self.cameras:
             obs_spaces["pixels"] = spaces.Dict(
                 {
-                    c: spaces.Box(0, 255, shape=(self.camera_height, self.camera_width, 3), dtype=np.uint8)
+                    c: spaces.Box(
+                        0, 255, shape=(self.camera_height, self.camera_width, 3), dtype=np.uint8
+                    )
                     for c in self.cameras
                 }
             )
@@ -116,7 +120,13 @@ class BeavrEnv(gym.Env):
         self._status = self.task.evaluate(self.model, self.data)
         terminated = bool(self._status.success or self._status.failure)
         truncated = bool(self.elapsed_seconds >= self.max_episode_seconds - 1e-9) and not terminated
-        return self._observation(), 0.0 + float(self._status.success), terminated, truncated, self._info(clipped)
+        return (
+            self._observation(),
+            0.0 + float(self._status.success),
+            terminated,
+            truncated,
+            self._info(clipped),
+        )
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -152,7 +162,9 @@ class BeavrEnv(gym.Env):
         try:
             target = np.asarray(action, dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"action must be a numeric array of shape {expected}, got {type(action).__name__}") from exc
+            raise ValueError(
+                f"action must be a numeric array of shape {expected}, got {type(action).__name__}"
+            ) from exc
         if target.shape != expected:
             raise ValueError(
                 f"action has shape {target.shape}, expected {expected}: joint targets for "

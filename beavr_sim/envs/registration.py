@@ -23,7 +23,9 @@ def register_envs() -> list[str]:
     for task in TASKS:
         eid = env_id(task)
         if eid not in gym.registry:
-            gym.register(id=eid, entry_point=ENTRY_POINT, kwargs={"task": task}, disable_env_checker=False)
+            gym.register(
+                id=eid, entry_point=ENTRY_POINT, kwargs={"task": task}, disable_env_checker=False
+            )
         ids.append(eid)
     return ids
 

@@ -28,7 +28,9 @@ class CameraConfig:
 
 CAMERAS = {
     # Facing the robot from the far side of the table, as the paper's front camera.
-    "front": CameraConfig(pos=(1.45, 0.0, 1.35), target=(0.35, 0.0, TABLE_TOP_Z + 0.1), fovy_deg=55.0),
+    "front": CameraConfig(
+        pos=(1.45, 0.0, 1.35), target=(0.35, 0.0, TABLE_TOP_Z + 0.1), fovy_deg=55.0
+    ),
     # Straight down on the workspace.
     "overhead": CameraConfig(pos=(0.4, 0.0, 2.05), target=(0.4, 0.0, TABLE_TOP_Z), fovy_deg=60.0),
 }
@@ -59,32 +61,63 @@ def build_scene_spec(embodiment: Embodiment, height: int, width: int) -> mujoco.
 
     world = spec.worldbody
     spec.add_texture(
-        name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-        rgb1=[0.32, 0.34, 0.36], rgb2=[0.27, 0.29, 0.31], width=256, height=256,
+        name="grid",
+        type=mujoco.mjtTexture.mjTEXTURE_2D,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        rgb1=[0.32, 0.34, 0.36],
+        rgb2=[0.27, 0.29, 0.31],
+        width=256,
+        height=256,
     )
     spec.add_material(name="floor", textures=["", "grid"], texrepeat=[4, 4], reflectance=0.0)
     spec.add_material(name="table", rgba=[0.62, 0.5, 0.38, 1.0])
-    world.add_light(name="key", pos=[0.6, -0.6, 2.6], dir=[-0.2, 0.25, -1.0], diffuse=[0.7, 0.7, 0.7],
-                    castshadow=False)
-    world.add_light(name="fill", pos=[0.0, 0.8, 2.4], dir=[0.2, -0.4, -1.0], diffuse=[0.35, 0.35, 0.35],
-                    castshadow=False)
-    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], material="floor")
+    world.add_light(
+        name="key",
+        pos=[0.6, -0.6, 2.6],
+        dir=[-0.2, 0.25, -1.0],
+        diffuse=[0.7, 0.7, 0.7],
+        castshadow=False,
+    )
+    world.add_light(
+        name="fill",
+        pos=[0.0, 0.8, 2.4],
+        dir=[0.2, -0.4, -1.0],
+        diffuse=[0.35, 0.35, 0.35],
+        castshadow=False,
+    )
+    world.add_geom(
+        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], material="floor"
+    )
 
     table = world.add_body(name="table", pos=[(TABLE_X[0] + TABLE_X[1]) / 2, 0.0, TABLE_TOP_Z])
     half_x = (TABLE_X[1] - TABLE_X[0]) / 2
-    table.add_geom(name="table_top", type=mujoco.mjtGeom.mjGEOM_BOX, material="table",
-                   size=[half_x, TABLE_HALF_Y, TABLE_THICKNESS / 2], pos=[0, 0, -TABLE_THICKNESS / 2])
+    table.add_geom(
+        name="table_top",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        material="table",
+        size=[half_x, TABLE_HALF_Y, TABLE_THICKNESS / 2],
+        pos=[0, 0, -TABLE_THICKNESS / 2],
+    )
     leg_h = (TABLE_TOP_Z - TABLE_THICKNESS) / 2
     for sx in (-1, 1):
         for sy in (-1, 1):
-            table.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, material="table", contype=0, conaffinity=0,
-                           size=[0.03, 0.03, leg_h],
-                           pos=[sx * (half_x - 0.05), sy * (TABLE_HALF_Y - 0.05), -TABLE_THICKNESS - leg_h])
+            table.add_geom(
+                type=mujoco.mjtGeom.mjGEOM_BOX,
+                material="table",
+                contype=0,
+                conaffinity=0,
+                size=[0.03, 0.03, leg_h],
+                pos=[sx * (half_x - 0.05), sy * (TABLE_HALF_Y - 0.05), -TABLE_THICKNESS - leg_h],
+            )
 
     for name in CAMERA_NAMES:
         cam = CAMERAS[name]
-        world.add_camera(name=name, pos=list(cam.pos), fovy=cam.fovy_deg,
-                         quat=list(_look_at_quat(np.array(cam.pos), np.array(cam.target))))
+        world.add_camera(
+            name=name,
+            pos=list(cam.pos),
+            fovy=cam.fovy_deg,
+            quat=list(_look_at_quat(np.array(cam.pos), np.array(cam.target))),
+        )
 
     embodiment.attach_to(spec)
     for effector in embodiment.spec.effectors:

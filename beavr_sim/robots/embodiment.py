@@ -16,7 +16,15 @@ import numpy as np
 
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
-from beavr_sim.robots.parts import LEAP_HAND, LEAP_ON_XARM7, SIDES, XARM7, ArmModel, HandModel, HandMount
+from beavr_sim.robots.parts import (
+    LEAP_HAND,
+    LEAP_ON_XARM7,
+    SIDES,
+    XARM7,
+    ArmModel,
+    HandModel,
+    HandMount,
+)
 
 
 @dataclass(frozen=True)
@@ -83,7 +91,9 @@ class EmbodimentSpec:
     def __post_init__(self) -> None:
         names = [e.name for e in self.effectors]
         if not names or len(set(names)) != len(names):
-            raise ValueError(f"{self.name}: effector names must be unique and non-empty, got {names}")
+            raise ValueError(
+                f"{self.name}: effector names must be unique and non-empty, got {names}"
+            )
 
 
 # Arms bolt to the table top at world z = TABLE_TOP_Z; +x points away from the robot base into
@@ -160,7 +170,9 @@ class Embodiment:
         """Add every arm (at its base pose) and its hand (on the flange) to ``scene``."""
         for spec in self.spec.effectors:
             arm = mujoco.MjSpec.from_file(str(mjcf_path(spec.arm.mjcf)))
-            base = scene.worldbody.add_frame(pos=list(spec.base_pos), quat=list(_yaw_quat(spec.base_yaw_deg)))
+            base = scene.worldbody.add_frame(
+                pos=list(spec.base_pos), quat=list(_yaw_quat(spec.base_yaw_deg))
+            )
             scene.attach(arm, prefix=spec.prefix, frame=base)
             hand = mujoco.MjSpec.from_file(str(mjcf_path(spec.hand.mjcf(spec.side))))
             flange = scene.site(spec.prefix + spec.arm.ee_site)

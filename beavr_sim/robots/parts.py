@@ -59,7 +59,9 @@ class HandModel:
         for side in self.mjcf_by_side:
             check_name("side", side, SIDES)
         if self.home and len(self.home) != len(self.joints):
-            raise ValueError(f"{self.name}: home has {len(self.home)} values, expected {len(self.joints)}")
+            raise ValueError(
+                f"{self.name}: home has {len(self.home)} values, expected {len(self.joints)}"
+            )
         if not self.home:
             object.__setattr__(self, "home", (0.0,) * len(self.joints))
 

@@ -37,13 +37,15 @@ class Task(ABC):
     def __init__(self, embodiment: Embodiment):
         self.embodiment = embodiment
 
-    def build(self, scene: mujoco.MjSpec) -> None:  # noqa: B027 - optional hook
+    def build(self, scene: mujoco.MjSpec) -> None:
         """Add the task's objects to the scene spec (before compilation)."""
 
-    def bind(self, model: mujoco.MjModel) -> None:  # noqa: B027 - optional hook
+    def bind(self, model: mujoco.MjModel) -> None:
         """Resolve ids of the task's objects in the compiled model."""
 
-    def initialize_episode(self, model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> None:  # noqa: B027
+    def initialize_episode(
+        self, model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator
+    ) -> None:
         """Place objects for a new episode, drawing from ``rng`` only; reset any latches."""
 
     @abstractmethod
