@@ -78,8 +78,7 @@ def build_reference_model(
         arm.delete(arm.key("home"))
         if not keep_meshes:
             for geom in list(arm.geoms):
-                spec_geom_type = geom.type
-                if spec_geom_type == mujoco.mjtGeom.mjGEOM_MESH:
+                if geom.type == mujoco.mjtGeom.mjGEOM_MESH:
                     arm.delete(geom)
             for mesh in list(arm.meshes):
                 arm.delete(mesh)

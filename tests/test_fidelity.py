@@ -27,9 +27,6 @@ def _build_pair(reference_dir, embodiment_name):
     return embodiment, ours, build_reference_model(embodiment, ours, reference_dir)
 
 
-_ref_joint = reference_joint_name
-
-
 @pytest.mark.parametrize("embodiment_name", sorted(EMBODIMENTS))
 def test_flange_and_fingertips_match_reference(reference_dir, embodiment_name):
     embodiment, ours, ref = _build_pair(reference_dir, embodiment_name)
@@ -43,7 +40,7 @@ def test_flange_and_fingertips_match_reference(reference_dir, embodiment_name):
         q = rng.uniform(lo, hi)
         for n, v in zip(names, q, strict=True):
             d_ours.qpos[ours.joint(n).qposadr[0]] = v
-            d_ref.qpos[ref.joint(_ref_joint(n)).qposadr[0]] = v
+            d_ref.qpos[ref.joint(reference_joint_name(n)).qposadr[0]] = v
         mujoco.mj_kinematics(ours, d_ours)
         mujoco.mj_kinematics(ref, d_ref)
         for eff in embodiment.effectors:
@@ -66,7 +63,7 @@ def test_flange_and_fingertips_match_reference(reference_dir, embodiment_name):
 def test_joint_axes_ranges_masses_inertias_match_reference(reference_dir, embodiment_name):
     embodiment, ours, ref = _build_pair(reference_dir, embodiment_name)
     for name in embodiment.joint_names:
-        j_ours, j_ref = ours.joint(name), ref.joint(_ref_joint(name))
+        j_ours, j_ref = ours.joint(name), ref.joint(reference_joint_name(name))
         np.testing.assert_allclose(j_ours.range, j_ref.range, atol=1e-6, err_msg=name)
         # Axes in the world at the zero pose (frames differ only by our fixed mount).
         d_o, d_r = mujoco.MjData(ours), mujoco.MjData(ref)

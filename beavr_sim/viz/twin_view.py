@@ -85,15 +85,14 @@ class TwinView:
                                 position=m.geom_pos[g] + sign * axis,
                             )
                         )
-        # world-body geoms (table) never move: place their frame once
-        for body, frame in self.body_frames.items():
-            frame.position = np.zeros(3) if body == 0 else frame.position
 
     def update(self, data: mujoco.MjData, status: str | None = None) -> None:
         """Send every moving body's pose (one message batch)."""
         with self.server.atomic():
             for body, frame in self.body_frames.items():
-                if body == 0:
+                if (
+                    body == 0
+                ):  # world-body geoms (table) never move; their frame stays at the origin
                     continue
                 frame.position = data.xpos[body]
                 frame.wxyz = data.xquat[body]
