@@ -8,6 +8,7 @@ from beavr_sim.naming import check_name
 
 TASKS: dict[str, str] = {
     "Playground": "beavr_sim.tasks.playground:Playground",
+    "PickupBox": "beavr_sim.tasks.pickup_box:PickupBox",
 }
 
 

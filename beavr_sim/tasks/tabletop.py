@@ -1,0 +1,142 @@
+"""The shared base of the benchmark tasks: objects on the table in front of the robot.
+
+A :class:`TabletopTask` owns its free objects, fixtures and target areas; subclasses say
+which objects to build, how a reset lays them out and what success means. The base does the
+rest: binding, the workspace each embodiment can reach, and the common failure (an object
+fell off the table).
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from beavr_sim.envs.scene import TABLE_HALF_Y, TABLE_X
+from beavr_sim.robots import Embodiment
+from beavr_sim.robots.embodiment import TABLE_TOP_Z
+from beavr_sim.tasks.base import Task, TaskStatus
+from beavr_sim.tasks.checks import RestTimer, in_contact, robot_geom_ids
+from beavr_sim.tasks.objects import FreeObject, MocapThing, body_geom_ids
+
+#: An object whose origin drops this far below the table top has fallen off (failure).
+FALLEN_BELOW_TABLE = 0.05
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The rectangle of the table top (world x, y ranges, metres) where resets put objects."""
+
+    x: tuple[float, float]
+    y: tuple[float, float]
+
+    @classmethod
+    def for_embodiment(cls, embodiment: Embodiment) -> Workspace:
+        """In front of the arm bases: 0.35-0.55 m ahead, spanning the bases plus 0.15 m.
+
+        For one arm the rectangle leans 5 cm to the hand's thumb-free side (right arm: to
+        its right), where the hand reaches comfortably without crossing the base.
+        """
+        ys = [e.base_pos[1] for e in embodiment.spec.effectors]
+        if len(ys) == 1:
+            lean = -0.05 if embodiment.spec.effectors[0].side == "right" else 0.05
+            return cls(x=(0.35, 0.55), y=(ys[0] + lean - 0.15, ys[0] + lean + 0.15))
+        return cls(x=(0.35, 0.55), y=(min(ys) - 0.05, max(ys) + 0.05))
+
+    def sample_layout(
+        self,
+        rng: np.random.Generator,
+        radii: list[float],
+        gap: float = 0.03,
+        max_tries: int = 1000,
+    ) -> list[np.ndarray]:
+        """One xy per radius, inside the workspace, footprints ``gap`` apart."""
+        for _ in range(max_tries):
+            points: list[np.ndarray] = []
+            for r in radii:
+                p = np.array(
+                    [rng.uniform(self.x[0] + r, self.x[1] - r), rng.uniform(self.y[0], self.y[1])]
+                )
+                if all(np.linalg.norm(p - q) >= r + rq + gap for q, rq in zip(points, radii)):
+                    points.append(p)
+                else:
+                    break
+            if len(points) == len(radii):
+                return points
+        raise RuntimeError(f"could not lay out objects of radii {radii} in {self}")
+
+
+class TabletopTask(Task):
+    """Free objects, fixtures and target areas on the table; subclasses add a checker."""
+
+    #: Names of the free objects the subclass builds (bound as ``self.objects[name]``).
+    object_names: tuple[str, ...] = ()
+    #: Names of fixtures and target areas (mocap bodies, bound as ``self.fixtures[name]``).
+    fixture_names: tuple[str, ...] = ()
+
+    def __init__(self, embodiment: Embodiment):
+        super().__init__(embodiment)
+        self.workspace = Workspace.for_embodiment(embodiment)
+        self.objects: dict[str, FreeObject] = {}
+        self.fixtures: dict[str, MocapThing] = {}
+        self.robot_geoms = np.zeros(0, dtype=int)
+        self.table_geoms = np.zeros(0, dtype=int)
+
+    # ----------------------------------------------------------------- Task hooks
+    def build(self, scene: mujoco.MjSpec) -> None:
+        self.build_objects(scene)
+
+    def bind(self, model: mujoco.MjModel) -> None:
+        self.objects = {n: FreeObject.bind(model, n) for n in self.object_names}
+        self.fixtures = {n: MocapThing.bind(model, n) for n in self.fixture_names}
+        self.robot_geoms = robot_geom_ids(model, [e.name + "/" for e in self.embodiment.effectors])
+        self.table_geoms = body_geom_ids(model, model.body("table").id)
+
+    def initialize_episode(
+        self, model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator
+    ) -> None:
+        self.reset_latches()
+        self.place_objects(data, rng)
+
+    def evaluate(self, model: mujoco.MjModel, data: mujoco.MjData) -> TaskStatus:
+        fallen = [n for n, o in self.objects.items() if self.off_table(o.pos(data))]
+        status = self.check(model, data)
+        if fallen:
+            details = {**status.details, "fallen": ",".join(fallen)}
+            return TaskStatus(success=False, failure=True, details=details)
+        return status
+
+    # ----------------------------------------------------------- subclass hooks
+    @abstractmethod
+    def build_objects(self, scene: mujoco.MjSpec) -> None:
+        """Add the free objects, fixtures and target areas to the scene."""
+
+    @abstractmethod
+    def place_objects(self, data: mujoco.MjData, rng: np.random.Generator) -> None:
+        """Draw a layout from ``rng`` and put everything in place (zero velocities)."""
+
+    @abstractmethod
+    def check(self, model: mujoco.MjModel, data: mujoco.MjData) -> TaskStatus:
+        """Success (and task-specific failure) of the current state; update latches."""
+
+    def reset_latches(self) -> None:
+        """Clear every latch (called at the start of each episode)."""
+
+    # ------------------------------------------------------------------- helpers
+    @staticmethod
+    def off_table(pos: np.ndarray) -> bool:
+        return bool(
+            pos[2] < TABLE_TOP_Z - FALLEN_BELOW_TABLE
+            or not (TABLE_X[0] <= pos[0] <= TABLE_X[1])
+            or abs(pos[1]) > TABLE_HALF_Y
+        )
+
+    def touched_by_robot(self, model: mujoco.MjModel, data: mujoco.MjData, name: str) -> bool:
+        return in_contact(model, data, self.objects[name].geom_ids, self.robot_geoms)
+
+    def still(self, data: mujoco.MjData, name: str, timer: RestTimer) -> bool:
+        """Feed ``timer`` with object ``name``'s speeds; True once it has been at rest."""
+        obj = self.objects[name]
+        return timer.update(data.time, obj.linear_speed(data), obj.angular_speed(data))
