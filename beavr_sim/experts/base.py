@@ -17,12 +17,16 @@ from dataclasses import dataclass, field
 import mink
 import numpy as np
 
+from beavr_sim.experts import grasps
 from beavr_sim.experts.ik import TwinIK
+from beavr_sim.robots.embodiment import TABLE_TOP_Z
 
 #: Hand speed limits of every expert: a calm human reaching speed.
 MAX_LINEAR_SPEED = 0.3  # m/s
 MAX_ANGULAR_SPEED = 1.5  # rad/s
 MAX_FINGER_SPEED = 3.0  # rad/s per joint
+#: Joint speed of the opening move to the ready posture (rad/s, the fastest joint).
+READY_JOINT_SPEED = 1.0
 
 
 @dataclass
@@ -54,18 +58,26 @@ class ScriptedExpert(ABC):
         self.embodiment = self.env.embodiment
         self.dt = 1.0 / self.env.control_hz
         self.ik = TwinIK(self.embodiment, self.dt)
+        self.ready_q = self.ik.converge(self.ready_poses())
         self._script: Iterator[Move] | None = None
 
     # ------------------------------------------------------------------ running
     def reset(self) -> None:
-        """Call after ``env.reset``: start the script from the measured robot state."""
+        """Call after ``env.reset``: start from the measured robot state.
+
+        The arms first move in joint space to the ready posture (as an operator raises the
+        hands before starting), then the script runs in task space from there.
+        """
         q = self.env.agent_pos.astype(np.float64)
-        self.ik.reset(q)
-        self.pose = {e.name: self.ik.T_world_hand(e.name) for e in self.embodiment.effectors}
+        self.ik.reset(q, posture=self.ready_q)
         self.fingers = {
             e.name: q[self.env.joints.slices[e.name]][len(e.arm_joints) :].copy()
             for e in self.embodiment.effectors
         }
+        span = float(np.max(np.abs(self.ready_q - q)))
+        n = max(1, int(np.ceil(span / READY_JOINT_SPEED / self.dt)))
+        self._joint_path = [q + smoothstep(i / n) * (self.ready_q - q) for i in range(1, n + 1)]
+        self.pose = {e.name: self.ik.T_world_hand(e.name) for e in self.embodiment.effectors}
         self._script = self.script()
         self._timeline: list[tuple[dict, dict]] = []
         self.done = False
@@ -74,6 +86,11 @@ class ScriptedExpert(ABC):
         """The next action (joint targets in the env's order)."""
         if self._script is None:
             raise RuntimeError("call reset() after env.reset() before act()")
+        if self._joint_path:
+            q = self._joint_path.pop(0)
+            self.ik.reset(q, posture=self.ready_q)
+            self.pose = {e.name: self.ik.T_world_hand(e.name) for e in self.embodiment.effectors}
+            return self._with_fingers(q)
         while not self._timeline and not self.done:
             try:
                 self._timeline = self._expand(next(self._script))
@@ -81,7 +98,11 @@ class ScriptedExpert(ABC):
                 self.done = True
         if self._timeline:
             self.pose, self.fingers = self._timeline.pop(0)
-        q = self.ik.step(self.pose)
+        return self._with_fingers(self.ik.step(self.pose))
+
+    def _with_fingers(self, q: np.ndarray) -> np.ndarray:
+        """Arm joints from ``q``, hand joints from the current finger targets."""
+        q = q.copy()
         for e in self.embodiment.effectors:
             sl = self.env.joints.slices[e.name]
             q[sl.start + len(e.arm_joints) : sl.stop] = self.fingers[e.name]
@@ -91,7 +112,9 @@ class ScriptedExpert(ABC):
         """The per-control-step (pose, fingers) targets of one segment."""
         start_pose, start_fingers = dict(self.pose), dict(self.fingers)
         end_pose = {**start_pose, **move.poses}
-        end_fingers = {k: np.asarray(v, float) for k, v in {**start_fingers, **move.fingers}.items()}
+        end_fingers = {
+            k: np.asarray(v, float) for k, v in {**start_fingers, **move.fingers}.items()
+        }
         duration = move.duration
         for name, target in move.poses.items():
             delta = (start_pose[name].inverse() @ target).log()
@@ -110,9 +133,7 @@ class ScriptedExpert(ABC):
         for i in range(1, n + 1):
             s = smoothstep(i / n)
             pose = {k: _interpolate(start_pose[k], end_pose[k], s) for k in end_pose}
-            fingers = {
-                k: (1 - s) * start_fingers[k] + s * end_fingers[k] for k in end_fingers
-            }
+            fingers = {k: (1 - s) * start_fingers[k] + s * end_fingers[k] for k in end_fingers}
             steps.append((pose, fingers))
         steps += [steps[-1]] * int(np.ceil(move.settle / self.dt))
         return steps
@@ -125,6 +146,48 @@ class ScriptedExpert(ABC):
     @property
     def effector_names(self) -> list[str]:
         return [e.name for e in self.embodiment.effectors]
+
+    def ready_poses(self) -> dict[str, mink.SE3]:
+        """Each hand palm down, fingers forward, 20 cm above the workspace in front of its
+        arm: the posture the IK's redundancy resolves towards (keeps the elbow and wrist in
+        one consistent configuration across episodes)."""
+        ws = self.task.workspace
+        return {
+            e.name: grasps.T_world_hand_pinching(
+                (np.mean(ws.x), e.base_pos[1], TABLE_TOP_Z + 0.2), grasps.R_world_palm_down(0.0)
+            )
+            for e in self.embodiment.spec.effectors
+        }
+
+    # ------------------------------------------------------- motion primitives
+    def pick(self, effector: str, obj: str, heading: float, lift: float = 0.12) -> Iterator[Move]:
+        """Front-pinch object ``obj`` (read its pose now) with the hand heading ``heading``,
+        then lift it ``lift`` metres."""
+        centre = self.task.objects[obj].pos(self.env.data)
+        centre[2] = max(centre[2], TABLE_TOP_Z + grasps.MIN_PINCH_HEIGHT)
+        R = grasps.R_world_palm_down(heading)
+        above = grasps.T_world_hand_pinching(centre + [0, 0, lift], R)
+        at = grasps.T_world_hand_pinching(centre, R)
+        yield Move(poses={effector: above}, fingers={effector: grasps.PINCH_OPEN}, settle=0.2)
+        yield Move(poses={effector: at}, settle=0.2)
+        yield Move(fingers={effector: grasps.PINCH_CLOSED}, duration=0.6, settle=0.3)
+        yield Move(poses={effector: above}, settle=0.2)
+
+    def place(
+        self, effector: str, centre_world, clearance: float = 0.12, drop: float = 0.005
+    ) -> Iterator[Move]:
+        """Carry the pinched object over ``centre_world`` (where its centre should end up),
+        lower it to ``drop`` metres above that, open the hand and withdraw upwards."""
+        pose = self.pose[effector]
+        R = pose.rotation().as_matrix()
+        centre = np.asarray(centre_world, float)
+        yield Move(poses={effector: grasps.T_world_hand_pinching(centre + [0, 0, clearance], R)})
+        yield Move(
+            poses={effector: grasps.T_world_hand_pinching(centre + [0, 0, drop], R)}, settle=0.2
+        )
+        yield Move(fingers={effector: grasps.RELEASE}, duration=0.4, settle=0.2)
+        up = grasps.T_world_hand_pinching(centre + [0, 0, clearance], R)
+        yield Move(poses={effector: up}, settle=0.2)
 
 
 def _interpolate(a: mink.SE3, b: mink.SE3, s: float) -> mink.SE3:

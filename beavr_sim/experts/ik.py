@@ -31,7 +31,7 @@ class TwinIK:
         iterations: int = 2,
         position_cost: float = 1.0,
         orientation_cost: float = 0.5,
-        posture_cost: float = 1e-3,
+        posture_cost: float = 1e-2,
     ):
         self.embodiment = embodiment
         self.dt = float(dt)
@@ -58,12 +58,32 @@ class TwinIK:
         self._q = np.zeros(self.model.nq)
         self.reset(self.joints.home)
 
-    def reset(self, q_action_order: np.ndarray) -> None:
-        """Start from joint positions given in action order (e.g. the measured ones)."""
+    def reset(self, q_action_order: np.ndarray, posture: np.ndarray | None = None) -> None:
+        """Start from joint positions given in action order (e.g. the measured ones).
+
+        ``posture`` (action order) is the configuration the redundancy resolves towards;
+        by default the start itself.
+        """
         self._q = self.configuration.q.copy()
         self._q[self.joints.qpos_adr] = q_action_order
         self.configuration.update(self._q)
-        self.posture_task.set_target(self._q.copy())
+        target = self._q.copy()
+        if posture is not None:
+            target[self.joints.qpos_adr] = posture
+        self.posture_task.set_target(target)
+
+    def converge(
+        self, targets: Mapping[str, mink.SE3], seconds: float = 4.0, tolerance: float = 1e-3
+    ) -> np.ndarray:
+        """Run :meth:`step` until the hands reach ``targets`` (or ``seconds`` of steps pass).
+
+        Returns the joint positions in action order; the IK state is left there.
+        """
+        for _ in range(int(np.ceil(seconds / self.dt))):
+            q = self.step(targets)
+            if max(p for p, _ in self.pose_error(targets).values()) < tolerance:
+                break
+        return q
 
     def T_world_hand(self, effector: str) -> mink.SE3:
         """The hand (mount) frame of ``effector`` in the current IK configuration."""

@@ -16,3 +16,16 @@ def task_class(name: str):
     """The task class registered as ``name``; raises with the valid names if unknown."""
     module, _, attr = TASKS[check_name("task", name, TASKS)].partition(":")
     return getattr(importlib.import_module(module), attr)
+
+
+def _squash(name: str) -> str:
+    return name.lower().replace("_", "").replace("-", "").replace(" ", "")
+
+
+def canonical_task_name(name: str) -> str:
+    """The registered spelling of a task name given in any case, with or without ``_``/``-``
+    (``pour`` -> ``Pour``, ``pick_place`` -> ``PickPlace``); raises with the valid names."""
+    by_squashed = {_squash(t): t for t in TASKS}
+    if isinstance(name, str) and _squash(name) in by_squashed:
+        return by_squashed[_squash(name)]
+    return check_name("task", name, TASKS)

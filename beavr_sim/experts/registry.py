@@ -1,0 +1,19 @@
+"""Task names -> scripted expert classes (lazy "module:Class" paths), the one list of them."""
+
+from __future__ import annotations
+
+import importlib
+
+from beavr_sim.naming import check_name
+
+EXPERTS: dict[str, str] = {
+    "PickupBox": "beavr_sim.experts.pickup_box:PickAndPlaceExpert",
+}
+
+
+def expert_class(task: str):
+    """The expert class for ``task``; raises with the valid names if there is none."""
+    module, _, attr = EXPERTS[check_name("task with a scripted expert", task, EXPERTS)].partition(
+        ":"
+    )
+    return getattr(importlib.import_module(module), attr)
