@@ -34,7 +34,7 @@ class Move:
     """Move some effectors' hands and/or fingers to new targets over at least ``duration`` s.
 
     ``poses``: effector name -> T_world_hand target; ``fingers``: effector name -> 16 hand
-    joint targets. Effectors not named keep their current targets. ``settle`` seconds of
+    joint targets written for a right hand (mirrored for a left one). Effectors not named keep their current targets. ``settle`` seconds of
     holding follow the motion.
     """
 
@@ -100,6 +100,15 @@ class ScriptedExpert(ABC):
             self.pose, self.fingers = self._timeline.pop(0)
         return self._with_fingers(self.ik.step(self.pose))
 
+    def _sided(self, fingers: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Finger shapes written for a right hand, mirrored for each effector's side."""
+        return {
+            name: e.hand.mirrored(np.asarray(shape, float), e.side)
+            for name, shape in fingers.items()
+            for e in self.embodiment.spec.effectors
+            if e.name == name
+        }
+
     def _with_fingers(self, q: np.ndarray) -> np.ndarray:
         """Arm joints from ``q``, hand joints from the current finger targets."""
         q = q.copy()
@@ -112,9 +121,7 @@ class ScriptedExpert(ABC):
         """The per-control-step (pose, fingers) targets of one segment."""
         start_pose, start_fingers = dict(self.pose), dict(self.fingers)
         end_pose = {**start_pose, **move.poses}
-        end_fingers = {
-            k: np.asarray(v, float) for k, v in {**start_fingers, **move.fingers}.items()
-        }
+        end_fingers = {**start_fingers, **self._sided(move.fingers)}
         duration = move.duration
         for name, target in move.poses.items():
             delta = (start_pose[name].inverse() @ target).log()
@@ -124,7 +131,7 @@ class ScriptedExpert(ABC):
                 / MAX_LINEAR_SPEED,
                 np.linalg.norm(delta[3:]) / MAX_ANGULAR_SPEED,
             )
-        for name, target in move.fingers.items():
+        for name, target in self._sided(move.fingers).items():
             duration = max(
                 duration, float(np.max(np.abs(target - start_fingers[name]))) / MAX_FINGER_SPEED
             )
@@ -188,6 +195,10 @@ class ScriptedExpert(ABC):
         yield Move(fingers={effector: grasps.RELEASE}, duration=0.4, settle=0.2)
         up = grasps.T_world_hand_pinching(centre + [0, 0, clearance], R)
         yield Move(poses={effector: up}, settle=0.2)
+
+    def retreat(self, effector: str) -> Iterator[Move]:
+        """Take the hand back to its ready pose, out of the way of the cameras and objects."""
+        yield Move(poses={effector: self.ready_poses()[effector]})
 
 
 def _interpolate(a: mink.SE3, b: mink.SE3, s: float) -> mink.SE3:

@@ -7,7 +7,8 @@ the fingers, +x out of the palm, origin on the adapter face; the thumb at +y on 
 hand, mirrored on the left):
 
 - ``PINCH_CENTRE_IN_HAND``: where the centre of a 5-7 cm object sits in the hand frame when
-  the fingers close on it. The fingertips reach about 2 cm below (palm-normal) this point, so
+  the fingers close on it (sideways: midway between the thumb tip and the middle of the
+  three fingertips, on both hands). The fingertips reach about 2 cm below (palm-normal) this point, so
   the centre must stay >= ``MIN_PINCH_HEIGHT`` above the table.
 - Finger joint targets: open (pre-shape) and closed; the closed shape pushes past the object
   surface so the position servos squeeze it.
@@ -19,7 +20,7 @@ import numpy as np
 
 from beavr_sim.experts.ik import rotation_from_axes, se3
 
-PINCH_CENTRE_IN_HAND = np.array([0.09, 0.0, 0.12])
+PINCH_CENTRE_IN_HAND = np.array([0.09, -0.013, 0.12])
 #: Lowest height of the pinch centre above the table top (fingertips clear the table).
 MIN_PINCH_HEIGHT = 0.03
 

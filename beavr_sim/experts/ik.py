@@ -129,9 +129,3 @@ def rotation_from_axes(fingers: np.ndarray, palm_normal: np.ndarray) -> np.ndarr
 
 def se3(R: np.ndarray, p: np.ndarray) -> mink.SE3:
     return mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(R), np.asarray(p, float))
-
-
-def mat_to_quat(R: np.ndarray) -> np.ndarray:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R).flatten())
-    return q

@@ -7,7 +7,9 @@ import importlib
 from beavr_sim.naming import check_name
 
 EXPERTS: dict[str, str] = {
-    "PickupBox": "beavr_sim.experts.pickup_box:PickAndPlaceExpert",
+    "PickupBox": "beavr_sim.experts.pick_and_place:PickupBoxExpert",
+    "PickPlace": "beavr_sim.experts.pick_and_place:PickPlaceExpert",
+    "StackBlocks": "beavr_sim.experts.pick_and_place:StackBlocksExpert",
 }
 
 

@@ -54,6 +54,9 @@ class HandModel:
     fingertip_sites: tuple[str, ...]
     root_body: str = "hand"
     home: tuple[float, ...] = field(default=())
+    #: Per side, the sign that maps a right-hand joint value to this side's joint value for
+    #: the mirror-image finger shape (sides not listed: all +1).
+    mirror_signs_by_side: dict[str, tuple[float, ...]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for side in self.mjcf_by_side:
@@ -67,6 +70,12 @@ class HandModel:
 
     def mjcf(self, side: str) -> str:
         return self.mjcf_by_side[check_name("side", side, self.mjcf_by_side)]
+
+    def mirrored(self, q_right, side: str) -> np.ndarray:
+        """Joint values on ``side`` that make the mirror image of right-hand shape ``q_right``."""
+        signs = self.mirror_signs_by_side.get(check_name("side", side, SIDES), None)
+        q = np.asarray(q_right, dtype=float)
+        return q * np.asarray(signs) if signs is not None else q.copy()
 
 
 @dataclass(frozen=True)
@@ -105,6 +114,9 @@ LEAP_HAND = HandModel(
     joints=tuple(f"leap_{i}" for i in range(16)),
     palm_site="palm_centre",
     fingertip_sites=("thumb_tip", "index_tip", "middle_tip", "ring_tip"),
+    # The left hand's thumb CMC joints (12, 13) turn the other way: their ranges are the
+    # right hand's negated (see the hand MJCF).
+    mirror_signs_by_side={"left": (1.0,) * 12 + (-1.0, -1.0, 1.0, 1.0)},
 )
 
 # The hand bolts to the flange through the adapter plate that is part of the hand model;

@@ -51,9 +51,7 @@ def add_free_body(scene: mujoco.MjSpec, name: str) -> mujoco.MjsBody:
     return body
 
 
-def add_box_object(
-    scene: mujoco.MjSpec, name: str, half_size, mass: float, rgba
-) -> mujoco.MjsBody:
+def add_box_object(scene: mujoco.MjSpec, name: str, half_size, mass: float, rgba) -> mujoco.MjsBody:
     """A free box of ``half_size`` (metres) and ``mass`` (kg)."""
     body = add_free_body(scene, name)
     body.add_geom(
@@ -180,6 +178,13 @@ class MocapThing:
         """Stand it on the table at ``xy`` turned ``yaw`` radians about +z."""
         data.mocap_pos[self.mocap_id] = (xy[0], xy[1], TABLE_TOP_Z)
         data.mocap_quat[self.mocap_id] = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
+
+
+def mat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix."""
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(R, dtype=float).flatten())
+    return quat
 
 
 def yaw_quat(yaw: float) -> np.ndarray:

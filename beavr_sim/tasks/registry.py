@@ -9,6 +9,12 @@ from beavr_sim.naming import check_name
 TASKS: dict[str, str] = {
     "Playground": "beavr_sim.tasks.playground:Playground",
     "PickupBox": "beavr_sim.tasks.pickup_box:PickupBox",
+    "PickPlace": "beavr_sim.tasks.pick_place:PickPlace",
+    "StackBlocks": "beavr_sim.tasks.stack_blocks:StackBlocks",
+    "FlipCube": "beavr_sim.tasks.flip_cube:FlipCube",
+    "Lantern": "beavr_sim.tasks.lantern:Lantern",
+    "Tape": "beavr_sim.tasks.tape:Tape",
+    "Pour": "beavr_sim.tasks.pour:Pour",
 }
 
 

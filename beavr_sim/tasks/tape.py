@@ -85,9 +85,13 @@ class Tape(TabletopTask):
         self.rest = RestTimer()
 
     def ring_tip_in_hole(self, data: mujoco.MjData) -> bool:
-        """Whether the ring fingertip site lies in the roll's hole (see the module docstring)."""
-        tape = self.objects["tape"]
-        p_tape_tip = tape.R_world_body(data).T @ (data.site_xpos[self.ring_tip_site] - tape.pos(data))
+        """Whether the ring fingertip site lies in the roll's hole (see the module docstring).
+
+        Site and roll poses both come from the last kinematics pass, so they are consistent.
+        """
+        body = self.objects["tape"].body_id
+        R_world_tape = data.xmat[body].reshape(3, 3)
+        p_tape_tip = R_world_tape.T @ (data.site_xpos[self.ring_tip_site] - data.xpos[body])
         return bool(
             np.hypot(p_tape_tip[0], p_tape_tip[1]) < TAPE_INNER_RADIUS
             and abs(p_tape_tip[2]) < TAPE_HALF_WIDTH + IN_HOLE_Z_MARGIN
