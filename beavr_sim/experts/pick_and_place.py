@@ -30,10 +30,14 @@ class PickAndPlaceExpert(ScriptedExpert):
         bases = {e.name: np.asarray(e.base_pos[:2]) for e in self.embodiment.spec.effectors}
         return min(bases, key=lambda n: float(np.linalg.norm(bases[n] - np.asarray(xy[:2]))))
 
-    def transfer(self, obj: str, goal_centre, symmetry: float | None) -> Iterator[Move]:
-        """Pick ``obj`` and put it down with its centre at ``goal_centre`` (world)."""
+    def transfer(
+        self, obj: str, goal_centre, symmetry: float | None, effector: str | None = None
+    ) -> Iterator[Move]:
+        """Pick ``obj`` and put it down with its centre at ``goal_centre`` (world), with
+        ``effector`` or else the hand nearest the middle of the way."""
         start = self.task.objects[obj].pos(self.env.data)
-        effector = self.nearest_effector((start[:2] + np.asarray(goal_centre)[:2]) / 2)
+        if effector is None:
+            effector = self.nearest_effector((start[:2] + np.asarray(goal_centre)[:2]) / 2)
         yield from self.pick(effector, obj, self.heading_for(obj, symmetry))
         yield from self.place(effector, goal_centre)
         yield from self.retreat(effector)
@@ -60,7 +64,16 @@ class StackBlocksExpert(PickAndPlaceExpert):
         data = self.env.data
         target = self.task.fixtures["target"].pos(data)
         large_z = self.task.objects["large_block"].pos(data)[2]
-        yield from self.transfer("large_block", (target[0], target[1], large_z), np.pi / 2)
         large = self.task.objects["large_block"].pos(data)
+        yield from self.transfer(
+            "large_block",
+            (target[0], target[1], large_z),
+            np.pi / 2,
+            effector=self.nearest_effector(large),
+        )
+        large = self.task.objects["large_block"].pos(data)
+        small = self.task.objects["small_block"].pos(data)
         on_top = large + [0.0, 0.0, LARGE_HALF + SMALL_HALF]
-        yield from self.transfer("small_block", on_top, np.pi / 2)
+        yield from self.transfer(
+            "small_block", on_top, np.pi / 2, effector=self.nearest_effector(small)
+        )

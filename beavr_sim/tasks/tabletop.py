@@ -51,21 +51,28 @@ class Workspace:
         radii: list[float],
         gap: float = 0.03,
         max_tries: int = 1000,
+        avoid: list[tuple[np.ndarray, float]] = (),
     ) -> list[np.ndarray]:
-        """One xy per radius, inside the workspace, footprints ``gap`` apart."""
+        """One xy per radius, inside the workspace, footprints ``gap`` apart and apart from
+        the ``avoid`` footprints (xy, radius) already placed."""
         for _ in range(max_tries):
-            points: list[np.ndarray] = []
+            placed = [(np.asarray(xy, float), float(r)) for xy, r in avoid]
             for r in radii:
                 p = np.array(
                     [rng.uniform(self.x[0] + r, self.x[1] - r), rng.uniform(self.y[0], self.y[1])]
                 )
-                if all(np.linalg.norm(p - q) >= r + rq + gap for q, rq in zip(points, radii)):
-                    points.append(p)
+                if all(np.linalg.norm(p - q) >= r + rq + gap for q, rq in placed):
+                    placed.append((p, r))
                 else:
                     break
-            if len(points) == len(radii):
-                return points
+            if len(placed) == len(avoid) + len(radii):
+                return [p for p, _ in placed[len(avoid) :]]
         raise RuntimeError(f"could not lay out objects of radii {radii} in {self}")
+
+    def middle(self, half_width: float) -> Workspace:
+        """The band of this workspace within ``half_width`` of its centre line (in y)."""
+        centre = (self.y[0] + self.y[1]) / 2
+        return Workspace(x=self.x, y=(centre - half_width, centre + half_width))
 
 
 class TabletopTask(Task):
