@@ -8,24 +8,49 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import beavr_sim
-from beavr_sim.envs.registration import registered_env_ids
+from beavr_sim.envs.registration import env_id, registered_env_ids
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots import EMBODIMENTS
+from beavr_sim.tasks.registry import TASKS, task_class
 
 ENV_IDS = registered_env_ids()
+BENCHMARK_TASKS = ("Tape", "Lantern", "StackBlocks", "FlipCube", "Pour", "PickPlace", "PickupBox")
 
 
-def test_registration_lists_playground():
+def _supported(task: str) -> list[str]:
+    allowed = task_class(task).embodiments
+    return sorted(EMBODIMENTS) if allowed is None else list(allowed)
+
+
+ENV_EMBODIMENTS = [
+    (env_id(task), embodiment) for task in TASKS for embodiment in _supported(task)
+]
+
+
+def test_registration_lists_every_task():
     assert "beavr_sim/Playground-v0" in ENV_IDS
+    for task in BENCHMARK_TASKS:
+        assert env_id(task) in ENV_IDS
     assert beavr_sim.register_envs() == ENV_IDS  # idempotent
 
 
-@pytest.mark.parametrize("embodiment", sorted(EMBODIMENTS))
-@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_benchmark_tasks_support_the_issue_embodiments():
+    for task in BENCHMARK_TASKS:
+        assert "xarm7_leap_right" in _supported(task)
+    for task in ("StackBlocks", "Pour", "PickPlace"):
+        assert "xarm7_leap_bimanual" in _supported(task)
+
+
+@pytest.mark.parametrize("env_id,embodiment", ENV_EMBODIMENTS)
 def test_check_env_state_only(env_id, embodiment):
     env = gym.make(env_id, embodiment=embodiment)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
+
+
+def test_unsupported_embodiment_lists_the_supported_ones():
+    with pytest.raises(UnknownNameError, match="xarm7_leap_right"):
+        gym.make("beavr_sim/FlipCube-v0", embodiment="xarm7_leap_bimanual")
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

@@ -10,6 +10,7 @@ EXPERTS: dict[str, str] = {
     "PickupBox": "beavr_sim.experts.pick_and_place:PickupBoxExpert",
     "PickPlace": "beavr_sim.experts.pick_and_place:PickPlaceExpert",
     "StackBlocks": "beavr_sim.experts.pick_and_place:StackBlocksExpert",
+    "FlipCube": "beavr_sim.experts.flip_cube:FlipCubeExpert",
 }
 
 

@@ -91,7 +91,7 @@ class FlipCube(TabletopTask):
         if self.start_face is None:
             self.start_face = face
         flipped = face != self.start_face
-        level = float(np.max(np.abs(R_world_cube[2, :]))) > np.cos(MAX_TILT)
+        level = bool(np.max(np.abs(R_world_cube[2, :])) > np.cos(MAX_TILT))
         on_table = in_contact(model, data, cube.geom_ids, self.table_geoms)
         released = not self.touched_by_robot(model, data, "cube")
         at_rest = self.still(data, "cube", self.rest)

@@ -68,7 +68,7 @@ class PickPlace(TabletopTask):
         at_rest = self.still(data, "item", self.rest)
         target = self.fixtures["target"]
         in_area = inside_rectangle(pos, target.pos(data), AREA_HALF, target.yaw(data))
-        upright = up_axis_tilt(item.R_world_body(data)) < MAX_TILT
+        upright = bool(up_axis_tilt(item.R_world_body(data)) < MAX_TILT)
         on_table = in_contact(model, data, item.geom_ids, self.table_geoms)
         released = not self.touched_by_robot(model, data, "item")
         success = self.lifted and in_area and upright and on_table and released and at_rest
