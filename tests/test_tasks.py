@@ -1,0 +1,211 @@
+"""Benchmark tasks: checkers on constructed states (positives and near misses), zero-motion
+episodes, seeded resets, and the scripted experts on a few seeds."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+
+import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.experts.registry import EXPERTS
+from beavr_sim.experts.run import run_episode
+from beavr_sim.robots.embodiment import TABLE_TOP_Z
+from beavr_sim.tasks import flip_cube, pick_place, pickup_box, stack_blocks
+from beavr_sim.tasks.checks import REST_SECONDS, face_up
+from beavr_sim.tasks.registry import TASKS, canonical_task_name, task_class
+from beavr_sim.tasks.objects import mat_to_quat, yaw_quat
+
+BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
+
+
+def make(task: str, seed: int = 0, embodiment: str = "xarm7_leap_right"):
+    env = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
+    env.reset(seed=seed)
+    return env
+
+
+def hold(env, seconds: float) -> dict:
+    """Step with the robot holding still; the last info."""
+    action = env.agent_pos
+    info = {}
+    for _ in range(round(seconds * env.control_hz)):
+        info = env.step(action)[4]
+    return info
+
+
+def lift_then_put(env, name: str, xy, z_rest: float, quat=(1.0, 0.0, 0.0, 0.0)) -> None:
+    """Carry object ``name`` 8 cm up (one evaluation there), then stand it at ``xy``."""
+    obj = env.task.objects[name]
+    obj.set_pose(env.data, (*xy, z_rest + 0.08), quat)
+    env.task.evaluate(env.model, env.data)
+    obj.set_pose(env.data, (*xy, z_rest + 0.001), quat)
+
+
+def area_xy(env, name: str = "target") -> np.ndarray:
+    return env.task.fixtures[name].pos(env.data)[:2]
+
+
+# ------------------------------------------------------------------------- PickupBox
+def test_pickup_box_success_needs_lift_area_and_rest():
+    env = make("PickupBox")
+    z = TABLE_TOP_Z + pickup_box.BOX_HALF[2]
+    lift_then_put(env, "box", area_xy(env), z)
+    info = hold(env, REST_SECONDS + 0.3)
+    assert info["is_success"], info
+
+
+def test_pickup_box_pushed_into_area_without_lift_fails():
+    env = make("PickupBox")
+    env.task.objects["box"].set_pose(env.data, (*area_xy(env), TABLE_TOP_Z + 0.035))
+    info = hold(env, REST_SECONDS + 0.3)
+    assert not info["is_success"] and info["task/lifted"] is False
+
+
+def test_pickup_box_outside_area_fails():
+    env = make("PickupBox")
+    xy = area_xy(env) + [0.0, pickup_box.AREA_HALF[1] + 0.04]
+    lift_then_put(env, "box", xy, TABLE_TOP_Z + pickup_box.BOX_HALF[2])
+    info = hold(env, REST_SECONDS + 0.3)
+    assert not info["is_success"] and info["task/in_area"] is False and info["task/lifted"]
+
+
+# ------------------------------------------------------------------------- PickPlace
+def test_pick_place_success_and_sliding_near_miss():
+    env = make("PickPlace", seed=2)
+    item = env.task.objects["item"]
+    z = TABLE_TOP_Z + pick_place.ITEM_HALF_HEIGHT
+    lift_then_put(env, "item", area_xy(env), z)
+    # Sliding across the area at 5 cm/s: in it at every evaluation, never at rest.
+    for i in range(round((REST_SECONDS + 0.3) * env.control_hz)):
+        env.data.time += 1 / env.control_hz
+        item.set_pose(env.data, (*(area_xy(env) + [0.001 * i, 0.0]), z))
+        env.data.qvel[item.qvel_adr] = 0.05
+        mujoco.mj_forward(env.model, env.data)
+        status = env.task.evaluate(env.model, env.data)
+        assert status.details["in_area"] and not status.success
+    assert status.details["at_rest"] is False
+    info = hold(env, REST_SECONDS + 0.3)
+    assert info["is_success"], info
+
+
+def test_pick_place_item_lying_in_area_fails():
+    env = make("PickPlace", seed=3)
+    lying = mat_to_quat(np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float))
+    lift_then_put(env, "item", area_xy(env), TABLE_TOP_Z + pick_place.ITEM_RADIUS, lying)
+    info = hold(env, REST_SECONDS + 0.3)
+    assert not info["is_success"] and info["task/upright"] is False and info["task/in_area"]
+
+
+# ----------------------------------------------------------------------- StackBlocks
+def _stack(env, bottom: str, top: str, bottom_half: float, top_half: float) -> dict:
+    blocks = env.task.objects
+    xy = area_xy(env)
+    blocks[bottom].set_pose(env.data, (*xy, TABLE_TOP_Z + bottom_half + 0.001), yaw_quat(0.3))
+    blocks[top].set_pose(env.data, (*xy, TABLE_TOP_Z + 2 * bottom_half + top_half + 0.002))
+    return hold(env, REST_SECONDS + 0.5)
+
+
+def test_stack_blocks_small_on_large_succeeds():
+    env = make("StackBlocks")
+    info = _stack(
+        env, "large_block", "small_block", stack_blocks.LARGE_HALF, stack_blocks.SMALL_HALF
+    )
+    assert info["is_success"], info
+
+
+def test_stack_blocks_wrong_order_fails():
+    env = make("StackBlocks")
+    info = _stack(
+        env, "small_block", "large_block", stack_blocks.SMALL_HALF, stack_blocks.LARGE_HALF
+    )
+    assert not info["is_success"]
+    assert info["task/small_on_large"] is False
+
+
+def test_stack_blocks_side_by_side_in_area_fails():
+    env = make("StackBlocks")
+    xy = area_xy(env)
+    env.task.objects["large_block"].set_pose(env.data, (xy[0] - 0.035, xy[1], TABLE_TOP_Z + 0.0335))
+    env.task.objects["small_block"].set_pose(env.data, (xy[0] + 0.035, xy[1], TABLE_TOP_Z + 0.0235))
+    info = hold(env, REST_SECONDS + 0.3)
+    assert not info["is_success"] and info["task/large_in_area"] is True
+
+
+# -------------------------------------------------------------------------- FlipCube
+def test_flip_cube_put_back_on_same_face_fails_other_face_succeeds():
+    env = make("FlipCube", seed=4)
+    cube = env.task.objects["cube"]
+    start_quat = cube.quat(env.data).copy()
+    start = face_up(cube.R_world_body(env.data))
+    xy = cube.pos(env.data)[:2]
+    z = TABLE_TOP_Z + flip_cube.CUBE_HALF
+    lift_then_put(env, "cube", xy, z, start_quat)
+    info = hold(env, REST_SECONDS + 0.3)
+    assert not info["is_success"] and info["task/face_up"] == start
+    # Quarter turn about world x: a side face comes up.
+    R = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float) @ cube.R_world_body(env.data)
+    lift_then_put(env, "cube", xy, z, mat_to_quat(R))
+    info = hold(env, REST_SECONDS + 0.3)
+    assert info["is_success"] and info["task/face_up"] != start, info
+
+
+def test_flip_cube_resets_cover_every_face():
+    env = make("FlipCube")
+    faces = set()
+    for seed in range(40):
+        env.reset(seed=seed)
+        faces.add(face_up(env.task.objects["cube"].R_world_body(env.data)))
+    assert faces == set(flip_cube.FACE_COLOURS)
+
+
+# ----------------------------------------------------------------------- every task
+def _supported(task: str) -> tuple[str, ...]:
+    return task_class(task).embodiments or ("xarm7_leap_right",)
+
+
+TASK_EMBODIMENTS = [(t, e) for t in BENCHMARK_TASKS for e in _supported(t)]
+
+
+@pytest.mark.parametrize("task,embodiment", TASK_EMBODIMENTS)
+def test_zero_motion_episode_never_succeeds(task, embodiment):
+    env = make(task, seed=0, embodiment=embodiment)
+    action = env.agent_pos
+    terminated = truncated = False
+    while not (terminated or truncated):
+        _, _, terminated, truncated, info = env.step(action)
+        assert not info["is_success"]
+    assert truncated and not info["is_failure"]
+
+
+@pytest.mark.parametrize("task", BENCHMARK_TASKS)
+def test_reset_is_seeded(task):
+    env = make(task)
+    poses = []
+    for seed in (5, 5, 6):
+        env.reset(seed=seed)
+        poses.append(np.concatenate([o.pos(env.data) for o in env.task.objects.values()]))
+    np.testing.assert_array_equal(poses[0], poses[1])
+    assert not np.allclose(poses[0], poses[2])
+
+
+def test_task_names_accept_any_case():
+    assert canonical_task_name("pour") == "Pour"
+    assert canonical_task_name("pick_place") == "PickPlace"
+    with pytest.raises(KeyError, match="Valid tasks"):
+        canonical_task_name("poor")
+
+
+# ----------------------------------------------------------------------------- experts
+EXPERT_CASES = [(t, e) for t in EXPERTS for e in _supported(t)]
+
+
+@pytest.mark.parametrize("task,embodiment", EXPERT_CASES)
+def test_expert_solves_a_few_seeds(task, embodiment):
+    from beavr_sim.experts.registry import expert_class
+
+    env = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
+    expert = expert_class(task)(env)
+    results = [run_episode(env, expert, seed) for seed in (0, 1, 2)]
+    assert sum(r.success for r in results) >= 2, [(r.seed, r.details) for r in results]
