@@ -54,7 +54,9 @@ class PickPlaceExpert(PickAndPlaceExpert):
     def script(self) -> Iterator[Move]:
         item = self.task.objects["item"].pos(self.env.data)
         target = self.task.fixtures["target"].pos(self.env.data)
-        yield from self.transfer("item", (target[0], target[1], item[2]), symmetry=None)
+        yield from self.transfer(
+            "item", (target[0], target[1], item[2]), None, effector=self.nearest_effector(item)
+        )
 
 
 class StackBlocksExpert(PickAndPlaceExpert):

@@ -2,7 +2,8 @@
 
 Objects: the item, a food tin (cylinder 6 cm across, 8 cm tall, 150 g) standing upright; a
 blue 12 x 12 cm target area. Reset: item and area centres uniform in the workspace, at least
-3 cm apart (footprints), area yaw uniform in +-30 degrees.
+3 cm apart (footprints), area yaw uniform in +-30 degrees. With two arms the area's centre
+lies in the middle band (TabletopTask.SHARED_TARGET_HALF_BAND, 8 cm), where both hands reach.
 
 Success: the item was lifted (its centre rose >= 5 cm above its resting height: the
 ``lifted`` latch) and now its centre is inside the target area, it stands upright (tilt
@@ -49,8 +50,8 @@ class PickPlace(TabletopTask):
         add_target_area(scene, "target", AREA_HALF, rgba=(0.2, 0.4, 0.85, 1))
 
     def place_objects(self, data: mujoco.MjData, rng: np.random.Generator) -> None:
-        item_xy, area_xy = self.workspace.sample_layout(
-            rng, [ITEM_RADIUS, float(np.hypot(*AREA_HALF))], gap=0.03
+        (item_xy,), area_xy = self.layout_with_target(
+            rng, [ITEM_RADIUS], float(np.hypot(*AREA_HALF)), gap=0.03
         )
         self.objects["item"].set_pose(
             data, (*item_xy, TABLE_TOP_Z + ITEM_HALF_HEIGHT), yaw_quat(rng.uniform(-np.pi, np.pi))

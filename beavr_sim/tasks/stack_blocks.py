@@ -3,7 +3,8 @@
 Objects: a large wooden block (6.5 cm cube, 165 g) and a small one (4.5 cm cube, 55 g), both
 resting on the table; a yellow 14 x 14 cm target area. Reset: the three footprints uniform in
 the workspace, at least 2.5 cm apart; block yaws uniform in +-45 degrees. With two arms the
-target area's centre lies in the middle band (|y| <= 8 cm), where both hands can stack.
+target area's centre lies in the middle band (TabletopTask.SHARED_TARGET_HALF_BAND, 8 cm),
+where both hands reach.
 
 Success: the large block's centre is inside the target area and it stands on the table; the
 small block rests on the large one (they touch, and the small block's centre is above the
@@ -43,17 +44,12 @@ class StackBlocks(TabletopTask):
         add_target_area(scene, "target", AREA_HALF, rgba=(0.9, 0.8, 0.2, 1))
 
     def place_objects(self, data: mujoco.MjData, rng: np.random.Generator) -> None:
-        area_radius = float(np.hypot(*AREA_HALF))
-        block_radii = [LARGE_HALF * np.sqrt(2), SMALL_HALF * np.sqrt(2)]
-        if len(self.embodiment.effectors) == 1:
-            large_xy, small_xy, area_xy = self.workspace.sample_layout(
-                rng, [*block_radii, area_radius], gap=0.025
-            )
-        else:
-            (area_xy,) = self.workspace.middle(0.08).sample_layout(rng, [area_radius])
-            large_xy, small_xy = self.workspace.sample_layout(
-                rng, block_radii, gap=0.025, avoid=[(area_xy, area_radius)]
-            )
+        (large_xy, small_xy), area_xy = self.layout_with_target(
+            rng,
+            [LARGE_HALF * np.sqrt(2), SMALL_HALF * np.sqrt(2)],
+            float(np.hypot(*AREA_HALF)),
+            gap=0.025,
+        )
         for name, xy, half in (
             ("large_block", large_xy, LARGE_HALF),
             ("small_block", small_xy, SMALL_HALF),

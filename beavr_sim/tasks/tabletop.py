@@ -131,6 +131,28 @@ class TabletopTask(Task):
     def reset_latches(self) -> None:
         """Clear every latch (called at the start of each episode)."""
 
+    #: With two arms, the target area's centre lies within this of the middle line (y), where
+    #: both hands reach it.
+    SHARED_TARGET_HALF_BAND = 0.08
+
+    def layout_with_target(
+        self, rng: np.random.Generator, object_radii: list[float], target_radius: float, gap: float
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """Object xys and a target-area xy: all uniform in the workspace with one arm; with
+        two, the target first, in the middle band, then the objects around it."""
+        if len(self.embodiment.effectors) == 1:
+            *objects, target = self.workspace.sample_layout(
+                rng, [*object_radii, target_radius], gap=gap
+            )
+            return objects, target
+        (target,) = self.workspace.middle(self.SHARED_TARGET_HALF_BAND).sample_layout(
+            rng, [target_radius]
+        )
+        objects = self.workspace.sample_layout(
+            rng, object_radii, gap=gap, avoid=[(target, target_radius)]
+        )
+        return objects, target
+
     # ------------------------------------------------------------------- helpers
     @staticmethod
     def off_table(pos: np.ndarray) -> bool:
