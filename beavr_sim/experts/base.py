@@ -181,20 +181,38 @@ class ScriptedExpert(ABC):
         yield Move(poses={effector: above}, settle=0.2)
 
     def place(
-        self, effector: str, centre_world, clearance: float = 0.12, drop: float = 0.005
+        self,
+        effector: str,
+        centre_world,
+        held: str | None = None,
+        clearance: float = 0.12,
+        drop: float = 0.005,
     ) -> Iterator[Move]:
         """Carry the pinched object over ``centre_world`` (where its centre should end up),
-        lower it to ``drop`` metres above that, open the hand and withdraw upwards."""
+        lower it to ``drop`` metres above that, open the hand and withdraw upwards.
+
+        With ``held`` (the object's name), the expert first looks where the object really
+        sits in the hand (it may have slipped in the pinch) and aims with that, as an
+        operator corrects by eye.
+        """
         pose = self.pose[effector]
         R = pose.rotation().as_matrix()
         centre = np.asarray(centre_world, float)
-        yield Move(poses={effector: grasps.T_world_hand_pinching(centre + [0, 0, clearance], R)})
-        yield Move(
-            poses={effector: grasps.T_world_hand_pinching(centre + [0, 0, drop], R)}, settle=0.2
-        )
+        in_hand = self.object_in_hand(effector, held) if held is not None else None
+
+        def at(height: float) -> mink.SE3:
+            return grasps.T_world_hand_pinching(centre + [0, 0, height], R, in_hand)
+
+        yield Move(poses={effector: at(clearance)}, settle=0.2)
+        yield Move(poses={effector: at(drop)}, settle=0.2)
         yield Move(fingers={effector: grasps.RELEASE}, duration=0.4, settle=0.2)
-        up = grasps.T_world_hand_pinching(centre + [0, 0, clearance], R)
-        yield Move(poses={effector: up}, settle=0.2)
+        yield Move(poses={effector: at(clearance)}, settle=0.2)
+
+    def object_in_hand(self, effector: str, obj: str) -> np.ndarray:
+        """Where object ``obj``'s centre is in ``effector``'s hand frame, measured now."""
+        hand = self.env.data.body(f"{effector}/hand")
+        R_world_hand = hand.xmat.reshape(3, 3)
+        return R_world_hand.T @ (self.task.objects[obj].pos(self.env.data) - hand.xpos)
 
     def retreat(self, effector: str) -> Iterator[Move]:
         """Take the hand back to its ready pose, out of the way of the cameras and objects."""

@@ -52,9 +52,11 @@ def R_world_palm_down(heading: float) -> np.ndarray:
     return rotation_from_axes([np.cos(heading), np.sin(heading), 0.0], [0.0, 0.0, -1.0])
 
 
-def T_world_hand_pinching(centre_world, R_world_hand: np.ndarray):
-    """The hand pose that puts the pinch centre at ``centre_world`` with orientation ``R``."""
-    return se3(R_world_hand, np.asarray(centre_world, float) - R_world_hand @ PINCH_CENTRE_IN_HAND)
+def T_world_hand_pinching(centre_world, R_world_hand: np.ndarray, centre_in_hand=None):
+    """The hand pose that puts the pinch centre (or ``centre_in_hand``, e.g. where a held
+    object really sits in the hand) at ``centre_world`` with orientation ``R``."""
+    p_hand = PINCH_CENTRE_IN_HAND if centre_in_hand is None else np.asarray(centre_in_hand)
+    return se3(R_world_hand, np.asarray(centre_world, float) - R_world_hand @ p_hand)
 
 
 def fold_heading(yaw: float, period: float = np.pi / 2, reference: float = 0.0) -> float:

@@ -39,7 +39,7 @@ class PickAndPlaceExpert(ScriptedExpert):
         if effector is None:
             effector = self.nearest_effector((start[:2] + np.asarray(goal_centre)[:2]) / 2)
         yield from self.pick(effector, obj, self.heading_for(obj, symmetry))
-        yield from self.place(effector, goal_centre)
+        yield from self.place(effector, goal_centre, held=obj)
         yield from self.retreat(effector)
 
 
