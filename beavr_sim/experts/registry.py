@@ -11,6 +11,8 @@ EXPERTS: dict[str, str] = {
     "PickPlace": "beavr_sim.experts.pick_and_place:PickPlaceExpert",
     "StackBlocks": "beavr_sim.experts.pick_and_place:StackBlocksExpert",
     "FlipCube": "beavr_sim.experts.flip_cube:FlipCubeExpert",
+    "Lantern": "beavr_sim.experts.lantern:LanternExpert",
+    "Pour": "beavr_sim.experts.pour:PourExpert",
 }
 
 
