@@ -12,6 +12,7 @@ EXPERTS: dict[str, str] = {
     "StackBlocks": "beavr_sim.experts.pick_and_place:StackBlocksExpert",
     "FlipCube": "beavr_sim.experts.flip_cube:FlipCubeExpert",
     "Lantern": "beavr_sim.experts.lantern:LanternExpert",
+    "Tape": "beavr_sim.experts.tape:TapeExpert",
     "Pour": "beavr_sim.experts.pour:PourExpert",
 }
 
