@@ -14,8 +14,8 @@ from beavr_sim.experts.run import run_episode
 from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks import flip_cube, pick_place, pickup_box, stack_blocks
 from beavr_sim.tasks.checks import REST_SECONDS, face_up
-from beavr_sim.tasks.registry import TASKS, canonical_task_name, task_class
 from beavr_sim.tasks.objects import mat_to_quat, yaw_quat
+from beavr_sim.tasks.registry import TASKS, canonical_task_name, task_class
 
 BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
 
@@ -209,3 +209,32 @@ def test_expert_solves_a_few_seeds(task, embodiment):
     expert = expert_class(task)(env)
     results = [run_episode(env, expert, seed) for seed in (0, 1, 2)]
     assert sum(r.success for r in results) >= 2, [(r.seed, r.details) for r in results]
+
+
+def test_experts_cli_prints_one_json_line_last(capsys):
+    import json
+
+    from beavr_sim.experts.__main__ import main
+
+    assert main(["--task", "pickup_box", "--episodes", "2", "--seed", "0"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    report = json.loads(last)
+    assert set(report) == {
+        "task",
+        "embodiment",
+        "episodes",
+        "successes",
+        "success_rate",
+        "mean_time_s",
+    }
+    assert report["task"] == "PickupBox" and report["episodes"] == 2
+    assert report["success_rate"] == report["successes"] / 2
+
+
+def test_experts_cli_rejects_unknown_task_and_embodiment(capsys):
+    from beavr_sim.experts.__main__ import main
+
+    assert main(["--task", "poor", "--episodes", "1"]) == 2
+    assert "Did you mean 'Pour'" in capsys.readouterr().err
+    assert main(["--task", "flip_cube", "--embodiment", "xarm7_leap_bimanual"]) == 2
+    assert "xarm7_leap_right" in capsys.readouterr().err

@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import mink
-import mujoco
 import numpy as np
 
 from beavr_sim.envs.scene import build_scene_spec

@@ -122,7 +122,7 @@ class PourExpert(ScriptedExpert):
         yield Move(poses={effector: above}, settle=0.3)
 
         # Where the cup sits in the hand; the pour direction: the hand's little-finger side.
-        T_hand_cup = self.T_world(f"{effector}/hand").inverse() @ self.T_world("source_cup")
+        cup_in_hand = self.object_in_hand(effector, "source_cup")
         axis = np.array([np.cos(heading), np.sin(heading), 0.0])  # fingers
         towards = np.cross(axis, [0.0, 0.0, 1.0])  # tipping +angle about axis leans this way
         angle = POUR_ANGLE if side == "right" else -POUR_ANGLE
@@ -132,12 +132,9 @@ class PourExpert(ScriptedExpert):
         base_z = target[2] + TARGET_HEIGHT + BOTTOM_CLEARANCE
         cup_pos = np.array([*(lip_xy - pour_dir[:2] * SOURCE_OUTER_RADIUS), base_z])
         lip = np.array([*lip_xy, base_z + SOURCE_HEIGHT])
-        T_world_cup = mink.SE3.from_rotation_and_translation(mink.SO3.identity(), cup_pos)
-        T_hand = T_world_cup @ T_hand_cup.inverse()
-        # Keep the hand's commanded orientation (palm down) and aim the position by the cup.
         T_hand = mink.SE3.from_rotation_and_translation(
-            mink.SO3.from_matrix(R), T_hand.translation()
+            mink.SO3.from_matrix(R), cup_pos - R @ cup_in_hand
         )
-        yield Move(poses={effector: T_hand + 0.0 if False else T_hand}, settle=0.2)
+        yield Move(poses={effector: T_hand}, settle=0.3)
         yield Tilt(effector=effector, pivot=lip, axis=axis, angle=angle, settle=POUR_HOLD)
         yield Tilt(effector=effector, pivot=lip, axis=axis, angle=-angle, settle=0.2)

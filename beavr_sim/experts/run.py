@@ -90,15 +90,7 @@ def run_expert(
 
 
 def _save_video(path: Path, frames: list, fps: float) -> None:
-    """An mp4 if imageio's ffmpeg plugin is installed, else a folder of PNG frames."""
-    try:
-        import imageio.v3 as iio
+    """An H.264 mp4 (imageio's bundled ffmpeg)."""
+    import imageio.v3 as iio
 
-        iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264")
-    except (ImportError, OSError, TypeError, ValueError):
-        from PIL import Image
-
-        folder = path.with_suffix("")
-        folder.mkdir(exist_ok=True)
-        for i, frame in enumerate(frames):
-            Image.fromarray(frame).save(folder / f"{i:05d}.png")
+    iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264")
