@@ -1,14 +1,21 @@
-"""Scripted expert for Pour: pinch the paper cup, hold it over the edge of the target cup and
-roll the wrist so that the drops run out over the lip into the target.
+"""Scripted expert for Pour: pinch the paper cup, hold it over the target cup and roll the
+wrist so that the drops run out over the lip into the target.
 
 The cup is front-pinched around its body (see :mod:`beavr_sim.experts.grasps`) by the hand
-whose arm base is nearest it, and lifted. The expert then looks where the cup sits in the hand
-and plans with that: it carries the cup upright beside the target so that the lip on the
-pouring side hangs over the target's opening, the cup's bottom clear above the target's rim,
-and tips the cup by ``POUR_ANGLE`` about the finger axis, pivoting about that lip as a person
-does. The pouring side is the hand's little-finger side (away from the thumb): the palm covers
-the cup's mouth in a front pinch, and on that side the drops fall clear of the hand. After the
-drops have run out (success ends the episode) it rolls back and sets the cup down.
+whose arm base is nearest it, with a firmer squeeze than the standard pinch (``PINCH_FIRM``;
+the thumb closes first, as a backstop, then the fingers), and lifted. The expert then looks
+where the cup sits in the hand and plans with that: it carries the cup upright (tilting the
+hand a little if the cup leans in the pinch) to beside the target, its bottom clear above the
+target's rim and its pouring lip over the target's axis, and tips it by ``POUR_ANGLE`` about a
+horizontal axis along the fingers, pivoting about that lip as a person does (``Tilt``, a
+primitive of this module). The pouring side is the hand's thumb side: the palm covers the
+cup's mouth in a front pinch and the ring finger lies along the cup's other side, where the
+drops would run onto it. The right hand therefore pours from the target's -y side towards +y,
+the left hand from its +y side towards -y. Once the drops have run out (success ends the
+episode) it rolls back, sets the cup down where it stood, lets go and withdraws.
+
+The left hand's pinch draws the cup a few cm towards the wrist as it closes (the right's does
+not); it is aimed ``GRASP_SHIFT`` further back to end with a comparable hold.
 """
 
 from __future__ import annotations
@@ -32,19 +39,27 @@ from beavr_sim.tasks.pour import (
     SOURCE_HEIGHT,
     SOURCE_OUTER_RADIUS,
     TARGET_HEIGHT,
-    TARGET_INNER_RADIUS,
 )
 
 #: Pinch centre height above the table when grasping the cup (its body centre is at 4 cm).
 PINCH_HEIGHT = 0.045
-LIFT = 0.12
+LIFT = 0.15
 #: Tip of the cup about the finger axis (rad) when pouring.
-POUR_ANGLE = np.deg2rad(120.0)
-#: The pouring lip, before tipping: this far inside the target's inner wall (horizontally)...
-LIP_INSIDE = 0.015
+POUR_ANGLE = np.deg2rad(110.0)
+#: The pouring lip, before tipping: this far past the target's axis (horizontally, in the
+#: pour direction)...
+LIP_OFFSET = 0.0
 #: ... and the cup's bottom this far above the target's rim.
-BOTTOM_CLEARANCE = 0.015
+BOTTOM_CLEARANCE = 0.02
+TILT_SECONDS = 2.5
 POUR_HOLD = 1.5
+#: A firmer pinch than grasps.PINCH_CLOSED: the tipped cup must not turn in the fingers.
+PINCH_FIRM = grasps.finger_shape(1.0, 1.0, 0.5, (1.6, 0.6, 1.2, 0.8))
+#: Where the pinch centre is aimed, along the fingers from the cup's axis (m), per hand side.
+GRASP_SHIFT = {"right": 0.0, "left": -0.02}
+#: The thumb closes first, a backstop on the near side, then the fingers.
+THUMB_FIRST = np.concatenate([grasps.PINCH_OPEN[:12], PINCH_FIRM[12:]])
+CLOSE_SEQUENCE = (THUMB_FIRST, PINCH_FIRM)
 
 
 @dataclass
@@ -115,26 +130,71 @@ class PourExpert(ScriptedExpert):
         heading = 0.0
         R = grasps.R_world_palm_down(heading)
         centre = np.array([source[0], source[1], TABLE_TOP_Z + PINCH_HEIGHT])
+        centre[:2] += GRASP_SHIFT[side] * np.array([np.cos(heading), np.sin(heading)])
         above = grasps.T_world_hand_pinching(centre + [0, 0, LIFT], R)
         yield Move(poses={effector: above}, fingers={effector: grasps.PINCH_OPEN}, settle=0.2)
         yield Move(poses={effector: grasps.T_world_hand_pinching(centre, R)}, settle=0.2)
-        yield Move(fingers={effector: grasps.PINCH_CLOSED}, duration=0.6, settle=0.3)
+        for shape in CLOSE_SEQUENCE:
+            yield Move(fingers={effector: shape}, duration=0.4, settle=0.1)
+        yield Move(settle=0.2)
         yield Move(poses={effector: above}, settle=0.3)
 
-        # Where the cup sits in the hand; the pour direction: the hand's little-finger side.
-        cup_in_hand = self.object_in_hand(effector, "source_cup")
-        axis = np.array([np.cos(heading), np.sin(heading), 0.0])  # fingers
-        towards = np.cross(axis, [0.0, 0.0, 1.0])  # tipping +angle about axis leans this way
-        angle = POUR_ANGLE if side == "right" else -POUR_ANGLE
-        pour_dir = towards if angle > 0 else -towards
-        # Upright cup beside the target, its pouring lip over the target's opening.
-        lip_xy = target[:2] - pour_dir[:2] * (TARGET_INNER_RADIUS - LIP_INSIDE)
-        base_z = target[2] + TARGET_HEIGHT + BOTTOM_CLEARANCE
-        cup_pos = np.array([*(lip_xy - pour_dir[:2] * SOURCE_OUTER_RADIUS), base_z])
-        lip = np.array([*lip_xy, base_z + SOURCE_HEIGHT])
-        T_hand = mink.SE3.from_rotation_and_translation(
-            mink.SO3.from_matrix(R), cup_pos - R @ cup_in_hand
+        # The pour direction: the hand's thumb side (the little-finger side has the ring
+        # finger along the cup, where the drops would run out onto it).
+        pour_dir = np.array([0.0, 1.0 if side == "right" else -1.0, 0.0])
+        axis = np.cross([0.0, 0.0, 1.0], pour_dir)  # tipping about it leans the cup pour_dir
+        # The cup upright beside the target, its pouring lip over the target's opening, its
+        # bottom clear above the target's rim; the hand pose from where the cup sits in it.
+        lip_xy = target[:2] + pour_dir[:2] * LIP_OFFSET
+        base = np.array([*(lip_xy - pour_dir[:2] * SOURCE_OUTER_RADIUS), 0.0])
+        base[2] = target[2] + TARGET_HEIGHT + BOTTOM_CLEARANCE
+        lip = np.array([*lip_xy, base[2] + SOURCE_HEIGHT])
+        yield Move(poses={effector: self.hand_for_cup(effector, base)}, settle=0.3)
+        # Look again (the cup may have shifted in the pinch during the carry) and correct.
+        yield Move(poses={effector: self.hand_for_cup(effector, base)}, settle=0.2)
+        yield Tilt(
+            effector=effector,
+            pivot=lip,
+            axis=axis,
+            angle=POUR_ANGLE,
+            duration=TILT_SECONDS,
+            settle=POUR_HOLD,
         )
-        yield Move(poses={effector: T_hand}, settle=0.3)
-        yield Tilt(effector=effector, pivot=lip, axis=axis, angle=angle, settle=POUR_HOLD)
-        yield Tilt(effector=effector, pivot=lip, axis=axis, angle=-angle, settle=0.2)
+        yield Tilt(
+            effector=effector, pivot=lip, axis=axis, angle=-POUR_ANGLE, duration=TILT_SECONDS
+        )
+        # Put the cup back down where it stood and let go.
+        home = np.array([source[0], source[1], TABLE_TOP_Z])
+        yield Move(poses={effector: self.hand_for_cup(effector, home + [0, 0, LIFT])}, settle=0.2)
+        yield Move(poses={effector: self.hand_for_cup(effector, home + [0, 0, 0.005])}, settle=0.2)
+        yield Move(fingers={effector: grasps.RELEASE}, duration=0.4, settle=0.2)
+        released = self.pose[effector]
+        up = mink.SE3.from_rotation_and_translation(
+            released.rotation(), released.translation() + [0.0, 0.0, 0.1]
+        )
+        yield Move(poses={effector: up})
+        yield from self.retreat(effector)
+
+    def hand_for_cup(self, effector: str, base) -> mink.SE3:
+        """The hand pose that puts the held cup upright with its base centre at ``base``,
+        from where the cup sits in the hand now (it may have turned a little in the pinch)."""
+        T_hand_cup = self.T_world(f"{effector}/hand").inverse() @ self.T_world("source_cup")
+        up = T_hand_cup.rotation().as_matrix()[:, 2]
+        R_hand = self.pose[effector].rotation().as_matrix()
+        up_world = R_hand @ up
+        R_level = rotation_between(up_world, np.array([0.0, 0.0, 1.0]))
+        R_cup = R_level @ R_hand @ T_hand_cup.rotation().as_matrix()
+        T_world_cup = mink.SE3.from_rotation_and_translation(
+            mink.SO3.from_matrix(R_cup), np.asarray(base, float)
+        )
+        return T_world_cup @ T_hand_cup.inverse()
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector ``a`` to unit vector ``b``."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(np.dot(a, b))
+    if s < 1e-9:
+        return np.eye(3)
+    return mink.SO3.exp(axis / s * np.arctan2(s, c)).as_matrix()

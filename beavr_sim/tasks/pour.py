@@ -6,7 +6,9 @@ in for the liquid; a larger cup (the target, a fixture: another cup standing on 
 9 cm across and 10 cm tall. Both cups are 16-sided, with 3 mm walls and bottoms (thicker than
 paper, so that drops cannot tunnel through); their origins are the centres of their bases.
 Reset: cup centres uniform in the workspace, footprints (bounding circles) at least 3 cm apart;
-the drops stand in two layers of 2 x 2, 2 mm apart, on the source cup's bottom.
+the drops stand in two layers of 2 x 2, 2 mm apart, on the source cup's bottom. With two arms
+the target cup's centre lies in the middle band (TabletopTask.SHARED_TARGET_HALF_BAND, 8 cm),
+where either hand can pour into it, and the source cup anywhere around it.
 
 The drops are not among ``object_names``: a spilled drop is simply not poured, not a fallen
 object that fails the episode (the source cup is).
@@ -94,7 +96,7 @@ class Pour(TabletopTask):
     name = "Pour"
     instruction = "Grasp the paper cup and tilt it to pour its contents into the other cup."
     max_episode_seconds = 25.0
-    embodiments = ("xarm7_leap_right",)
+    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual")
     object_names = ("source_cup",)
     fixture_names = ("target_cup",)
 
@@ -141,12 +143,10 @@ class Pour(TabletopTask):
         self.particles = [FreeObject.bind(model, particle_name(i)) for i in range(N_PARTICLES)]
 
     def place_objects(self, data: mujoco.MjData, rng: np.random.Generator) -> None:
-        source_xy, target_xy = self.workspace.sample_layout(
+        (source_xy,), target_xy = self.layout_with_target(
             rng,
-            [
-                circumradius(SOURCE_OUTER_RADIUS, CUP_SEGMENTS),
-                circumradius(TARGET_OUTER_RADIUS, CUP_SEGMENTS),
-            ],
+            [circumradius(SOURCE_OUTER_RADIUS, CUP_SEGMENTS)],
+            circumradius(TARGET_OUTER_RADIUS, CUP_SEGMENTS),
             gap=0.03,
         )
         source_pos = np.array([*source_xy, TABLE_TOP_Z])
