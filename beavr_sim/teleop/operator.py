@@ -1,0 +1,271 @@
+"""The operator: tracked hands in, joint targets per effector out (one implementation).
+
+Side and embodiment are data: each effector of the embodiment is driven by the hand of its
+side through an :class:`EffectorOperator`; nothing branches on left or right. Per frame
+(:meth:`Operator.observe`) the keypoints are smoothed, the palm pose computed, checked for
+tracking jumps and filtered; per control tick (:meth:`Operator.command`) the arm IK steps
+towards the mapped target and the fingers are retargeted.
+
+Session control:
+
+- pause: the source's pause stream (``HandFrame.paused``), a left-hand pinch (rising edge of
+  ``HandFrame.pinch`` toggles), or the UI (:meth:`Operator.set_paused`). Paused effectors
+  hold their last command; on resume every mapping is re-anchored so nothing jumps.
+- tracking loss: no usable frame (palm joints tracked) for ``tracking_timeout_s``: the effector
+  holds where it is and a warning is logged; when tracking returns it continues from the same
+  anchor (the hand may have moved meanwhile, within the jump limit).
+- jumps: a palm that moved faster than ``max_hand_speed`` (and more than ``min_jump``) since
+  the last accepted frame is a tracking glitch: the frame is ignored and counted. If the hand
+  stays at the new place for ``reanchor_after`` frames, the mapping re-anchors there.
+- reset (:meth:`Operator.reset`): re-home: IK state from the measured joints, mappings released.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from beavr_sim.robots import Embodiment
+from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
+from beavr_sim.teleop.arm_mapping import RelativeMotionMapping, axis_map
+from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother
+from beavr_sim.teleop.hand import SIDES, HandFrame, T_world_palm
+from beavr_sim.teleop.retarget import LeapRetargeter, RetargetConfig
+
+log = logging.getLogger("beavr_sim.teleop.operator")
+
+HOLD_REASONS = ("", "waiting", "paused", "tracking_lost")
+
+
+@dataclass(frozen=True)
+class OperatorConfig:
+    """Filtering, safety and solver settings of the operator (see the module docstring)."""
+
+    keypoint_window: int = 3
+    alpha_position: float = 0.6
+    alpha_rotation: float = 0.6
+    tracking_timeout_s: float = 0.25
+    max_hand_speed: float = 3.0  # m/s
+    min_jump: float = 0.05  # m
+    reanchor_after: int = 10  # frames
+    pinch_pauses: bool = True
+    arm_ik: ArmIKConfig = field(default_factory=ArmIKConfig)
+    retarget: RetargetConfig = field(default_factory=RetargetConfig)
+
+    def __post_init__(self) -> None:
+        if self.keypoint_window < 1:
+            raise ValueError(f"keypoint_window must be >= 1, got {self.keypoint_window}")
+        for name in ("tracking_timeout_s", "max_hand_speed", "min_jump"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.reanchor_after < 1:
+            raise ValueError(f"reanchor_after must be >= 1, got {self.reanchor_after}")
+
+
+@dataclass(frozen=True)
+class JointCommand:
+    """Joint targets of one effector (arm then hand, action order) and where they came from.
+
+    ``t_source`` / ``t_receive``: stamps of the newest hand frame that shaped the command;
+    ``hold``: the effector is holding (``reason`` says why), not tracking the hand.
+    """
+
+    effector: str
+    positions: np.ndarray
+    t_source: float
+    t_receive: float
+    hold: bool = False
+    reason: str = ""
+
+
+@dataclass
+class OperatorStats:
+    frames: int = 0
+    jumps_rejected: int = 0
+    untracked_frames: int = 0
+    reanchors: int = 0
+    tracking_losses: int = 0
+
+
+class EffectorOperator:
+    """Hand frames of one side -> joint targets of one effector."""
+
+    def __init__(self, embodiment: Embodiment, effector: str, dt: float, config: OperatorConfig):
+        self.config = config
+        self.effector = embodiment.effector(effector)
+        self.side = self.effector.side
+        self.ik = ArmIK(embodiment, effector, dt, config.arm_ik)
+        self.retargeter = LeapRetargeter(self.side, config.retarget)
+        self.mapping = RelativeMotionMapping(axis_map(embodiment.name, self.side))
+        self.keypoints = KeypointSmoother(config.keypoint_window)
+        self.pose_filter = PoseSmoother(config.alpha_position, config.alpha_rotation)
+        self.stats = OperatorStats()
+        self.n_arm = len(self.effector.arm_joints)
+        self.reset(self.ik.joints.home)
+
+    def reset(self, q_effector: np.ndarray) -> None:
+        """Re-home: IK from these joints (arm then hand), mapping released, filters cleared."""
+        q_effector = np.asarray(q_effector, dtype=np.float64)
+        self.ik.reset(q_effector)
+        self.retargeter.reset(q_effector[self.n_arm :])
+        self.mapping.release()
+        self.keypoints.reset()
+        self.pose_filter.reset()
+        self._q_hand = q_effector[self.n_arm :].copy()
+        self._T_palm: np.ndarray | None = None  # filtered palm pose
+        self._palm_keypoints: np.ndarray | None = None
+        self._tracked: np.ndarray | None = None
+        self._p_accepted: np.ndarray | None = None  # raw palm position last accepted
+        self._t_accepted = -np.inf
+        self._jump_streak: list[np.ndarray] = []
+        self._t_source = self._t_receive = float("nan")
+        self._resolution = "high"
+        self._lost = False
+        self._fresh = False
+
+    def release(self) -> None:
+        """Forget the anchor: the next tracked frame anchors again (resume)."""
+        self.mapping.release()
+        self.keypoints.reset()
+        self.pose_filter.reset()
+        self._p_accepted = None
+        self._jump_streak = []
+
+    # ----------------------------------------------------------------- per frame
+    def observe(self, frame: HandFrame) -> bool:
+        """Take one hand frame of this side; returns whether it was used."""
+        self.stats.frames += 1
+        if not frame.palm_frame_tracked:
+            self.stats.untracked_frames += 1
+            return False
+        T_raw = T_world_palm(frame.joints, self.side)
+        if self._is_jump(T_raw[:3, 3], frame.t_receive):
+            return False
+        self._p_accepted, self._t_accepted = T_raw[:3, 3].copy(), frame.t_receive
+        joints = self.keypoints(frame.joints)
+        T_smooth = T_world_palm(joints, self.side)
+        self._T_palm = self.pose_filter(T_smooth)
+        self._palm_keypoints = (joints - T_smooth[:3, 3]) @ T_smooth[:3, :3]
+        self._tracked = frame.tracked
+        self._t_source, self._t_receive = frame.t_source, frame.t_receive
+        self._resolution = frame.resolution
+        self._fresh = True
+        return True
+
+    def _is_jump(self, p: np.ndarray, t: float) -> bool:
+        if self._p_accepted is None:
+            return False
+        distance = float(np.linalg.norm(p - self._p_accepted))
+        elapsed = max(t - self._t_accepted, 1e-3)
+        if distance <= self.config.min_jump or distance / elapsed <= self.config.max_hand_speed:
+            self._jump_streak = []
+            return False
+        self.stats.jumps_rejected += 1
+        self._jump_streak.append(p)
+        if len(self._jump_streak) == 1:
+            log.warning(
+                "%s hand jumped %.0f mm in %.0f ms: ignoring the frame, holding",
+                self.side,
+                distance * 1e3,
+                elapsed * 1e3,
+            )
+        streak = np.array(self._jump_streak)
+        if len(streak) >= self.config.reanchor_after and np.ptp(streak, axis=0).max() < 0.02:
+            log.warning("%s hand stays where it jumped to: re-anchoring there", self.side)
+            self.release()
+            self.stats.reanchors += 1
+            return False
+        return True
+
+    # ----------------------------------------------------------------- per tick
+    def command(self, now: float, paused: bool) -> JointCommand:
+        """Joint targets for this control tick (time ``now``, the receive clock)."""
+        reason = ""
+        if paused:
+            reason = "paused"
+        elif self._T_palm is None:
+            reason = "waiting"
+        elif now - self._t_accepted > self.config.tracking_timeout_s:
+            reason = "tracking_lost"
+        if reason == "tracking_lost" and not self._lost:
+            self.stats.tracking_losses += 1
+            log.warning("%s hand lost (no tracked frame for %.2f s): holding", self.side,
+                        now - self._t_accepted)
+        self._lost = reason == "tracking_lost"
+
+        if reason:
+            q_arm = self.ik.q[: self.n_arm]
+        else:
+            if not self.mapping.anchored:
+                self.mapping.anchor(self._T_palm, self.ik.T_world_hand())
+                self.stats.reanchors += 1
+            target = self.mapping.robot_target(self._T_palm, self._resolution)
+            if self._fresh:
+                self._q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
+                self.ik.set_fingers(self._q_hand)
+                self._fresh = False
+            q_arm = self.ik.step(target)
+        positions = np.concatenate([q_arm, self._q_hand])
+        positions = np.clip(positions, self.ik.joints.lower, self.ik.joints.upper)
+        return JointCommand(
+            effector=self.effector.name,
+            positions=positions,
+            t_source=self._t_source,
+            t_receive=self._t_receive,
+            hold=bool(reason),
+            reason=reason,
+        )
+
+
+class Operator:
+    """All effectors of an embodiment, plus the session state (pause, pinch, reset)."""
+
+    def __init__(self, embodiment: Embodiment, dt: float, config: OperatorConfig | None = None):
+        self.config = config or OperatorConfig()
+        self.embodiment = embodiment
+        self.effectors = {
+            e.name: EffectorOperator(embodiment, e.name, dt, self.config)
+            for e in embodiment.effectors
+        }
+        self._by_side = {s: [op for op in self.effectors.values() if op.side == s] for s in SIDES}
+        self._ui_paused = False
+        self._stream_paused = False
+        self._pinch_paused = False
+        self._last_pinch = {s: False for s in SIDES}
+        self._was_paused = False
+
+    @property
+    def paused(self) -> bool:
+        return self._ui_paused or self._stream_paused or self._pinch_paused
+
+    def set_paused(self, paused: bool) -> None:
+        """Pause or resume from the UI (browser view, keyboard)."""
+        self._ui_paused = bool(paused)
+
+    def reset(self, q_measured: np.ndarray, joint_slices: dict[str, slice]) -> None:
+        """Re-home from measured joints (full action vector; ``joint_slices`` per effector)."""
+        for name, op in self.effectors.items():
+            op.reset(np.asarray(q_measured)[joint_slices[name]])
+        self._pinch_paused = False
+
+    def observe(self, frame: HandFrame) -> None:
+        """Take one hand frame (any side)."""
+        self._stream_paused = frame.paused
+        if self.config.pinch_pauses and frame.side == "left":
+            if frame.pinch and not self._last_pinch["left"]:
+                self._pinch_paused = not self._pinch_paused
+                log.info("left-hand pinch: %s", "pause" if self._pinch_paused else "resume")
+            self._last_pinch["left"] = frame.pinch
+        for op in self._by_side[frame.side]:
+            op.observe(frame)
+
+    def command(self, now: float) -> dict[str, JointCommand]:
+        """One control tick: a command per effector."""
+        paused = self.paused
+        if self._was_paused and not paused:
+            for op in self.effectors.values():
+                op.release()  # re-anchor at resume: nothing jumps
+        self._was_paused = paused
+        return {name: op.command(now, paused) for name, op in self.effectors.items()}

@@ -1,0 +1,188 @@
+"""The in-process teleop loop: source -> validator -> operator -> twin, one tick at a time.
+
+Used by tests, deterministic replay and the single-process CLI. On the virtual clock
+(``real_time=False``) tick k happens at t = k * dt whatever the machine's speed, and the
+source delivers the frames stamped up to that time: a replay is bit-for-bit repeatable. In
+real time the loop sleeps to the control rate and the clock is ``time.monotonic()``.
+
+Latency is measured per applied (non-hold) command from the moment its hand frame entered
+the pipeline (received by the detector: ``t_receive`` in real time, the poll on the virtual
+clock) to the moment the command is handed to the twin's actuators.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from beavr_sim.teleop.operator import JointCommand, Operator
+from beavr_sim.teleop.sources import HandSource
+from beavr_sim.teleop.twin import TwinInterface, TwinState
+from beavr_sim.teleop.validation import StreamValidator
+
+
+@dataclass
+class TeleopSummary:
+    task: str
+    embodiment: str
+    success: bool
+    frames_received: int
+    frames_rejected: int
+    commands_applied: int
+    duration_s: float
+    latency_ms: dict
+    rejected_by_reason: dict = field(default_factory=dict)
+    holds: dict = field(default_factory=dict)
+    operator: dict = field(default_factory=dict)
+    ticks: int = 0
+    loop_rate_hz: float | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Tick:
+    """One loop iteration: the frames used, the commands made, the twin's new state."""
+
+    t: float
+    frames: tuple
+    commands: dict[str, JointCommand]
+    state: TwinState
+
+
+TickListener = Callable[[Tick], None]
+
+
+def _percentiles(values_ms: Sequence[float]) -> dict:
+    if not values_ms:
+        return {"p50": None, "p99": None, "n": 0}
+    a = np.asarray(values_ms)
+    return {
+        "p50": float(np.percentile(a, 50)),
+        "p99": float(np.percentile(a, 99)),
+        "n": len(a),
+    }
+
+
+class TeleopLoop:
+    def __init__(
+        self,
+        twin: TwinInterface,
+        operator: Operator,
+        source: HandSource,
+        *,
+        validator: StreamValidator | None = None,
+        real_time: bool = False,
+        listeners: Sequence[TickListener] = (),
+    ):
+        self.twin = twin
+        self.operator = operator
+        self.source = source
+        self.validator = validator or StreamValidator()
+        self.real_time = bool(real_time)
+        self.listeners = list(listeners)
+        self.dt = 1.0 / twin.env.control_hz
+        self.frames_received = 0
+        self.latencies_ms: list[float] = []
+        self.holds: dict[str, int] = {}
+        self.ticks = 0
+        self._t0 = 0.0
+        self.reset_requested = False
+
+    # ------------------------------------------------------------------ control
+    def reset(self, seed: int | None = None) -> None:
+        """Reset the twin (new episode) and re-home the operator from the measured joints."""
+        q = self.twin.reset(seed)
+        self.operator.reset(q, self.twin.slices)
+        self.ticks = 0
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() if self.real_time else self.ticks * self.dt
+
+    # ------------------------------------------------------------------ one tick
+    def tick(self) -> Tick:
+        now = self.now()
+        poll_wall = time.perf_counter()
+        used = []
+        for frame in self.source.poll(now):
+            self.frames_received += 1
+            if self.validator.check(frame) is None:
+                self.operator.observe(frame)
+                used.append(frame)
+        commands = self.operator.command(now)
+        apply_wall = time.perf_counter()
+        if used:
+            for cmd in commands.values():
+                if cmd.hold:
+                    continue
+                if self.real_time:
+                    self.latencies_ms.append((time.monotonic() - cmd.t_receive) * 1e3)
+                else:
+                    self.latencies_ms.append((apply_wall - poll_wall) * 1e3)
+        for cmd in commands.values():
+            if cmd.hold:
+                self.holds[cmd.reason] = self.holds.get(cmd.reason, 0) + 1
+        state = self.twin.apply(commands)
+        self.ticks += 1
+        tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
+        for listener in self.listeners:
+            listener(tick)
+        return tick
+
+    # ------------------------------------------------------------------ episode
+    def run(
+        self,
+        max_seconds: float | None = None,
+        stop_on_success: bool = True,
+        tail_seconds: float = 2.0,
+        progress: Callable[[Tick], None] | None = None,
+    ) -> TeleopSummary:
+        """Tick until success / failure / the env's time limit / ``max_seconds`` / the end of
+        a finite source plus ``tail_seconds`` (objects settle)."""
+        start_wall = time.perf_counter()
+        finished_at: float | None = None
+        success = False
+        while True:
+            if self.real_time:
+                target = self._t0 + self.ticks * self.dt
+                delay = target - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            tick = self.tick()
+            if progress is not None:
+                progress(tick)
+            success = success or tick.state.success
+            elapsed = self.ticks * self.dt
+            if (tick.state.success and stop_on_success) or tick.state.failure:
+                break
+            if tick.state.truncated or (max_seconds is not None and elapsed >= max_seconds):
+                break
+            if self.source.finished:
+                finished_at = elapsed if finished_at is None else finished_at
+                if elapsed - finished_at >= tail_seconds:
+                    break
+        return self.summary(success, wall_s=time.perf_counter() - start_wall)
+
+    def summary(self, success: bool, wall_s: float | None = None) -> TeleopSummary:
+        """The episode so far, as the CLI reports it."""
+        env = self.twin.env
+        return TeleopSummary(
+            task=env.task.name,
+            embodiment=env.embodiment.name,
+            success=bool(success),
+            frames_received=self.frames_received,
+            frames_rejected=self.validator.rejected,
+            commands_applied=self.twin.commands_applied,
+            duration_s=self.ticks * self.dt,
+            latency_ms=_percentiles(self.latencies_ms),
+            rejected_by_reason=self.validator.rejected_by_reason,
+            holds=dict(self.holds),
+            operator={name: asdict(op.stats) for name, op in self.operator.effectors.items()},
+            ticks=self.ticks,
+            loop_rate_hz=self.ticks / wall_s if wall_s else None,
+        )

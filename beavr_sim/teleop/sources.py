@@ -1,0 +1,122 @@
+"""Detector sources: where hand frames come from (the headset, a recorded trace, memory).
+
+A source is polled once per control tick with the current time and returns the frames that
+arrived since the last poll, oldest first. Sources never raise on bad input: frames the
+headset sends malformed are rejected inside the source and counted by its validator.
+
+- :class:`FrameListSource`: frames in memory, released when the clock reaches their time.
+- :class:`TraceSource`: a recorded VR trace (MCAP), on the virtual clock (deterministic:
+  frame ``t_source`` is trace time) or in real time (trace time offset to ``time.monotonic``).
+- :class:`QuestSource`: the BEAVR Quest app over ZeroMQ (``beavr_sim.teleop.quest_io``).
+"""
+
+from __future__ import annotations
+
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+from beavr_sim.teleop.hand import HandFrame
+
+#: Tolerance when comparing frame times with the clock (float trace times).
+_EPS = 1e-9
+
+
+class HandSource(ABC):
+    """Something that yields hand frames when polled."""
+
+    #: True when ``t_receive`` of the frames is ``time.monotonic()`` (wall-clock latency).
+    real_time: bool = False
+
+    @abstractmethod
+    def poll(self, now: float) -> list[HandFrame]:
+        """Frames received up to time ``now`` (the loop's clock), oldest first."""
+
+    @property
+    def finished(self) -> bool:
+        """True when no frame will ever come again (end of a trace)."""
+        return False
+
+    def close(self) -> None:  # noqa: B027 (optional hook)
+        """Release sockets or files."""
+
+
+class FrameListSource(HandSource):
+    """Frames held in memory; each is delivered when ``now`` reaches its ``t_source``.
+
+    On the virtual clock (``real_time=False``) ``now`` is the trace time itself; in real
+    time the first poll fixes the offset between trace time and ``time.monotonic()``.
+    Delivered frames get ``t_receive`` set to the delivery time on the loop's clock.
+    """
+
+    def __init__(self, frames: Sequence[HandFrame], real_time: bool = False):
+        self.frames = sorted(frames, key=lambda f: f.t_source)
+        self.real_time = real_time
+        self._next = 0
+        self._offset: float | None = None
+
+    def poll(self, now: float) -> list[HandFrame]:
+        if self.real_time:
+            if self._offset is None and self.frames:
+                self._offset = now - self.frames[0].t_source
+            trace_now = now - (self._offset or 0.0)
+        else:
+            trace_now = now
+        out = []
+        while self._next < len(self.frames) and self.frames[self._next].t_source <= trace_now + _EPS:
+            frame = self.frames[self._next]
+            t = frame.t_source + (self._offset or 0.0) if self.real_time else frame.t_source
+            out.append(replace(frame, t_source=t, t_receive=now if self.real_time else t))
+            self._next += 1
+        return out
+
+    def push(self, frame: HandFrame) -> None:
+        """Append a frame (not older than the last one): a source fed while it runs."""
+        if self.frames and frame.t_source < self.frames[-1].t_source:
+            raise ValueError(
+                f"frames must be pushed in time order: {frame.t_source} after "
+                f"{self.frames[-1].t_source}"
+            )
+        self.frames.append(frame)
+
+    @property
+    def finished(self) -> bool:
+        return self._next >= len(self.frames)
+
+    @property
+    def duration_s(self) -> float:
+        return self.frames[-1].t_source - self.frames[0].t_source if self.frames else 0.0
+
+
+class TraceSource(FrameListSource):
+    """A recorded VR trace (MCAP file written by ``python -m beavr_sim.traces``)."""
+
+    def __init__(self, path: str | Path, real_time: bool = False):
+        from beavr_sim.traces.format import TraceReader
+
+        self.reader = TraceReader(path)
+        self.metadata = dict(self.reader.metadata)
+        super().__init__(list(self.reader.hand_frames()), real_time=real_time)
+
+
+class QuestSource(HandSource):
+    """The BEAVR Quest app: PULL sockets bound on the headset host (``quest_io``)."""
+
+    real_time = True
+
+    def __init__(self, context, config, validator=None):
+        from beavr_sim.teleop.quest_io import QuestReceiver
+
+        self.receiver = QuestReceiver(context, config, validator=validator)
+
+    def poll(self, now: float) -> list[HandFrame]:
+        return self.receiver.poll(0.0)
+
+    def close(self) -> None:
+        self.receiver.close()
+
+
+def monotonic() -> float:
+    return time.monotonic()
