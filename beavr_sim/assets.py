@@ -24,3 +24,11 @@ def mjcf_path(*parts: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"MJCF file missing: {path}")
     return path
+
+
+def bundled_trace(task: str) -> Path:
+    """The VR trace bundled for ``task`` (``assets/traces/<task>.mcap``, task in snake case)."""
+    import re
+
+    stem = re.sub(r"(?<!^)(?=[A-Z])", "_", task).lower()
+    return assets_dir() / "traces" / f"{stem}.mcap"

@@ -22,13 +22,14 @@ import mujoco
 import numpy as np
 
 from beavr_sim.envs.scene import build_scene_spec
-from beavr_sim.robots import Embodiment
-from beavr_sim.robots.embodiment import Embodiment as _Embodiment
-from beavr_sim.robots.embodiment import EmbodimentSpec
+from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
 
 #: Arm links checked against the table, and arm links the hand must not hit.
 FOREARM_LINKS = ("link5", "link6", "link7")
 UPPER_ARM_LINKS = ("link_base", "link1", "link2", "link3")
+#: Hand bodies whose geoms are checked: the palm and the four fingertips (the parts that
+#: reach furthest; fewer pairs keep the IK well under a millisecond).
+HAND_BODIES = ("palm", "thumb_distal", "index_distal", "middle_distal", "ring_distal")
 
 
 @dataclass(frozen=True)
@@ -55,15 +56,6 @@ class ArmIKConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
 
 
-def _subtree_geoms(model: mujoco.MjModel, root_body: str) -> list[int]:
-    root = model.body(root_body).id
-    bodies = {root}
-    for b in range(model.nbody):
-        if model.body_parentid[b] in bodies and b != 0:
-            bodies.add(b)
-    return [g for g in range(model.ngeom) if model.geom_bodyid[g] in bodies]
-
-
 def _body_geoms(model: mujoco.MjModel, body: str) -> list[int]:
     return [g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(body).id]
 
@@ -76,8 +68,9 @@ class ArmIK:
     ):
         self.config = config or ArmIKConfig()
         self.dt = float(dt)
-        spec_e = next(e for e in embodiment.spec.effectors if e.name == embodiment.effector(effector).name)
-        self.single = _Embodiment(EmbodimentSpec(f"{embodiment.name}:{effector}", (spec_e,)))
+        name = embodiment.effector(effector).name  # raises with the valid names
+        spec_e = next(e for e in embodiment.spec.effectors if e.name == name)
+        self.single = Embodiment(EmbodimentSpec(f"{embodiment.name}:{effector}", (spec_e,)))
         self.effector = self.single.effectors[0]
         self.model = build_scene_spec(self.single, 64, 64).compile()
         self.joints = self.single.bind(self.model)
@@ -99,14 +92,15 @@ class ArmIK:
         ]
         if self.config.collision_avoidance:
             p = self.effector.name + "/"
-            hand = _subtree_geoms(self.model, f"{effector}/hand")
+            hand = [g for b in HAND_BODIES for g in _body_geoms(self.model, p + b)]
+            palm = _body_geoms(self.model, p + "palm")
             forearm = [g for link in FOREARM_LINKS for g in _body_geoms(self.model, p + link)]
             upper = [g for link in UPPER_ARM_LINKS for g in _body_geoms(self.model, p + link)]
             table = [self.model.geom("table_top").id]
             self.limits.append(
                 mink.CollisionAvoidanceLimit(
                     self.model,
-                    geom_pairs=[(hand + forearm, table), (hand, upper)],
+                    geom_pairs=[(hand + forearm, table), (palm, upper)],
                     minimum_distance_from_collisions=self.config.collision_margin,
                     collision_detection_distance=self.config.collision_detection,
                 )

@@ -64,20 +64,23 @@ class PoseSmoother:
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle) of a rotation matrix."""
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos)
+    """Rotation vector (axis * angle) of a rotation matrix, accurate up to and near pi."""
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin2 = np.linalg.norm(w)  # 2 sin(angle)
+    angle = float(np.arctan2(sin2, np.trace(R) - 1.0))
     if angle < 1e-7:
         return 0.5 * w
-    if np.pi - angle < 1e-4:
-        # Near pi: axis from the symmetric part.
-        M = (R + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(M), 0.0, None))
-        k = int(np.argmax(axis))
-        axis = M[:, k] / max(axis[k], 1e-12)
-        return axis / np.linalg.norm(axis) * angle
-    return w / (2.0 * np.sin(angle)) * angle
+    if angle < np.pi - 1e-3:
+        return w / sin2 * angle
+    # Near pi the skew part vanishes: the axis is the dominant column of (R + I) / 2,
+    # signed to agree with the skew part.
+    M = (R + np.eye(3)) / 2.0
+    k = int(np.argmax(np.diag(M)))
+    axis = M[:, k] / np.sqrt(max(M[k, k], 1e-300))
+    axis /= np.linalg.norm(axis)
+    if np.dot(axis, w) < 0:
+        axis = -axis
+    return axis * angle
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:

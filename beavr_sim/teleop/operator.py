@@ -119,6 +119,7 @@ class EffectorOperator:
         self._tracked: np.ndarray | None = None
         self._p_accepted: np.ndarray | None = None  # raw palm position last accepted
         self._t_accepted = -np.inf
+        self._t_seen = -np.inf
         self._jump_streak: list[np.ndarray] = []
         self._t_source = self._t_receive = float("nan")
         self._resolution = "high"
@@ -156,9 +157,14 @@ class EffectorOperator:
 
     def _is_jump(self, p: np.ndarray, t: float) -> bool:
         if self._p_accepted is None:
+            self._t_seen = t
             return False
+        # Speed from the last accepted position over the time since the previous frame of
+        # this side (accepted or not): a gap in tracking allows a longer move, a stream of
+        # frames at a glitched place does not.
         distance = float(np.linalg.norm(p - self._p_accepted))
-        elapsed = max(t - self._t_accepted, 1e-3)
+        elapsed = max(t - self._t_seen, 1e-3)
+        self._t_seen = t
         if distance <= self.config.min_jump or distance / elapsed <= self.config.max_hand_speed:
             self._jump_streak = []
             return False

@@ -1,0 +1,97 @@
+"""``python -m beavr_sim.teleop --task pour``: VR hand tracking drives the twin.
+
+    python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace] [--trace F]
+        [--headless] [--no-viser] [--multiprocess] [--max-seconds N] [--summary-json F]
+
+Sources: ``quest`` (default) binds the BEAVR Quest app's PULL sockets (8087 right, 8110 left,
+8095 resolution, 8100 pause) on ``--headset-host`` (127.0.0.1 unless you give the PC's LAN
+address, e.g. 0.0.0.0, so the headset can connect); ``trace`` replays a recorded VR trace
+(``--trace F``, default: the task's bundled trace in ``assets/traces``). The browser view
+(viser) is on unless ``--no-viser``; the rendered twin goes to the headset (PUB on 10505)
+unless ``--headless``. Prints, last, one JSON summary line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.naming import UnknownNameError
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+
+SOURCES = ("quest", "trace")
+CLOCKS = ("real", "virtual")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m beavr_sim.teleop",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--task", required=True, help="task name, e.g. pour or PickupBox")
+    p.add_argument("--embodiment", default=None, help=f"robot (default {DEFAULT_EMBODIMENT})")
+    p.add_argument("--source", default="quest", choices=SOURCES, help="hand tracking source")
+    p.add_argument("--trace", type=Path, default=None, help="VR trace (.mcap) for --source trace")
+    p.add_argument("--seed", type=int, default=None, help="episode seed (trace: its own seed)")
+    p.add_argument(
+        "--clock",
+        choices=CLOCKS,
+        default=None,
+        help="real time, or a virtual clock (deterministic; trace only). Default: virtual for a "
+        "trace without the browser view, real otherwise",
+    )
+    p.add_argument("--headless", action="store_true", help="no rendered view to the headset")
+    p.add_argument("--no-viser", action="store_true", help="no browser view")
+    p.add_argument("--viser-host", default="127.0.0.1")
+    p.add_argument("--viser-port", type=int, default=8080)
+    p.add_argument(
+        "--headset-host",
+        default="127.0.0.1",
+        help="address the headset sockets bind (a LAN address or 0.0.0.0 for a real headset)",
+    )
+    p.add_argument("--headset-image-hz", type=float, default=10.0, help="twin images to headset")
+    p.add_argument("--headset-image-size", default="640x360", help="WxH of headset images")
+    p.add_argument("--multiprocess", action="store_true", help="detector, operator, twin as processes")
+    p.add_argument("--max-seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from beavr_sim.teleop.session import SessionOptions, run_session
+
+    try:
+        options = SessionOptions.from_args(args)
+    except (UnknownNameError, ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    start = time.perf_counter()
+    try:
+        summary = run_session(options)
+    except KeyboardInterrupt:
+        print("\ninterrupted", file=sys.stderr)
+        return 130
+    except (UnknownNameError, ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    report = summary.to_dict()
+    report["wall_s"] = round(time.perf_counter() - start, 3)
+    line = json.dumps(report)
+    if args.summary_json is not None:
+        args.summary_json.parent.mkdir(parents=True, exist_ok=True)
+        args.summary_json.write_text(line + "\n")
+    print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,261 @@
+"""Assembling a teleop session from options: env, source, operator, twin, views; running it.
+
+This is the single-process runner (the CLI's default). ``--multiprocess`` runs the same
+components in separate processes (``beavr_sim.teleop.processes``).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from beavr_sim.naming import check_name
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, Tick
+
+SOURCES = ("quest", "trace")
+
+
+@dataclass
+class SessionOptions:
+    task: str
+    embodiment: str | None = None
+    source: str = "quest"
+    trace: Path | None = None
+    seed: int | None = None
+    clock: str | None = None
+    headless: bool = False
+    viser: bool = True
+    viser_host: str = "127.0.0.1"
+    viser_port: int = 8080
+    headset_host: str = "127.0.0.1"
+    headset_image_hz: float = 10.0
+    headset_image_size: tuple[int, int] = (640, 360)
+    multiprocess: bool = False
+    max_seconds: float | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        from beavr_sim.tasks.registry import canonical_task_name
+
+        self.task = canonical_task_name(self.task)
+        check_name("source", self.source, SOURCES)
+        if self.source == "trace":
+            from beavr_sim.assets import bundled_trace
+
+            self.trace = Path(self.trace) if self.trace is not None else bundled_trace(self.task)
+            if not self.trace.is_file():
+                raise FileNotFoundError(f"trace file not found: {self.trace}")
+        elif self.trace is not None:
+            raise ValueError("--trace needs --source trace")
+        if self.clock is None:
+            self.clock = "virtual" if self.source == "trace" and not self.viser else "real"
+        check_name("clock", self.clock, ("real", "virtual"))
+        if self.clock == "virtual" and self.source != "trace":
+            raise ValueError("a virtual clock needs a recorded source (--source trace)")
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
+        if not self.headset_image_hz > 0:
+            raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
+
+    @classmethod
+    def from_args(cls, args) -> SessionOptions:
+        size = str(args.headset_image_size).lower().split("x")
+        if len(size) != 2 or not all(s.isdigit() and int(s) > 0 for s in size):
+            raise ValueError(f"--headset-image-size must be WxH, e.g. 640x360, got {args.headset_image_size!r}")
+        return cls(
+            task=args.task,
+            embodiment=args.embodiment,
+            source=args.source,
+            trace=args.trace,
+            seed=args.seed,
+            clock=args.clock,
+            headless=args.headless,
+            viser=not args.no_viser,
+            viser_host=args.viser_host,
+            viser_port=args.viser_port,
+            headset_host=args.headset_host,
+            headset_image_hz=args.headset_image_hz,
+            headset_image_size=(int(size[0]), int(size[1])),
+            multiprocess=args.multiprocess,
+            max_seconds=args.max_seconds,
+            progress=not args.quiet,
+        )
+
+
+class ProgressLine:
+    """One status line on stderr, refreshed once a second."""
+
+    def __init__(self, loop: TeleopLoop, enabled: bool = True):
+        self.loop = loop
+        self.enabled = enabled
+        self._last = 0.0
+        self.success = False
+
+    def __call__(self, tick: Tick) -> None:
+        self.success = self.success or tick.state.success
+        now = time.perf_counter()
+        if not self.enabled or now - self._last < 1.0:
+            return
+        self._last = now
+        lat = self.loop.latencies_ms[-200:]
+        lat_s = f"{sorted(lat)[len(lat) // 2]:.2f} ms" if lat else "-"
+        print(
+            f"\rt={tick.state.t:6.1f} s  frames={self.loop.frames_received}"
+            f"  rejected={self.loop.validator.rejected}  latency p50={lat_s}"
+            f"  {'SUCCESS' if self.success else ''}   ",
+            end="",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def build_loop(options: SessionOptions, context=None):
+    """The env, source and loop for ``options`` (single process)."""
+    import gymnasium as gym
+
+    from beavr_sim.teleop.operator import Operator
+    from beavr_sim.teleop.sources import QuestSource, TraceSource
+    from beavr_sim.teleop.twin import TwinInterface
+    from beavr_sim.teleop.validation import StreamValidator
+
+    validator = StreamValidator()
+    seed = options.seed
+    embodiment = options.embodiment
+    if options.source == "trace":
+        source = TraceSource(options.trace, real_time=options.clock == "real")
+        meta = source.metadata
+        if meta.get("task") and meta["task"] != options.task:
+            raise ValueError(
+                f"trace {options.trace} was recorded for task {meta['task']}, not {options.task}"
+            )
+        trace_embodiment = meta.get("embodiment")
+        if embodiment is not None and trace_embodiment and embodiment != trace_embodiment:
+            raise ValueError(
+                f"trace {options.trace} drives {trace_embodiment}, not {embodiment}"
+            )
+        embodiment = embodiment or trace_embodiment
+        seed = meta.get("seed") if seed is None else seed
+    else:
+        from beavr_sim.teleop.config import TransportConfig
+
+        source = QuestSource(context, TransportConfig(headset_host=options.headset_host), validator)
+    embodiment = embodiment or DEFAULT_EMBODIMENT
+    kwargs = {}
+    if options.source == "quest":
+        kwargs["max_episode_seconds"] = 1e9  # live: episodes end by the operator, not a timer
+    env = gym.make(f"beavr_sim/{options.task}-v0", embodiment=embodiment, **kwargs).unwrapped
+    operator = Operator(env.embodiment, 1.0 / env.control_hz)
+    loop = TeleopLoop(
+        TwinInterface(env),
+        operator,
+        source,
+        validator=validator,
+        real_time=options.clock == "real",
+    )
+    loop.reset(seed)
+    loop.seed = seed
+    return loop
+
+
+def run_session(options: SessionOptions) -> TeleopSummary:
+    if options.multiprocess:
+        from beavr_sim.teleop.processes import run_multiprocess
+
+        return run_multiprocess(options)
+    context = None
+    if options.source == "quest" or not options.headless:
+        import zmq
+
+        context = zmq.Context()
+    loop = build_loop(options, context)
+    closers = [loop.source.close, loop.twin.env.close]
+    try:
+        if options.viser:
+            from beavr_sim.viz.twin_view import TwinView
+
+            view = TwinView(
+                loop.twin.env.model,
+                host=options.viser_host,
+                port=options.viser_port,
+                title=f"beavr_sim — {options.task} — {loop.twin.env.embodiment.name}",
+            )
+            closers.append(view.close)
+            print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+            loop.listeners.append(_ViewListener(view, loop))
+        if not options.headless and options.source == "quest":
+            from beavr_sim.teleop.config import TransportConfig
+            from beavr_sim.teleop.quest_io import HeadsetImagePublisher
+
+            publisher = HeadsetImagePublisher(
+                context, TransportConfig(headset_host=options.headset_host),
+                rate_hz=options.headset_image_hz,
+            )
+            closers.append(publisher.close)
+            loop.listeners.append(_HeadsetListener(publisher, loop, options.headset_image_size))
+        progress = ProgressLine(loop, options.progress)
+        summary = loop.run(
+            max_seconds=options.max_seconds,
+            stop_on_success=options.source == "trace",
+            progress=progress,
+        )
+        if options.progress:
+            print(file=sys.stderr)
+        return summary
+    finally:
+        for close in reversed(closers):
+            close()
+        if context is not None:
+            context.term()
+
+
+class _ViewListener:
+    """Browser view: poses every tick; pause and reset buttons act on the loop."""
+
+    def __init__(self, view, loop: TeleopLoop):
+        self.view = view
+        self.loop = loop
+        self.success = False
+
+    def __call__(self, tick: Tick) -> None:
+        self.success = self.success or tick.state.success
+        self.loop.operator.set_paused(bool(self.view.paused.value))
+        if self.view.reset_requested:
+            self.view.reset_requested = False
+            self.loop.reset(getattr(self.loop, "seed", None))
+            self.success = False
+        holds = {c.reason for c in tick.commands.values() if c.hold}
+        status = (
+            f"**{self.loop.twin.env.task.name}** · t = {tick.state.t:5.1f} s · "
+            f"{'**success**' if self.success else 'running'}"
+            + (f" · holding ({', '.join(sorted(holds))})" if holds else "")
+        )
+        self.view.update(self.loop.twin.env.data, status=status)
+
+
+class _HeadsetListener:
+    """Rendered twin images to the headset at a limited rate."""
+
+    def __init__(self, publisher, loop: TeleopLoop, size: tuple[int, int]):
+        import mujoco
+
+        self.publisher = publisher
+        env = loop.twin.env
+        self.renderer = mujoco.Renderer(env.model, size[1], size[0])
+        self.env = env
+        self.period = 1.0 / publisher.rate_hz if getattr(publisher, "rate_hz", None) else 0.1
+        self._next = 0.0
+
+    def __call__(self, tick: Tick) -> None:
+        import mujoco
+
+        now = time.monotonic()
+        if now < self._next:
+            return
+        self._next = now + self.period
+        self.renderer.update_scene(self.env.data, camera="front")
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        self.publisher.publish(self.renderer.render())

@@ -1,0 +1,273 @@
+"""Operator pieces: palm frame, relative arm mapping, filters, and the operator's session rules."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from beavr_sim.robots import make_embodiment
+from beavr_sim.teleop.arm_mapping import AxisMap, RelativeMotionMapping, axis_map
+from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother, slerp, so3_exp, so3_log
+from beavr_sim.teleop.hand import HandFrame, R_world_palm, T_world_palm, keypoints_in_palm
+from beavr_sim.teleop.operator import Operator, OperatorConfig
+from beavr_sim.teleop.retarget import human_keypoints_for
+
+rng = np.random.default_rng(0)
+
+
+def random_rotation(rng) -> np.ndarray:
+    return so3_exp(rng.normal(size=3) * 1.2)
+
+
+def random_pose(rng) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = random_rotation(rng)
+    T[:3, 3] = rng.normal(size=3) * 0.3
+    return T
+
+
+def hand_joints(T_world_palm_: np.ndarray, side: str = "right", q_hand=None) -> np.ndarray:
+    kp = human_keypoints_for(np.zeros(16) if q_hand is None else q_hand, side)
+    return kp @ T_world_palm_[:3, :3].T + T_world_palm_[:3, 3]
+
+
+def palm_down(p) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([[0, 0, -1.0], [0, 1.0, 0], [1.0, 0, 0]])
+    T[:3, 3] = p
+    return T
+
+
+# ------------------------------------------------------------------------------- palm frame
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_palm_frame_is_orthonormal_and_follows_the_hand(side):
+    for _ in range(20):
+        T = random_pose(rng)
+        joints = hand_joints(T, side)
+        T_est = T_world_palm(joints, side)
+        np.testing.assert_allclose(T_est, T, atol=1e-9)
+        R = R_world_palm(joints, side)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        np.testing.assert_allclose(keypoints_in_palm(joints, side), human_keypoints_for(np.zeros(16), side), atol=1e-9)
+
+
+def test_right_thumb_is_on_plus_y_and_left_on_minus_y():
+    for side, sign in (("right", 1), ("left", -1)):
+        kp = human_keypoints_for(np.zeros(16), side)
+        assert sign * kp[3, 1] > 0.01  # thumb_proximal
+
+
+def test_degenerate_hand_raises():
+    with pytest.raises(ValueError, match="degenerate"):
+        R_world_palm(np.zeros((26, 3)), "right")
+
+
+# ------------------------------------------------------------------------------- mapping
+def test_mapping_is_identity_at_the_anchor_and_round_trips():
+    m = RelativeMotionMapping(axis_map("xarm7_leap_right", "right"))
+    with pytest.raises(RuntimeError, match="anchor"):
+        m.robot_target(np.eye(4))
+    H0, R0 = random_pose(rng), random_pose(rng)
+    m.anchor(H0, R0)
+    np.testing.assert_allclose(m.robot_target(H0), R0, atol=1e-12)
+    for res in ("high", "low"):
+        H = random_pose(rng)
+        np.testing.assert_allclose(m.hand_for(m.robot_target(H, res), res), H, atol=1e-9)
+
+
+def test_mapping_moves_the_robot_as_the_hand_moves_in_its_own_frame():
+    m = RelativeMotionMapping(AxisMap())
+    H0, R0 = palm_down([0.3, -0.2, 1.0]), palm_down([0.4, 0.0, 0.9])
+    m.anchor(H0, R0)
+    H = H0.copy()
+    H[:3, 3] += [0.05, 0.02, -0.03]  # palm frames aligned: the same world displacement
+    np.testing.assert_allclose(m.robot_target(H)[:3, 3] - R0[:3, 3], [0.05, 0.02, -0.03], atol=1e-12)
+    np.testing.assert_allclose(
+        m.robot_target(H, "low")[:3, 3] - R0[:3, 3], 0.6 * np.array([0.05, 0.02, -0.03]), atol=1e-12
+    )
+
+
+def test_axis_map_rejects_reflections_and_unknown_embodiments():
+    with pytest.raises(ValueError, match="det"):
+        AxisMap(A_rot=np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="Valid"):
+        axis_map("rx1", "right")
+
+
+# ------------------------------------------------------------------------------- filters
+def test_so3_log_exp_round_trip_including_near_pi():
+    for angle in (1e-9, 0.3, 2.0, np.pi - 1e-6):
+        axis = rng.normal(size=3)
+        w = axis / np.linalg.norm(axis) * angle
+        R = so3_exp(w)
+        np.testing.assert_allclose(so3_exp(so3_log(R)), R, atol=1e-6)
+
+
+def test_slerp_endpoints_and_midpoint():
+    Ra, Rb = random_rotation(rng), random_rotation(rng)
+    np.testing.assert_allclose(slerp(Ra, Rb, 0.0), Ra, atol=1e-12)
+    np.testing.assert_allclose(slerp(Ra, Rb, 1.0), Rb, atol=1e-9)
+    mid = slerp(Ra, Rb, 0.5)
+    d1 = np.linalg.norm(so3_log(Ra.T @ mid))
+    d2 = np.linalg.norm(so3_log(mid.T @ Rb))
+    assert d1 == pytest.approx(d2, abs=1e-9)
+
+
+def test_moving_average_and_complementary_filter():
+    smooth = KeypointSmoother(3)
+    for v, expected in ((3.0, 3.0), (6.0, 4.5), (9.0, 6.0), (12.0, 9.0)):
+        assert smooth(np.full((26, 3), v))[0, 0] == pytest.approx(expected)
+    with pytest.raises(ValueError, match="window"):
+        KeypointSmoother(0)
+    f = PoseSmoother(0.5, 0.5)
+    T0, T1 = np.eye(4), palm_down([1.0, 0, 0])
+    np.testing.assert_allclose(f(T0), T0)
+    half = f(T1)
+    assert half[0, 3] == pytest.approx(0.5)
+    for _ in range(60):
+        out = f(T1)
+    np.testing.assert_allclose(out, T1, atol=1e-9)
+    with pytest.raises(ValueError, match="alpha"):
+        PoseSmoother(0.0)
+
+
+# ------------------------------------------------------------------------------- operator
+DT = 1 / 30
+
+
+@pytest.fixture(scope="module")
+def operator():
+    return Operator(make_embodiment("xarm7_leap_right"), DT, OperatorConfig())
+
+
+def fresh(operator):
+    home = operator.effectors["right"].ik.joints.home
+    operator.reset(home, {"right": slice(0, 23)})
+    operator.set_paused(False)
+    operator._stream_paused = False
+    operator._was_paused = False
+    return home
+
+
+def frame(T, t, side="right", **kw) -> HandFrame:
+    return HandFrame(side=side, t_source=t, t_receive=t, joints=hand_joints(T, side), **kw)
+
+
+def test_no_frames_means_holding_home(operator):
+    home = fresh(operator)
+    cmd = operator.command(0.0)["right"]
+    assert cmd.hold and cmd.reason == "waiting"
+    np.testing.assert_allclose(cmd.positions, home)
+
+
+def test_first_frame_anchors_without_a_jump_then_the_robot_follows(operator):
+    home = fresh(operator)
+    op = operator.effectors["right"]
+    T_robot0 = op.ik.T_world_hand()
+    H0 = palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(H0, 0.0))
+    cmd = operator.command(0.0)["right"]
+    assert not cmd.hold
+    np.testing.assert_allclose(cmd.positions[:7], home[:7], atol=1e-3)
+    H = H0.copy()
+    H[:3, 3] += [0.05, 0.0, -0.04]
+    t = 0.0
+    for _ in range(90):
+        t += DT
+        operator.observe(frame(H, t))
+        operator.command(t)
+    moved = op.ik.T_world_hand()[:3, 3] - T_robot0[:3, 3]
+    # The motion in the palm's initial frame, replayed in the robot hand's initial frame.
+    expected = T_robot0[:3, :3] @ H0[:3, :3].T @ np.array([0.05, 0.0, -0.04])
+    np.testing.assert_allclose(moved, expected, atol=2e-3)
+
+
+def test_tracking_loss_holds_after_the_timeout(operator, caplog):
+    fresh(operator)
+    H0 = palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(H0, 0.0))
+    operator.command(0.0)
+    with caplog.at_level(logging.WARNING, "beavr_sim.teleop.operator"):
+        cmd = operator.command(0.5)["right"]
+    assert cmd.hold and cmd.reason == "tracking_lost"
+    assert "lost" in caplog.text
+    # An untracked hand (palm joints missing) does not count as tracking.
+    joints = hand_joints(H0)
+    joints[7] = np.nan
+    operator.observe(HandFrame("right", 0.6, 0.6, joints))
+    assert operator.command(0.6)["right"].reason == "tracking_lost"
+    assert operator.effectors["right"].stats.untracked_frames == 1
+
+
+def test_a_tracking_jump_is_ignored_then_reanchored_if_the_hand_stays(operator):
+    fresh(operator)
+    op = operator.effectors["right"]
+    H0 = palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(H0, 0.0))
+    q0 = operator.command(0.0)["right"].positions
+    far = H0.copy()
+    far[:3, 3] += [0.0, 0.0, 0.3]  # 30 cm in one frame: a glitch
+    t = 0.0
+    for i in range(op.config.reanchor_after - 1):
+        t += 1 / 60
+        assert not op.observe(frame(far, t))
+    np.testing.assert_allclose(operator.command(t)["right"].positions, q0, atol=1e-6)
+    assert op.stats.jumps_rejected == op.config.reanchor_after - 1
+    t += 1 / 60
+    assert op.observe(frame(far, t))  # it stayed there: re-anchored, accepted
+    reanchors = op.stats.reanchors
+    cmd = operator.command(t)["right"]
+    assert op.stats.reanchors == reanchors + 1
+    np.testing.assert_allclose(cmd.positions[:7], q0[:7], atol=1e-3)  # no jump
+
+
+def test_pause_holds_and_resume_reanchors_without_a_jump(operator):
+    fresh(operator)
+    H0 = palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(H0, 0.0))
+    operator.command(0.0)
+    H = H0.copy()
+    t = 0.0
+    for _ in range(10):  # paused by the stream while the hand moves 10 cm
+        t += DT
+        H[:3, 3] += [0.01, 0, 0]
+        operator.observe(frame(H, t, paused=True))
+        cmd = operator.command(t)["right"]
+        assert cmd.hold and cmd.reason == "paused"
+    q_paused = cmd.positions
+    t += DT
+    operator.observe(frame(H, t))
+    cmd = operator.command(t)["right"]
+    assert not cmd.hold
+    np.testing.assert_allclose(cmd.positions[:7], q_paused[:7], atol=1e-3)
+
+
+def test_left_hand_pinch_toggles_pause(operator):
+    fresh(operator)
+    L = palm_down([0.3, 0.2, 1.0])
+    operator.observe(frame(L, 0.0, side="left", pinch=True))
+    assert operator.paused
+    operator.observe(frame(L, 0.1, side="left", pinch=True))  # held: no second toggle
+    assert operator.paused
+    operator.observe(frame(L, 0.2, side="left", pinch=False))
+    operator.observe(frame(L, 0.3, side="left", pinch=True))
+    assert not operator.paused
+
+
+def test_commands_respect_joint_limits(operator):
+    fresh(operator)
+    op = operator.effectors["right"]
+    H0 = palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(H0, 0.0))
+    t = 0.0
+    for _ in range(60):  # ask for a pose far out of reach
+        t += DT
+        H = H0.copy()
+        H[:3, 3] += [1.5, 0.0, -1.0]
+        operator.observe(frame(H, t))
+        cmd = operator.command(t)["right"]
+        assert np.all(cmd.positions >= op.ik.joints.lower - 1e-9)
+        assert np.all(cmd.positions <= op.ik.joints.upper + 1e-9)
