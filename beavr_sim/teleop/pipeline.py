@@ -39,6 +39,7 @@ class TeleopSummary:
     operator: dict = field(default_factory=dict)
     ticks: int = 0
     loop_rate_hz: float | None = None
+    processes: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)

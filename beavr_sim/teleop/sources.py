@@ -94,11 +94,14 @@ class TraceSource(FrameListSource):
     """A recorded VR trace (MCAP file written by ``python -m beavr_sim.traces``)."""
 
     def __init__(self, path: str | Path, real_time: bool = False):
+        from dataclasses import asdict
+
         from beavr_sim.traces.format import TraceReader
 
         self.reader = TraceReader(path)
-        self.metadata = dict(self.reader.metadata)
-        super().__init__(list(self.reader.hand_frames()), real_time=real_time)
+        self.metadata = asdict(self.reader.metadata)
+        frames = [payload for _, kind, payload in self.reader.events() if kind == "hand"]
+        super().__init__(frames, real_time=real_time)
 
 
 class QuestSource(HandSource):

@@ -40,6 +40,7 @@ from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary
 from beavr_sim.teleop.retarget import human_keypoints_for
 from beavr_sim.teleop.sources import FrameListSource
 from beavr_sim.teleop.twin import TwinInterface
+from beavr_sim.traces.format import TraceMetadata, TraceReader, TraceWriter, hand_from_json, hand_to_json
 
 #: Palm down, fingers forward (+x), per side, in front of a standing operator (headset world
 #: frame, right-handed Z-up, metres).
@@ -164,15 +165,92 @@ def synthesize(
             break
     summary = loop.summary(success=tick.state.success)
     env.close()
-    metadata = {
-        "task": task,
-        "embodiment": embodiment,
-        "seed": seed,
-        "source": "synth",
-        "frame_hz": config.frame_hz,
-        "generator": "beavr_sim.traces.synth",
-        "synth": {k: v for k, v in asdict(config).items()},
-        "expert_success": bool(summary.success),
-        "episode_seconds": summary.duration_s,
-    }
+    metadata = TraceMetadata(
+        source="synth",
+        frame_rate_hz=config.frame_hz,
+        task=task,
+        embodiment=embodiment,
+        seed=seed,
+        generator={
+            "name": "beavr_sim.traces.synth",
+            "expert": type(expert).__name__,
+            **{k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()},
+            "episode_success": bool(summary.success),
+            "episode_seconds": summary.duration_s,
+        },
+    )
     return SynthResult(frames=frames, summary=summary, metadata=metadata)
+
+
+def quantize(frame: HandFrame) -> HandFrame:
+    """The frame exactly as a trace file stores it (0.1 mm)."""
+    return hand_from_json(hand_to_json(frame))
+
+
+def write_trace(path: Path, result: SynthResult) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with TraceWriter(path, result.metadata) as writer:
+        for frame in result.frames:
+            writer.write_hand(frame)
+    return path
+
+
+def replay(path: Path, **kwargs) -> TeleopSummary:
+    """Replay a trace through the in-process pipeline on the virtual clock."""
+    from beavr_sim.teleop.session import SessionOptions, build_loop
+
+    options = SessionOptions(task=TraceReader(path).metadata.task, source="trace", trace=Path(path),
+                             viser=False, headless=True, progress=False, **kwargs)
+    loop = build_loop(options)
+    try:
+        return loop.run()
+    finally:
+        loop.twin.env.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    import beavr_sim  # noqa: F401
+    from beavr_sim.naming import UnknownNameError
+    from beavr_sim.tasks.registry import canonical_task_name
+
+    parser = argparse.ArgumentParser(
+        prog="python -m beavr_sim.traces synth",
+        description="Synthesise a VR trace from a task's scripted expert (closed loop through "
+        "the teleop pipeline); prints one JSON line.",
+    )
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--embodiment", default="xarm7_leap_right")
+    parser.add_argument("--frame-hz", type=float, default=SynthConfig.frame_hz)
+    parser.add_argument("--noise-mm", type=float, default=SynthConfig.noise_mm)
+    parser.add_argument("--dropouts", type=int, default=SynthConfig.dropouts)
+    parser.add_argument(
+        "--tries", type=int, default=1,
+        help="seeds to try (seed, seed+1, ...) until an episode succeeds (default 1)",
+    )
+    parser.add_argument("--no-verify", action="store_true", help="skip the replay check")
+    args = parser.parse_args(argv)
+    try:
+        task = canonical_task_name(args.task)
+        config = SynthConfig(frame_hz=args.frame_hz, noise_mm=args.noise_mm, dropouts=args.dropouts)
+        for seed in range(args.seed, args.seed + max(1, args.tries)):
+            result = synthesize(task, seed, args.embodiment, config, quantize=quantize)
+            print(f"seed {seed}: {'success' if result.summary.success else 'failed'} "
+                  f"after {result.summary.duration_s:.1f} s", file=sys.stderr)
+            if result.summary.success:
+                break
+    except (UnknownNameError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    write_trace(args.out, result)
+    report = {"out": str(args.out), "task": task, "embodiment": args.embodiment, "seed": seed,
+              "success": result.summary.success, "frames": len(result.frames),
+              "duration_s": result.summary.duration_s}
+    if not args.no_verify:
+        replayed = replay(args.out)
+        report["replay_success"] = replayed.success
+        report["replay_duration_s"] = replayed.duration_s
+    print(json.dumps(report))
+    return 0 if result.summary.success else 1
