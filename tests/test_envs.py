@@ -22,9 +22,7 @@ def _supported(task: str) -> list[str]:
     return sorted(EMBODIMENTS) if allowed is None else list(allowed)
 
 
-ENV_EMBODIMENTS = [
-    (env_id(task), embodiment) for task in TASKS for embodiment in _supported(task)
-]
+ENV_EMBODIMENTS = [(env_id(task), embodiment) for task in TASKS for embodiment in _supported(task)]
 
 
 def test_registration_lists_every_task():

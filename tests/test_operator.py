@@ -51,7 +51,9 @@ def test_palm_frame_is_orthonormal_and_follows_the_hand(side):
         R = R_world_palm(joints, side)
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(R) == pytest.approx(1.0)
-        np.testing.assert_allclose(keypoints_in_palm(joints, side), human_keypoints_for(np.zeros(16), side), atol=1e-9)
+        np.testing.assert_allclose(
+            keypoints_in_palm(joints, side), human_keypoints_for(np.zeros(16), side), atol=1e-9
+        )
 
 
 def test_right_thumb_is_on_plus_y_and_left_on_minus_y():
@@ -84,7 +86,9 @@ def test_mapping_moves_the_robot_as_the_hand_moves_in_its_own_frame():
     m.anchor(H0, R0)
     H = H0.copy()
     H[:3, 3] += [0.05, 0.02, -0.03]  # palm frames aligned: the same world displacement
-    np.testing.assert_allclose(m.robot_target(H)[:3, 3] - R0[:3, 3], [0.05, 0.02, -0.03], atol=1e-12)
+    np.testing.assert_allclose(
+        m.robot_target(H)[:3, 3] - R0[:3, 3], [0.05, 0.02, -0.03], atol=1e-12
+    )
     np.testing.assert_allclose(
         m.robot_target(H, "low")[:3, 3] - R0[:3, 3], 0.6 * np.array([0.05, 0.02, -0.03]), atol=1e-12
     )
@@ -211,7 +215,7 @@ def test_a_tracking_jump_is_ignored_then_reanchored_if_the_hand_stays(operator):
     far = H0.copy()
     far[:3, 3] += [0.0, 0.0, 0.3]  # 30 cm in one frame: a glitch
     t = 0.0
-    for i in range(op.config.reanchor_after - 1):
+    for _i in range(op.config.reanchor_after - 1):
         t += 1 / 60
         assert not op.observe(frame(far, t))
     np.testing.assert_allclose(operator.command(t)["right"].positions, q0, atol=1e-6)

@@ -1,4 +1,4 @@
-"""``python -m beavr_sim.bench sim [--seconds S]``: prints one JSON object."""
+"""``python -m beavr_sim.bench {sim,retarget} [--seconds S] [--frames N]``: prints JSON."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim",)
+BENCHMARKS = ("sim", "retarget")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -18,14 +18,22 @@ def main(argv: list[str] | None = None) -> int:
         "--seconds", type=float, default=2.0, help="time per measurement (default 2)"
     )
     parser.add_argument(
-        "--frames", type=int, default=20, help="rendered frames to time (default 20)"
+        "--frames",
+        type=int,
+        default=None,
+        help="sim: rendered frames to time (default 20); retarget: trace frames (default all)",
     )
     args = parser.parse_args(argv)
     if args.benchmark == "sim":
         from beavr_sim.bench.sim import run
 
         print(f"benchmarking simulation ({args.seconds:g} s per measurement)...", file=sys.stderr)
-        result = run(seconds=args.seconds, render_frames=args.frames)
+        result = run(seconds=args.seconds, render_frames=args.frames or 20)
+    elif args.benchmark == "retarget":
+        from beavr_sim.bench.retarget import run as run_retarget
+
+        print("benchmarking LEAP retargeting on the human hand trace...", file=sys.stderr)
+        result = run_retarget(frames=args.frames)
     print(json.dumps(result, indent=2))
     return 0
 

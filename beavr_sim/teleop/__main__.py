@@ -57,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--headset-image-hz", type=float, default=10.0, help="twin images to headset")
     p.add_argument("--headset-image-size", default="640x360", help="WxH of headset images")
-    p.add_argument("--multiprocess", action="store_true", help="detector, operator, twin as processes")
+    p.add_argument(
+        "--multiprocess", action="store_true", help="detector, operator, twin as processes"
+    )
     p.add_argument("--max-seconds", type=float, default=None, help="stop after this long")
     p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress line")

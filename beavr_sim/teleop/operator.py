@@ -197,8 +197,11 @@ class EffectorOperator:
             reason = "tracking_lost"
         if reason == "tracking_lost" and not self._lost:
             self.stats.tracking_losses += 1
-            log.warning("%s hand lost (no tracked frame for %.2f s): holding", self.side,
-                        now - self._t_accepted)
+            log.warning(
+                "%s hand lost (no tracked frame for %.2f s): holding",
+                self.side,
+                now - self._t_accepted,
+            )
         self._lost = reason == "tracking_lost"
 
         if reason:

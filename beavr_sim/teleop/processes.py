@@ -71,16 +71,26 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
     if options["source"] == "trace":
         source = TraceSource(options["trace"], real_time=True)
     else:
-        source = QuestSource(context, TransportConfig(headset_host=options["headset_host"]), validator)
+        source = QuestSource(
+            context, TransportConfig(headset_host=options["headset_host"]), validator
+        )
     sides = options["sides"]
     for side in sides:
         pubs[side].wait_for_subscribers(1, HANDSHAKE_TIMEOUT_S)
     conn.send_bytes(b"ready")
     received = 0
+    # A trace starts playing when the supervisor says every process is ready ("resume"), so
+    # the operator anchors on its first frames as it would in one process.
+    started = options["source"] != "trace"
     try:
         while True:
-            if _stop_requested(session) == "stop":
+            command = _stop_requested(session)
+            if command == "stop":
                 break
+            if not started:
+                started = command == "resume"
+                time.sleep(0.002)
+                continue
             for frame in source.poll(time.monotonic()):
                 received += 1
                 if validator.check(frame) is None and frame.side in pubs:
@@ -116,15 +126,24 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     embodiment = make_embodiment(options["embodiment"])
     dt = 1.0 / options["control_hz"]
     operator = Operator(embodiment, dt)
+    # Hand frames are not conflated: the operator's filters take every frame (drained each
+    # tick); commands and robot state are latest-only.
     hands = {
         side: Subscriber(
-            context, transport.endpoint(f"hands_{side}", bind=False), side.encode(), HandFrameMsg,
+            context,
+            transport.endpoint(f"hands_{side}", bind=False),
+            side.encode(),
+            HandFrameMsg,
             liveness_timeout_s=LIVENESS_TIMEOUT_S,
+            conflate=False,
         )
         for side in options["sides"]
     }
     state = Subscriber(
-        context, transport.endpoint("robot_state", bind=False), b"state", RobotStateMsg,
+        context,
+        transport.endpoint("robot_state", bind=False),
+        b"state",
+        RobotStateMsg,
         liveness_timeout_s=LIVENESS_TIMEOUT_S,
     )
     session = Subscriber(
@@ -157,8 +176,7 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                         operator.reset(np.asarray(latest.positions), slices)
             t0 = time.perf_counter()
             for sub in hands.values():
-                frame_msg = sub.recv_latest(0.0)
-                if frame_msg is not None:
+                while (frame_msg := sub.recv(0.0)) is not None:
                     operator.observe(frame_msg.to_frame())
             now = time.monotonic()
             for name, cmd in operator.command(now).items():
@@ -211,7 +229,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     twin.reset(options["seed"])
     subs = {
         e.name: Subscriber(
-            context, transport.endpoint("commands", bind=False), e.name.encode(), JointCommandMsg,
+            context,
+            transport.endpoint("commands", bind=False),
+            e.name.encode(),
+            JointCommandMsg,
             liveness_timeout_s=LIVENESS_TIMEOUT_S,
         )
         for e in env.embodiment.effectors
@@ -227,9 +248,13 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
 
         view = TwinView(env.model, host=options["viser_host"], port=options["viser_port"])
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+    poller = zmq.Poller()
+    for sub in subs.values():
+        poller.register(sub.socket, zmq.POLLIN)
     conn.send_bytes(b"ready")
     latencies: list[float] = []
     success = False
+    details: dict = {}
     dt = 1.0 / env.control_hz
     next_tick = time.monotonic()
     last_t_source: dict[str, float] = {}
@@ -240,12 +265,27 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 break
             if msg is not None and msg.command == "reset":
                 twin.reset(options["seed"])
-            commands = {}
-            for name, sub in subs.items():
-                cmd = sub.recv_latest(0.0)
-                if cmd is None or cmd.hold or not cmd.positions:
-                    continue  # no news, or holding: keep the last targets
-                commands[name] = JointCommand(
+            # Step as soon as every effector's next command is in (the operator paces the
+            # twin: least latency), or at the control period's end without it (the operator
+            # is slow or dead: the robot holds its last targets).
+            commands: dict = {}
+            deadline = next_tick + dt
+            while len(commands) < len(subs):
+                for name, sub in subs.items():
+                    cmd = sub.recv_latest(0.0)
+                    if cmd is not None:
+                        commands[name] = cmd
+                remaining = deadline - time.monotonic()
+                if len(commands) == len(subs) or remaining <= 0:
+                    break
+                poller_events = dict(poller.poll(max(1, int(remaining * 1000))))
+                if not poller_events:
+                    break
+            applied = {}
+            for name, cmd in commands.items():
+                if cmd.hold or not cmd.positions:
+                    continue  # holding: keep the last targets
+                applied[name] = JointCommand(
                     effector=name,
                     positions=np.asarray(cmd.positions),
                     t_source=cmd.t_source,
@@ -254,8 +294,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 if cmd.t_source > 0 and cmd.t_source != last_t_source.get(name):
                     latencies.append((time.monotonic() - cmd.t_source) * 1e3)
                     last_t_source[name] = cmd.t_source
+            commands = applied
             st = twin.apply(commands)
             success = success or st.success
+            details = {k: v for k, v in st.info.items() if k.startswith("task/")}
             state_pub.send(
                 b"state",
                 RobotStateMsg(
@@ -266,14 +308,22 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 ),
             )
             if view is not None:
-                view.update(env.data, status=f"t = {st.t:5.1f} s · {'success' if success else 'running'}")
-            next_tick += dt
-            time.sleep(max(0.0, next_tick - time.monotonic()))
+                view.update(
+                    env.data, status=f"t = {st.t:5.1f} s · {'success' if success else 'running'}"
+                )
+            next_tick = max(next_tick + dt, time.monotonic() - dt)
     finally:
         conn.send_bytes(
             json.dumps(
                 {
                     "success": success,
+                    "objects": {
+                        n: o.pos(env.data).round(3).tolist()
+                        for n, o in {**env.task.objects, **env.task.fixtures}.items()
+                    },
+                    "task_details": {
+                        k: v for k, v in details.items() if isinstance(v, (bool, int, float, str))
+                    },
                     "commands_applied": twin.commands_applied,
                     "latency_ms": _percentiles(latencies),
                     "duration_s": env.elapsed_seconds,
@@ -329,14 +379,19 @@ class MultiprocessSession:
         self.context = zmq.Context()
         self.session_pub = Publisher(self.context, self.transport.endpoint("session", bind=True))
         self.state_sub = Subscriber(
-            self.context, self.transport.endpoint("robot_state", bind=False), b"state",
-            RobotStateMsg, liveness_timeout_s=LIVENESS_TIMEOUT_S,
+            self.context,
+            self.transport.endpoint("robot_state", bind=False),
+            b"state",
+            RobotStateMsg,
+            liveness_timeout_s=LIVENESS_TIMEOUT_S,
         )
         self._session_type = SessionMsg
         for name in ("twin", "operator", "detector"):
             parent, child = self.ctx.Pipe()
             proc = self.ctx.Process(
-                target=TARGETS[name], args=(self.options, self.transport, child), name=name,
+                target=TARGETS[name],
+                args=(self.options, self.transport, child),
+                name=name,
                 daemon=True,
             )
             proc.start()
@@ -346,6 +401,7 @@ class MultiprocessSession:
                 raise RuntimeError(f"{name} process did not become ready within 60 s")
             pipe.recv_bytes()
         self.session_pub.wait_for_subscribers(3, HANDSHAKE_TIMEOUT_S)
+        self.send("resume")  # everyone is ready: the detector starts a trace now
 
     def send(self, command: str) -> None:
         self.session_pub.send(b"session", self._session_type(command=command, t=time.monotonic()))
@@ -357,7 +413,7 @@ class MultiprocessSession:
         self.send("stop")
         for name, proc in self.processes.items():
             pipe = self.pipes[name]
-            if proc.is_alive() and pipe.poll(5.0):
+            if pipe.poll(5.0 if proc.is_alive() else 0.1):
                 try:
                     self.results[name] = json.loads(pipe.recv_bytes())
                 except (EOFError, ValueError):
@@ -386,7 +442,9 @@ class MultiprocessSession:
                         reported.add(name)
                         log.error(
                             "%s process died (exit code %s); the others keep running and the "
-                            "robot holds", name, self.processes[name].exitcode,
+                            "robot holds",
+                            name,
+                            self.processes[name].exitcode,
                         )
                 elapsed = time.monotonic() - t0
                 if (success and stop_on_success) or (max_seconds and elapsed >= max_seconds):

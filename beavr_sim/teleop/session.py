@@ -64,7 +64,9 @@ class SessionOptions:
     def from_args(cls, args) -> SessionOptions:
         size = str(args.headset_image_size).lower().split("x")
         if len(size) != 2 or not all(s.isdigit() and int(s) > 0 for s in size):
-            raise ValueError(f"--headset-image-size must be WxH, e.g. 640x360, got {args.headset_image_size!r}")
+            raise ValueError(
+                f"--headset-image-size must be WxH, e.g. 640x360, got {args.headset_image_size!r}"
+            )
         return cls(
             task=args.task,
             embodiment=args.embodiment,
@@ -133,9 +135,7 @@ def build_loop(options: SessionOptions, context=None):
             )
         trace_embodiment = meta.get("embodiment")
         if embodiment is not None and trace_embodiment and embodiment != trace_embodiment:
-            raise ValueError(
-                f"trace {options.trace} drives {trace_embodiment}, not {embodiment}"
-            )
+            raise ValueError(f"trace {options.trace} drives {trace_embodiment}, not {embodiment}")
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
     else:
@@ -190,7 +190,8 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             from beavr_sim.teleop.quest_io import HeadsetImagePublisher
 
             publisher = HeadsetImagePublisher(
-                context, TransportConfig(headset_host=options.headset_host),
+                context,
+                TransportConfig(headset_host=options.headset_host),
                 rate_hz=options.headset_image_hz,
             )
             closers.append(publisher.close)

@@ -39,7 +39,7 @@ class HandSource(ABC):
         """True when no frame will ever come again (end of a trace)."""
         return False
 
-    def close(self) -> None:  # noqa: B027 (optional hook)
+    def close(self) -> None:
         """Release sockets or files."""
 
 
@@ -65,7 +65,9 @@ class FrameListSource(HandSource):
         else:
             trace_now = now
         out = []
-        while self._next < len(self.frames) and self.frames[self._next].t_source <= trace_now + _EPS:
+        while (
+            self._next < len(self.frames) and self.frames[self._next].t_source <= trace_now + _EPS
+        ):
             frame = self.frames[self._next]
             t = frame.t_source + (self._offset or 0.0) if self.real_time else frame.t_source
             out.append(replace(frame, t_source=t, t_receive=now if self.real_time else t))

@@ -40,7 +40,13 @@ from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary
 from beavr_sim.teleop.retarget import human_keypoints_for
 from beavr_sim.teleop.sources import FrameListSource
 from beavr_sim.teleop.twin import TwinInterface
-from beavr_sim.traces.format import TraceMetadata, TraceReader, TraceWriter, hand_from_json, hand_to_json
+from beavr_sim.traces.format import (
+    TraceMetadata,
+    TraceReader,
+    TraceWriter,
+    hand_from_json,
+    hand_to_json,
+)
 
 #: Palm down, fingers forward (+x), per side, in front of a standing operator (headset world
 #: frame, right-handed Z-up, metres).
@@ -200,8 +206,15 @@ def replay(path: Path, **kwargs) -> TeleopSummary:
     """Replay a trace through the in-process pipeline on the virtual clock."""
     from beavr_sim.teleop.session import SessionOptions, build_loop
 
-    options = SessionOptions(task=TraceReader(path).metadata.task, source="trace", trace=Path(path),
-                             viser=False, headless=True, progress=False, **kwargs)
+    options = SessionOptions(
+        task=TraceReader(path).metadata.task,
+        source="trace",
+        trace=Path(path),
+        viser=False,
+        headless=True,
+        progress=False,
+        **kwargs,
+    )
     loop = build_loop(options)
     try:
         return loop.run()
@@ -227,7 +240,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise-mm", type=float, default=SynthConfig.noise_mm)
     parser.add_argument("--dropouts", type=int, default=SynthConfig.dropouts)
     parser.add_argument(
-        "--tries", type=int, default=1,
+        "--tries",
+        type=int,
+        default=1,
         help="seeds to try (seed, seed+1, ...) until an episode succeeds (default 1)",
     )
     parser.add_argument("--no-verify", action="store_true", help="skip the replay check")
@@ -237,17 +252,26 @@ def main(argv: list[str] | None = None) -> int:
         config = SynthConfig(frame_hz=args.frame_hz, noise_mm=args.noise_mm, dropouts=args.dropouts)
         for seed in range(args.seed, args.seed + max(1, args.tries)):
             result = synthesize(task, seed, args.embodiment, config, quantize=quantize)
-            print(f"seed {seed}: {'success' if result.summary.success else 'failed'} "
-                  f"after {result.summary.duration_s:.1f} s", file=sys.stderr)
+            print(
+                f"seed {seed}: {'success' if result.summary.success else 'failed'} "
+                f"after {result.summary.duration_s:.1f} s",
+                file=sys.stderr,
+            )
             if result.summary.success:
                 break
     except (UnknownNameError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     write_trace(args.out, result)
-    report = {"out": str(args.out), "task": task, "embodiment": args.embodiment, "seed": seed,
-              "success": result.summary.success, "frames": len(result.frames),
-              "duration_s": result.summary.duration_s}
+    report = {
+        "out": str(args.out),
+        "task": task,
+        "embodiment": args.embodiment,
+        "seed": seed,
+        "success": result.summary.success,
+        "frames": len(result.frames),
+        "duration_s": result.summary.duration_s,
+    }
     if not args.no_verify:
         replayed = replay(args.out)
         report["replay_success"] = replayed.success

@@ -1,0 +1,207 @@
+"""Typed wire messages between pipeline processes (msgspec Structs, msgpack on the wire).
+
+Every message is a tagged Struct (field ``type`` on the wire), so a payload of the wrong kind
+is rejected by name. :func:`decode` checks types *and* meaning (lengths, finite numbers, names
+from a fixed set) and raises :class:`MessageError`; nothing here ever unpickles.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any
+
+import msgspec
+import numpy as np
+from msgspec.structs import force_setattr
+
+from beavr_sim.naming import check_name
+from beavr_sim.teleop.hand import N_JOINTS, RESOLUTIONS, SIDES, HandFrame
+
+SESSION_COMMANDS = ("pause", "resume", "reset", "stop", "record_start", "record_stop")
+
+
+class MessageError(ValueError):
+    """A message that could not be decoded or failed validation."""
+
+
+def _coerce(msg: msgspec.Struct, floats: tuple[str, ...], lists: tuple[str, ...]) -> None:
+    """Let callers pass numpy scalars / arrays: store plain floats and lists (what msgpack
+    encodes). Decoded messages already hold them, so this costs nothing on the receive side."""
+    for name in floats:
+        value = getattr(msg, name)
+        if type(value) is not float:
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)):
+                raise TypeError(f"{name} must be a number, got {type(value).__name__}")
+            force_setattr(msg, name, float(value))
+    for name in lists:
+        value = getattr(msg, name)
+        if not isinstance(value, list):
+            array = np.asarray(value, dtype=bool if name == "tracked" else np.float64)
+            if array.ndim != 1 and not (name == "joints" and array.shape == (N_JOINTS, 3)):
+                raise ValueError(f"{name} must be a flat list of numbers, got shape {array.shape}")
+            force_setattr(msg, name, array.reshape(-1).tolist())
+
+
+def _check_finite(name: str, values: Any) -> None:
+    if isinstance(values, float):
+        values = (values,)
+    bad = [i for i, v in enumerate(values) if not math.isfinite(v)]
+    if bad:
+        raise ValueError(f"{name} must be finite, got NaN/inf at index {bad[:5]}")
+
+
+def _check_length(name: str, values: list, expected: int) -> None:
+    if len(values) != expected:
+        raise ValueError(f"{name} needs {expected} values, got {len(values)}")
+
+
+class HandFrameMsg(msgspec.Struct, tag="hand_frame", kw_only=True, frozen=True):
+    """A :class:`~beavr_sim.teleop.hand.HandFrame` on the wire.
+
+    ``joints``: 26 x 3 positions flattened row-major (metres, right-handed Z-up); untracked
+    joints are sent as 0.0 so every number on the wire is finite.
+    """
+
+    side: str
+    t_source: float
+    t_receive: float
+    joints: list[float]
+    tracked: list[bool]
+    pinch: bool = False
+    resolution: str = "high"
+    paused: bool = False
+
+    def __post_init__(self) -> None:
+        _coerce(self, ("t_source", "t_receive"), ("joints", "tracked"))
+        check_name("side", self.side, SIDES)
+        check_name("resolution", self.resolution, RESOLUTIONS)
+        _check_finite("t_source", self.t_source)
+        _check_finite("t_receive", self.t_receive)
+        _check_length("joints", self.joints, 3 * N_JOINTS)
+        _check_length("tracked", self.tracked, N_JOINTS)
+        _check_finite("joints", self.joints)
+
+    @classmethod
+    def from_frame(cls, frame: HandFrame) -> HandFrameMsg:
+        joints = np.where(frame.tracked[:, None], frame.joints, 0.0)
+        return cls(
+            side=frame.side,
+            t_source=float(frame.t_source),
+            t_receive=float(frame.t_receive),
+            joints=joints.reshape(-1).tolist(),
+            tracked=frame.tracked.tolist(),
+            pinch=bool(frame.pinch),
+            resolution=frame.resolution,
+            paused=bool(frame.paused),
+        )
+
+    def to_frame(self) -> HandFrame:
+        """The hand frame; untracked joints become NaN."""
+        tracked = np.asarray(self.tracked, dtype=bool)
+        joints = np.asarray(self.joints, dtype=np.float64).reshape(N_JOINTS, 3)
+        joints[~tracked] = np.nan
+        return HandFrame(
+            side=self.side,
+            t_source=self.t_source,
+            t_receive=self.t_receive,
+            joints=joints,
+            tracked=tracked,
+            pinch=self.pinch,
+            resolution=self.resolution,
+            paused=self.paused,
+        )
+
+
+class JointCommandMsg(msgspec.Struct, tag="joint_command", kw_only=True, frozen=True):
+    """Joint targets for one effector: arm then hand joints, in the effector's action order.
+
+    ``t_source``: ``t_source`` of the hand frame the targets came from; ``t_command``: when the
+    operator produced them. ``hold``: keep the robot where it is (``positions`` are then the
+    last targets, possibly empty); ``reason`` says why (e.g. ``"paused"``, ``"hand lost"``).
+    """
+
+    effector: str
+    t_source: float
+    t_command: float
+    positions: list[float]
+    hold: bool = False
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        _coerce(self, ("t_source", "t_command"), ("positions",))
+        if not self.effector or "/" in self.effector:
+            raise ValueError(
+                f"effector must be a non-empty name without '/', got {self.effector!r}"
+            )
+        _check_finite("t_source", self.t_source)
+        _check_finite("t_command", self.t_command)
+        if not self.hold and not self.positions:
+            raise ValueError("positions must be non-empty unless hold is set")
+        _check_finite("positions", self.positions)
+
+
+class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True):
+    """Twin state in action order, published every control tick (also the twin's heartbeat)."""
+
+    t: float
+    positions: list[float]
+    velocities: list[float]
+    success: bool = False
+    guard_blocked: bool = False
+
+    def __post_init__(self) -> None:
+        _coerce(self, ("t",), ("positions", "velocities"))
+        _check_finite("t", self.t)
+        _check_length("velocities", self.velocities, len(self.positions))
+        _check_finite("positions", self.positions)
+        _check_finite("velocities", self.velocities)
+
+
+class SessionMsg(msgspec.Struct, tag="session", kw_only=True, frozen=True):
+    """A session command from the UI."""
+
+    command: str
+    t: float = 0.0
+
+    def __post_init__(self) -> None:
+        _coerce(self, ("t",), ())
+        check_name("session command", self.command, SESSION_COMMANDS)
+        _check_finite("t", self.t)
+
+
+Message = HandFrameMsg | JointCommandMsg | RobotStateMsg | SessionMsg
+MESSAGE_TYPES: tuple[type, ...] = (HandFrameMsg, JointCommandMsg, RobotStateMsg, SessionMsg)
+
+
+@functools.cache
+def _encoder() -> msgspec.msgpack.Encoder:
+    return msgspec.msgpack.Encoder()
+
+
+@functools.cache
+def _decoder(expected_type: Any) -> msgspec.msgpack.Decoder:
+    return msgspec.msgpack.Decoder(expected_type)
+
+
+def encode(msg: Message) -> bytes:
+    """msgpack bytes of a message."""
+    if not isinstance(msg, MESSAGE_TYPES):
+        raise MessageError(
+            f"cannot encode {type(msg).__name__}; expected one of "
+            f"{', '.join(t.__name__ for t in MESSAGE_TYPES)}"
+        )
+    return _encoder().encode(msg)
+
+
+def decode[M](data: bytes | bytearray | memoryview, expected_type: type[M] | Any = Message) -> M:
+    """Decode and validate ``data`` as ``expected_type`` (a message type or a union of them).
+
+    Raises :class:`MessageError` naming what was wrong (bad msgpack, wrong message type, a
+    missing field, a wrong length, a NaN, an unknown name).
+    """
+    name = getattr(expected_type, "__name__", None) or str(expected_type)
+    try:
+        return _decoder(expected_type).decode(data)
+    except (msgspec.DecodeError, msgspec.ValidationError) as err:
+        raise MessageError(f"invalid {name} message: {err}") from None

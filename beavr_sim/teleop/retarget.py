@@ -1,0 +1,467 @@
+"""LEAP hand retargeting: human hand keypoints (palm frame) -> 16 LEAP joint targets, and back.
+
+The human hand arrives as the 26 canonical joints in the palm frame
+(:func:`beavr_sim.teleop.hand.keypoints_in_palm`: origin at the wrist, +z along the fingers,
++x out of the palm), whose axes are those of the LEAP ``hand`` frame. A human point maps to
+the LEAP hand frame by
+
+    p_hand = origin_offset + scale * p_palm
+
+with ``scale`` = ``thumb_scale`` for thumb joints and ``finger_scale`` otherwise. By default
+``origin_offset`` puts the scaled middle knuckle of :data:`HUMAN_TEMPLATE_RIGHT` (a typical adult
+hand) on LEAP's middle knuckle (the MCP flexion axis, origin of body ``middle_base``).
+
+:class:`LeapRetargeter` solves, with mink on a hand-only copy of the LEAP MJCF, for joints that
+put each LEAP finger's fingertip-pad site and distal-joint point (origin of ``<finger>_distal``)
+on the mapped human tip and distal (DIP, thumb IP) joints, under joint limits and finger-finger
+collision avoidance, warm-started from the previous solution. LEAP has no little finger: the
+human little finger is ignored. :func:`human_keypoints_for` is the inverse, for synthetic traces.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import daqp
+import mink
+import mujoco
+import numpy as np
+
+from beavr_sim.assets import mjcf_path
+from beavr_sim.naming import check_name
+from beavr_sim.robots.parts import LEAP_HAND
+from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, SIDES
+
+#: LEAP fingers, in the order of their motor ids' blocks below.
+LEAP_FINGERS = ("thumb", "index", "middle", "ring")
+#: Motor ids (indices of the 16-vector) that move each LEAP finger.
+FINGER_MOTORS: dict[str, tuple[int, ...]] = {
+    "index": (0, 1, 2, 3),
+    "middle": (4, 5, 6, 7),
+    "ring": (8, 9, 10, 11),
+    "thumb": (12, 13, 14, 15),
+}
+#: The retargeting targets: (name, human joint suffix, LEAP frame type, LEAP frame suffix).
+TARGET_POINTS = (("tip", "tip", "site", "tip"), ("distal", "distal", "body", "distal"))
+#: LEAP body whose origin is the middle knuckle (MCP flexion axis), the default alignment point.
+LEAP_KNUCKLE_BODY = "middle_base"
+
+
+#: A typical adult right hand in its palm frame (metres, wrist at the origin). The wrist and
+#: the index, middle and little knuckles make :func:`keypoints_in_palm` the identity; the
+#: finger links are a relaxed, slightly curled pose. The left hand is its mirror (y -> -y).
+HUMAN_TEMPLATE_RIGHT: dict[str, tuple[float, float, float]] = {
+    "wrist": (0.0, 0.0, 0.0),
+    "thumb_metacarpal": (0.010, 0.031, 0.020),
+    "thumb_proximal": (0.008, 0.055, 0.042),
+    "thumb_distal": (-0.002, 0.078, 0.065),
+    "thumb_tip": (-0.015, 0.095, 0.086),
+    "index_proximal": (0.004, 0.025, 0.087),
+    "index_intermediate": (0.010, 0.031, 0.124),
+    "index_distal": (0.020, 0.035, 0.146),
+    "index_tip": (0.032, 0.037, 0.165),
+    "middle_proximal": (0.0, 0.0, 0.092),
+    "middle_intermediate": (0.010, 0.0, 0.134),
+    "middle_distal": (0.022, 0.0, 0.158),
+    "middle_tip": (0.036, 0.001, 0.178),
+    "ring_proximal": (0.002, -0.020, 0.086),
+    "ring_intermediate": (0.012, -0.024, 0.124),
+    "ring_distal": (0.023, -0.026, 0.146),
+    "ring_tip": (0.036, -0.026, 0.164),
+    "little_proximal": (0.004, -0.038, 0.074),
+    "little_intermediate": (0.013, -0.046, 0.103),
+    "little_distal": (0.021, -0.051, 0.120),
+    "little_tip": (0.031, -0.054, 0.136),
+}
+
+
+def _template(side: str) -> np.ndarray:
+    """The 26 template joints for ``side`` (metacarpals a quarter of the way to the knuckles)."""
+    joints = np.zeros((N_JOINTS, 3))
+    for name, p in HUMAN_TEMPLATE_RIGHT.items():
+        joints[JOINT_INDEX[name]] = p
+    for finger in ("index", "middle", "ring", "little"):
+        joints[JOINT_INDEX[f"{finger}_metacarpal"]] = (
+            0.25 * joints[JOINT_INDEX[f"{finger}_proximal"]]
+        )
+    joints[JOINT_INDEX["palm"]] = 0.5 * joints[JOINT_INDEX["middle_proximal"]]
+    if side == "left":
+        joints[:, 1] *= -1.0
+    return joints
+
+
+@dataclass(frozen=True)
+class RetargetConfig:
+    """Human -> LEAP map and solver settings (see the module docstring for the map).
+
+    ``origin_offset``: LEAP hand-frame point (m) of the human wrist; None puts the scaled
+    template middle knuckle on LEAP's middle knuckle, per side. Weights: ``tip_weight`` and
+    ``distal_weight`` per metre of position error, ``posture_weight`` per radian from
+    ``posture`` (None: all zeros, open hand). ``iterations``: QP steps per frame (warm-started).
+    ``damping``: Levenberg-Marquardt damping of each step; ``max_step``: largest joint change
+    per step (rad), which keeps the linearised collision constraints valid (0.1 rad at 90 Hz
+    is 9 rad/s). ``min_finger_distance``: gap (m) kept between geoms of different fingers,
+    enforced once closer than ``collision_detection_distance`` (which must exceed how far two
+    fingers can move towards each other in one step, or they may pass the check between
+    steps: 3 cm for 0.1 rad steps); ``collision_gain``: fraction
+    of the remaining gap a step may close (mink's velocity-damper gain).
+    """
+
+    finger_scale: float = 1.8
+    thumb_scale: float = 1.7
+    origin_offset: tuple[float, float, float] | None = None
+    tip_weight: float = 1.0
+    distal_weight: float = 0.5
+    posture_weight: float = 1e-4
+    posture: tuple[float, ...] | None = None
+    iterations: int = 1
+    damping: float = 1e-4
+    max_step: float = 0.1
+    min_finger_distance: float = 0.002
+    collision_detection_distance: float = 0.03
+    collision_gain: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("finger_scale", "thumb_scale", "tip_weight", "max_step", "collision_gain"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"RetargetConfig.{name} must be finite and > 0, got {value!r}")
+        for name in ("distal_weight", "posture_weight", "damping", "min_finger_distance"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"RetargetConfig.{name} must be finite and >= 0, got {value!r}")
+        if self.collision_gain > 1:
+            raise ValueError(
+                f"RetargetConfig.collision_gain must be in (0, 1], got {self.collision_gain!r}"
+            )
+        if not self.collision_detection_distance > self.min_finger_distance:
+            raise ValueError(
+                "RetargetConfig.collision_detection_distance must exceed min_finger_distance, "
+                f"got {self.collision_detection_distance!r} <= {self.min_finger_distance!r}"
+            )
+        if not (isinstance(self.iterations, int) and self.iterations >= 1):
+            raise ValueError(
+                f"RetargetConfig.iterations must be an int >= 1, got {self.iterations!r}"
+            )
+        if self.origin_offset is not None:
+            offset = np.asarray(self.origin_offset, dtype=float)
+            if offset.shape != (3,) or not np.isfinite(offset).all():
+                raise ValueError(
+                    f"RetargetConfig.origin_offset must be 3 finite numbers (m) or None, "
+                    f"got {self.origin_offset!r}"
+                )
+        if self.posture is not None:
+            posture = np.asarray(self.posture, dtype=float)
+            if posture.shape != (len(LEAP_HAND.joints),) or not np.isfinite(posture).all():
+                raise ValueError(
+                    f"RetargetConfig.posture must be {len(LEAP_HAND.joints)} finite joint values "
+                    f"(rad, motor-id order) or None, got {self.posture!r}"
+                )
+
+    def scale(self, finger: str) -> float:
+        return self.thumb_scale if finger == "thumb" else self.finger_scale
+
+
+class HandMap:
+    """The human palm frame -> LEAP hand frame point map of one side, and the hand-only model."""
+
+    def __init__(self, side: str, config: RetargetConfig):
+        self.side = check_name("side", side, SIDES)
+        self.config = config
+        self.model = mujoco.MjModel.from_xml_path(str(mjcf_path(LEAP_HAND.mjcf(side))))
+        self.data = mujoco.MjData(self.model)
+        #: qpos address of each motor id.
+        self.qpos_adr = np.array([self.model.joint(j).qposadr[0] for j in LEAP_HAND.joints])
+        self.range = self.model.jnt_range[[self.model.joint(j).id for j in LEAP_HAND.joints]]
+        if config.origin_offset is None:
+            mujoco.mj_kinematics(self.model, self.data)
+            knuckle = self.data.body(LEAP_KNUCKLE_BODY).xpos
+            self.origin_offset = (
+                knuckle - config.finger_scale * _template(side)[JOINT_INDEX["middle_proximal"]]
+            )
+        else:
+            self.origin_offset = np.asarray(config.origin_offset, dtype=float)
+
+    def to_leap(self, p_palm: np.ndarray, finger: str) -> np.ndarray:
+        return self.origin_offset + self.config.scale(finger) * p_palm
+
+    def to_human(self, p_hand: np.ndarray, finger: str) -> np.ndarray:
+        return (p_hand - self.origin_offset) / self.config.scale(finger)
+
+    def forward(self, q16: np.ndarray) -> mujoco.MjData:
+        """Kinematics of the hand at joint values ``q16`` (motor-id order)."""
+        self.data.qpos[self.qpos_adr] = q16
+        mujoco.mj_kinematics(self.model, self.data)
+        return self.data
+
+
+class _PointsTask(mink.Task):
+    """Positions of several sites / body origins, stacked (3 error rows per point)."""
+
+    def __init__(self, model: mujoco.MjModel, frames: list[tuple[str, str]], costs: np.ndarray):
+        super().__init__(cost=np.repeat(np.asarray(costs, dtype=float), 3), gain=1.0)
+        self.model = model
+        self.base_cost = self.cost.copy()
+        self.is_site = np.array([kind == "site" for kind, _ in frames])
+        self.ids = np.array([getattr(model, kind)(name).id for kind, name in frames])
+        self.targets = np.zeros((len(frames), 3))
+        self._positions = np.zeros((len(frames), 3))
+        self._jacobian = np.zeros((len(frames), 3, model.nv))
+
+    def compute_error(self, configuration: mink.Configuration) -> np.ndarray:
+        data = configuration.data
+        self._positions[self.is_site] = data.site_xpos[self.ids[self.is_site]]
+        self._positions[~self.is_site] = data.xpos[self.ids[~self.is_site]]
+        return (self._positions - self.targets).ravel()
+
+    def compute_jacobian(self, configuration: mink.Configuration) -> np.ndarray:
+        model, data = self.model, configuration.data
+        for i, (site, frame_id) in enumerate(zip(self.is_site, self.ids, strict=True)):
+            if site:
+                mujoco.mj_jacSite(model, data, self._jacobian[i], None, frame_id)
+            else:
+                mujoco.mj_jacBody(model, data, self._jacobian[i], None, frame_id)
+        return self._jacobian.reshape(-1, model.nv)
+
+
+class _FingerCollisionLimit(mink.CollisionAvoidanceLimit):
+    """mink's collision avoidance limit with a tighter broadphase: world-aligned boxes around
+    each geom's oriented bounding box instead of bounding spheres (neighbouring fingers are
+    always within each other's spheres). Like mink's, it only drops pairs that are farther
+    apart than the detection distance, so the constraint is the same."""
+
+    def __init__(self, model: mujoco.MjModel, geom_pairs, **kwargs):
+        super().__init__(model, geom_pairs, broadphase=True, **kwargs)
+        self.broadphase_min_pairs = 0
+        pairs = np.array(self.geom_id_pairs, dtype=int).reshape(-1, 2)
+        self._geoms, inverse = np.unique(pairs, return_inverse=True)
+        self._pair1, self._pair2 = inverse.reshape(-1, 2).T
+        self._aabb_centre = model.geom_aabb[self._geoms, :3]
+        self._aabb_half = model.geom_aabb[self._geoms, 3:]
+
+    def _broadphase_survivors(self, data: mujoco.MjData) -> np.ndarray:
+        R_world_geom = data.geom_xmat[self._geoms].reshape(-1, 3, 3)
+        centre = data.geom_xpos[self._geoms] + np.einsum(
+            "gij,gj->gi", R_world_geom, self._aabb_centre
+        )
+        half = np.einsum("gij,gj->gi", np.abs(R_world_geom), self._aabb_half)
+        gap = (
+            np.abs(centre[self._pair1] - centre[self._pair2])
+            - half[self._pair1]
+            - half[self._pair2]
+        )
+        return np.flatnonzero((gap <= self.collision_detection_distance).all(axis=1))
+
+
+def finger_geoms(model: mujoco.MjModel) -> dict[str, list[int]]:
+    """Collision geoms of each LEAP finger (bodies named ``<finger>_*``)."""
+    geoms: dict[str, list[int]] = {f: [] for f in LEAP_FINGERS}
+    for g in range(model.ngeom):
+        finger = model.body(model.geom_bodyid[g]).name.partition("_")[0]
+        if finger in geoms and (model.geom_contype[g] or model.geom_conaffinity[g]):
+            geoms[finger].append(g)
+    return geoms
+
+
+class LeapRetargeter:
+    """Human palm-frame keypoints -> LEAP joint targets (motor-id order) for one side."""
+
+    def __init__(self, side: str, config: RetargetConfig | None = None):
+        self.config = config or RetargetConfig()
+        self.map = HandMap(side, self.config)
+        self.side = self.map.side
+        model = self.model = self.map.model
+        self.configuration = mink.Configuration(model)
+        frames, costs, self._human_ids, self._finger_of_point = [], [], [], []
+        for finger in LEAP_FINGERS:
+            for name, human, kind, leap in TARGET_POINTS:
+                frames.append((kind, f"{finger}_{leap}"))
+                costs.append(self.config.tip_weight if name == "tip" else self.config.distal_weight)
+                self._human_ids.append(JOINT_INDEX[f"{finger}_{human}"])
+                self._finger_of_point.append(finger)
+        self._human_ids = np.array(self._human_ids)
+        self._scales = np.array([self.config.scale(f) for f in self._finger_of_point])[:, None]
+        self.points = _PointsTask(model, frames, np.array(costs))
+        self.posture_task = mink.PostureTask(model, cost=self.config.posture_weight)
+        posture = np.zeros(model.nq)
+        if self.config.posture is not None:
+            posture[self.map.qpos_adr] = self.config.posture
+        self.posture_task.set_target(posture)
+        self.tasks = [self.points, self.posture_task]
+        geoms = finger_geoms(model)
+        pairs = [
+            (geoms[a], geoms[b]) for i, a in enumerate(LEAP_FINGERS) for b in LEAP_FINGERS[i + 1 :]
+        ]
+        # Joint limits: mink's, applied as the QP's simple bounds on the step (hinges only).
+        self.joint_limit = mink.ConfigurationLimit(model)
+        self.collision_limit = _FingerCollisionLimit(
+            model,
+            pairs,
+            minimum_distance_from_collisions=self.config.min_finger_distance,
+            collision_detection_distance=self.config.collision_detection_distance,
+            gain=self.config.collision_gain,
+        )
+        self._held = np.zeros(model.nv, dtype=bool)
+        # Degrees of freedom (qvel addresses) and target points of each finger.
+        self._finger_dofs = {
+            f: np.array([model.joint(LEAP_HAND.joints[m]).dofadr[0] for m in FINGER_MOTORS[f]])
+            for f in LEAP_FINGERS
+        }
+        self._finger_points = {
+            f: np.array([i for i, g in enumerate(self._finger_of_point) if g == f])
+            for f in LEAP_FINGERS
+        }
+        self._lower, self._upper = self.map.range[:, 0], self.map.range[:, 1]
+        if model.nq != model.nv or not (model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE).all():
+            raise ValueError("LeapRetargeter expects a hand model with hinge joints only")
+        self._lower_qpos = model.jnt_range[:, 0][np.argsort(model.jnt_qposadr)]
+        self._upper_qpos = model.jnt_range[:, 1][np.argsort(model.jnt_qposadr)]
+        self.reset()
+
+    @property
+    def q(self) -> np.ndarray:
+        """The current solution (motor-id order)."""
+        return self.configuration.q[self.map.qpos_adr].copy()
+
+    def reset(self, q: np.ndarray | None = None) -> None:
+        """Restart from ``q`` (motor-id order; default: the LEAP home, open hand)."""
+        q16 = np.asarray(LEAP_HAND.home if q is None else q, dtype=float)
+        if q16.shape != (len(LEAP_HAND.joints),) or not np.isfinite(q16).all():
+            raise ValueError(
+                f"reset needs {len(LEAP_HAND.joints)} finite joint values (motor-id order), "
+                f"got shape {q16.shape}"
+            )
+        qpos = np.zeros(self.model.nq)
+        qpos[self.map.qpos_adr] = np.clip(q16, self._lower, self._upper)
+        self.configuration.update(qpos)
+
+    def targets(self, keypoints_palm: np.ndarray) -> np.ndarray:
+        """LEAP hand-frame targets (8 x 3: tip, distal per finger of :data:`LEAP_FINGERS`)."""
+        return self.map.origin_offset + self._scales * keypoints_palm[self._human_ids]
+
+    def retarget(self, keypoints_palm: np.ndarray, tracked: np.ndarray | None = None) -> np.ndarray:
+        """Joint targets (16, motor-id order, within the joint limits) for one hand frame.
+
+        ``keypoints_palm``: the 26 canonical joints in the palm frame (wrist at the origin),
+        as :func:`~beavr_sim.teleop.hand.keypoints_in_palm` gives them. ``tracked``: per-joint
+        flags (None: all tracked); a finger whose tip or distal joint is untracked holds its
+        previous value.
+        """
+        keypoints = np.asarray(keypoints_palm, dtype=float)
+        if keypoints.shape != (N_JOINTS, 3):
+            raise ValueError(
+                f"retarget needs palm-frame keypoints of shape ({N_JOINTS}, 3), "
+                f"got {keypoints.shape}"
+            )
+        if tracked is None:
+            used = np.ones(len(self._human_ids), dtype=bool)
+        else:
+            tracked = np.asarray(tracked, dtype=bool)
+            if tracked.shape != (N_JOINTS,):
+                raise ValueError(f"tracked flags need shape ({N_JOINTS},), got {tracked.shape}")
+            used = tracked[self._human_ids]
+        points = keypoints[self._human_ids[used]]
+        if not np.isfinite(points).all():
+            raise ValueError(
+                "retarget got NaN/inf in tracked keypoints (tips / distal joints); flag them "
+                "untracked to hold those fingers"
+            )
+        self.points.targets[used] = self.targets(keypoints)[used]
+        self.points.cost[:] = self.points.base_cost
+        self._held[:] = False
+        if not used.all():
+            for finger in LEAP_FINGERS:
+                if not used[self._finger_points[finger]].all():
+                    self.points.cost.reshape(-1, 3)[self._finger_points[finger]] = 0.0
+                    self._held[self._finger_dofs[finger]] = True
+        for _ in range(self.config.iterations):
+            self._step()
+        q = np.clip(self.configuration.q[self.map.qpos_adr], self._lower, self._upper)
+        return q
+
+    def _step(self) -> None:
+        """One QP step (Gauss-Newton with damping) under joint limits and collision avoidance.
+
+        Assembled here rather than by ``mink.solve_ik`` for speed: the tasks' weighted residuals
+        are stacked, joint limits become simple bounds, and only active collision rows are kept.
+        """
+        cfg, nv = self.configuration, self.model.nv
+        J, e, mu = self.points.compute_qp_residual(cfg)
+        J_post, e_post, mu_post = self.posture_task.compute_qp_residual(cfg)
+        H = J.T @ J + J_post.T @ J_post
+        H.flat[:: nv + 1] += self.config.damping + mu + mu_post
+        c = -(e @ J) - (e_post @ J_post)
+        q = cfg.q
+        gain = self.joint_limit.gain
+        upper = np.minimum(gain * (self._upper_qpos - q), self.config.max_step)
+        lower = np.maximum(gain * (self._lower_qpos - q), -self.config.max_step)
+        upper[self._held] = 0.0
+        lower[self._held] = 0.0
+        collision = self.collision_limit.compute_qp_inequalities(cfg, 1.0)
+        active = np.isfinite(collision.h)
+        A = collision.G[active]
+        bupper = np.concatenate([upper, collision.h[active]])
+        blower = np.concatenate([lower, np.full(A.shape[0], -1e30)])
+        sense = np.zeros(bupper.size, dtype=np.int32)
+        dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
+        if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
+            dq[self._held] = 0.0
+            cfg.integrate_inplace(dq, 1.0)
+
+    def retarget_converged(
+        self, keypoints_palm: np.ndarray, iterations: int = 300, tolerance: float = 1e-7
+    ) -> np.ndarray:
+        """:meth:`retarget` repeated on one frame until the joints stop moving (offline use)."""
+        q = self.retarget(keypoints_palm)
+        for _ in range(iterations - 1):
+            q_next = self.retarget(keypoints_palm)
+            if np.max(np.abs(q_next - q)) < tolerance:
+                return q_next
+            q = q_next
+        return q
+
+
+def leap_points(q16: np.ndarray, side: str, config: RetargetConfig | None = None) -> dict:
+    """LEAP hand-frame points of each finger at ``q16``: ``{finger: {link: xyz}}``."""
+    hand = HandMap(side, config or RetargetConfig())
+    return _leap_points(hand, np.asarray(q16, dtype=float))
+
+
+def _leap_points(hand: HandMap, q16: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
+    data = hand.forward(q16)
+    out = {}
+    for finger in LEAP_FINGERS:
+        links = {
+            "intermediate": data.body(f"{finger}_middle").xpos.copy(),
+            "distal": data.body(f"{finger}_distal").xpos.copy(),
+            "tip": data.site(f"{finger}_tip").xpos.copy(),
+        }
+        out[finger] = links
+    return out
+
+
+def human_keypoints_for(
+    q16: np.ndarray, side: str, config: RetargetConfig | None = None
+) -> np.ndarray:
+    """Palm-frame human keypoints (26 x 3) whose retargeting gives back ``q16``.
+
+    The wrist, palm, metacarpals, knuckles (index, middle, ring, little), thumb metacarpal
+    and the little finger come from :data:`HUMAN_TEMPLATE_RIGHT` (mirrored for the left hand),
+    so that :func:`keypoints_in_palm` of the result is the result itself. The intermediate
+    (PIP; thumb MCP), distal and tip joints of thumb, index, middle and ring are LEAP's points
+    at ``q16`` mapped back through the inverse of the human -> LEAP map.
+    """
+    config = config or RetargetConfig()
+    hand = HandMap(side, config)
+    q = np.asarray(q16, dtype=float)
+    if q.shape != (len(LEAP_HAND.joints),) or not np.isfinite(q).all():
+        raise ValueError(
+            f"human_keypoints_for needs {len(LEAP_HAND.joints)} finite joint values "
+            f"(motor-id order), got shape {q.shape}"
+        )
+    joints = _template(hand.side)
+    for finger, links in _leap_points(hand, q).items():
+        for link, p_hand in links.items():
+            human = "proximal" if finger == "thumb" and link == "intermediate" else link
+            joints[JOINT_INDEX[f"{finger}_{human}"]] = hand.to_human(p_hand, finger)
+    return joints
