@@ -191,8 +191,9 @@ def test_round_trip_recovers_joints(side):
         {k: round(v * 1e3, 3) for k, v in residuals.items()},
     )
     # Tip and distal points pin a finger down; near-straight joints (PIP ~ 0) are
-    # ill-conditioned, so a few shapes come back within a few degrees only.
-    assert max(residuals.values()) < 1e-3, residuals
+    # ill-conditioned, so a few shapes come back within a few degrees only. A pinch brings
+    # the tips within the 3 mm finger gap the collision limit keeps: up to ~1.5 mm off.
+    assert max(residuals.values()) < 2e-3, residuals
     assert np.median(list(errors.values())) < 0.01, errors
     assert max(errors.values()) < 0.1, errors
 

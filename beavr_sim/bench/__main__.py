@@ -1,4 +1,4 @@
-"""``python -m beavr_sim.bench {sim,retarget} [--seconds S] [--frames N]``: prints JSON."""
+"""``python -m beavr_sim.bench {sim,retarget,teleop} [--seconds S] [--frames N]``: prints JSON."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim", "retarget")
+BENCHMARKS = ("sim", "retarget", "teleop")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,6 +34,11 @@ def main(argv: list[str] | None = None) -> int:
 
         print("benchmarking LEAP retargeting on the human hand trace...", file=sys.stderr)
         result = run_retarget(frames=args.frames)
+    elif args.benchmark == "teleop":
+        from beavr_sim.bench.teleop import run as run_teleop
+
+        print("benchmarking the teleop pipeline on bundled VR traces...", file=sys.stderr)
+        result = run_teleop()
     print(json.dumps(result, indent=2))
     return 0
 

@@ -2,7 +2,7 @@
 
 Both filters are deliberately simple and documented by their constants, which the operator's
 config exposes. A moving average over ``window`` frames delays the keypoints by
-``(window - 1) / 2`` frames (one frame at the default window of 3: about 14 ms at the Quest's
+``(window - 1) / 2`` frames (two frames at the default window of 5: about 28 ms at the Quest's
 72 Hz). The complementary pose filter moves the filtered pose a fraction ``alpha`` of the way
 to each new measurement (LERP on position, SLERP on rotation): its time constant is about
 ``(1 - alpha) / alpha`` samples.

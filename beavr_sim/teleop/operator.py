@@ -43,7 +43,7 @@ HOLD_REASONS = ("", "waiting", "paused", "tracking_lost")
 class OperatorConfig:
     """Filtering, safety and solver settings of the operator (see the module docstring)."""
 
-    keypoint_window: int = 3
+    keypoint_window: int = 5
     alpha_position: float = 0.6
     alpha_rotation: float = 0.6
     tracking_timeout_s: float = 0.25

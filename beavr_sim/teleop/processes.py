@@ -71,9 +71,7 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
     if options["source"] == "trace":
         source = TraceSource(options["trace"], real_time=True)
     else:
-        source = QuestSource(
-            context, TransportConfig(headset_host=options["headset_host"]), validator
-        )
+        source = QuestSource(context, transport, validator)
     sides = options["sides"]
     for side in sides:
         pubs[side].wait_for_subscribers(1, HANDSHAKE_TIMEOUT_S)
@@ -351,8 +349,9 @@ class MultiprocessSession:
         from beavr_sim.robots import make_embodiment
         from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 
-        self.transport = transport or TransportConfig()
+        self.transport = transport or options.transport or TransportConfig()
         opts = _options_dict(options)
+        opts.pop("transport", None)
         if options.source == "trace":
             from beavr_sim.traces.format import TraceReader
 

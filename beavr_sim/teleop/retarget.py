@@ -13,13 +13,16 @@ hand) on LEAP's middle knuckle (the MCP flexion axis, origin of body ``middle_ba
 
 :class:`LeapRetargeter` solves, with mink on a hand-only copy of the LEAP MJCF, for joints that
 put each LEAP finger's fingertip-pad site and distal-joint point (origin of ``<finger>_distal``)
-on the mapped human tip and distal (DIP, thumb IP) joints, under joint limits and finger-finger
+on the mapped human tip and distal (DIP, thumb IP) joints, and with a smaller weight its
+intermediate point (origin of ``<finger>_middle``) on the human PIP (thumb MCP), under joint
+limits and finger-finger
 collision avoidance, warm-started from the previous solution. LEAP has no little finger: the
 human little finger is ignored. :func:`human_keypoints_for` is the inverse, for synthetic traces.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import daqp
@@ -42,7 +45,16 @@ FINGER_MOTORS: dict[str, tuple[int, ...]] = {
     "thumb": (12, 13, 14, 15),
 }
 #: The retargeting targets: (name, human joint suffix, LEAP frame type, LEAP frame suffix).
-TARGET_POINTS = (("tip", "tip", "site", "tip"), ("distal", "distal", "body", "distal"))
+#: The intermediate point (PIP joint; the thumb's MCP, human ``thumb_proximal``) conditions
+#: nearly straight fingers, whose tip and distal points barely move with the middle joints.
+TARGET_POINTS = (
+    ("tip", "tip", "site", "tip"),
+    ("distal", "distal", "body", "distal"),
+    ("intermediate", "intermediate", "body", "middle"),
+)
+#: Human joint suffix per finger where it differs from the target's (the thumb has no
+#: intermediate phalanx: its MCP joint is XR Hands' ``thumb_proximal``).
+HUMAN_SUFFIX = {("thumb", "intermediate"): "proximal"}
 #: LEAP body whose origin is the middle knuckle (MCP flexion axis), the default alignment point.
 LEAP_KNUCKLE_BODY = "middle_base"
 
@@ -112,12 +124,13 @@ class RetargetConfig:
     origin_offset: tuple[float, float, float] | None = None
     tip_weight: float = 1.0
     distal_weight: float = 0.5
+    intermediate_weight: float = 0.3
     posture_weight: float = 1e-4
     posture: tuple[float, ...] | None = None
     iterations: int = 1
     damping: float = 1e-4
     max_step: float = 0.1
-    min_finger_distance: float = 0.002
+    min_finger_distance: float = 0.003
     collision_detection_distance: float = 0.03
     collision_gain: float = 0.5
 
@@ -126,7 +139,13 @@ class RetargetConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RetargetConfig.{name} must be finite and > 0, got {value!r}")
-        for name in ("distal_weight", "posture_weight", "damping", "min_finger_distance"):
+        for name in (
+            "distal_weight",
+            "intermediate_weight",
+            "posture_weight",
+            "damping",
+            "min_finger_distance",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"RetargetConfig.{name} must be finite and >= 0, got {value!r}")
@@ -273,10 +292,18 @@ class LeapRetargeter:
         model = self.model = self.map.model
         self.configuration = mink.Configuration(model)
         frames, costs, self._human_ids, self._finger_of_point = [], [], [], []
+        weights = {
+            "tip": self.config.tip_weight,
+            "distal": self.config.distal_weight,
+            "intermediate": self.config.intermediate_weight,
+        }
         for finger in LEAP_FINGERS:
             for name, human, kind, leap in TARGET_POINTS:
+                if weights[name] == 0.0:
+                    continue
                 frames.append((kind, f"{finger}_{leap}"))
-                costs.append(self.config.tip_weight if name == "tip" else self.config.distal_weight)
+                costs.append(weights[name])
+                human = HUMAN_SUFFIX.get((finger, name), human)
                 self._human_ids.append(JOINT_INDEX[f"{finger}_{human}"])
                 self._finger_of_point.append(finger)
         self._human_ids = np.array(self._human_ids)
@@ -421,6 +448,11 @@ class LeapRetargeter:
         return q
 
 
+@functools.lru_cache(maxsize=8)
+def _hand_map(side: str, config: RetargetConfig) -> HandMap:
+    return HandMap(side, config)
+
+
 def leap_points(q16: np.ndarray, side: str, config: RetargetConfig | None = None) -> dict:
     """LEAP hand-frame points of each finger at ``q16``: ``{finger: {link: xyz}}``."""
     hand = HandMap(side, config or RetargetConfig())
@@ -451,8 +483,7 @@ def human_keypoints_for(
     (PIP; thumb MCP), distal and tip joints of thumb, index, middle and ring are LEAP's points
     at ``q16`` mapped back through the inverse of the human -> LEAP map.
     """
-    config = config or RetargetConfig()
-    hand = HandMap(side, config)
+    hand = _hand_map(side, config or RetargetConfig())
     q = np.asarray(q16, dtype=float)
     if q.shape != (len(LEAP_HAND.joints),) or not np.isfinite(q).all():
         raise ValueError(

@@ -36,8 +36,14 @@ class SessionOptions:
     multiprocess: bool = False
     max_seconds: float | None = None
     progress: bool = True
+    #: Ports and hosts; default: the standard ports, headset sockets on ``headset_host``.
+    transport: object = None
 
     def __post_init__(self) -> None:
+        from beavr_sim.teleop.config import TransportConfig
+
+        if self.transport is None:
+            self.transport = TransportConfig(headset_host=self.headset_host)
         from beavr_sim.tasks.registry import canonical_task_name
 
         self.task = canonical_task_name(self.task)
@@ -139,9 +145,7 @@ def build_loop(options: SessionOptions, context=None):
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
     else:
-        from beavr_sim.teleop.config import TransportConfig
-
-        source = QuestSource(context, TransportConfig(headset_host=options.headset_host), validator)
+        source = QuestSource(context, options.transport, validator)
     embodiment = embodiment or DEFAULT_EMBODIMENT
     kwargs = {}
     if options.source == "quest":
@@ -186,12 +190,11 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
             loop.listeners.append(_ViewListener(view, loop))
         if not options.headless and options.source == "quest":
-            from beavr_sim.teleop.config import TransportConfig
             from beavr_sim.teleop.quest_io import HeadsetImagePublisher
 
             publisher = HeadsetImagePublisher(
                 context,
-                TransportConfig(headset_host=options.headset_host),
+                options.transport,
                 rate_hz=options.headset_image_hz,
             )
             closers.append(publisher.close)

@@ -56,7 +56,7 @@ PALM_START = {"right": (0.35, -0.2, 1.05), "left": (0.35, 0.2, 1.05)}
 @dataclass(frozen=True)
 class SynthConfig:
     frame_hz: float = 60.0
-    noise_mm: float = 1.5
+    noise_mm: float = 1.0
     dropouts: int = 3
     dropout_s: tuple[float, float] = (0.05, 0.2)
     palm_start: dict = field(default_factory=lambda: dict(PALM_START))

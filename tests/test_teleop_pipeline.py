@@ -1,0 +1,150 @@
+"""The teleop pipeline end to end: bundled VR traces, the CLI, a fake headset, processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from beavr_sim.assets import bundled_trace
+from beavr_sim.tasks.registry import TASKS
+
+BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
+from beavr_sim.teleop.config import PortConfig, TransportConfig
+from beavr_sim.teleop.session import SessionOptions, build_loop
+from beavr_sim.traces.format import TraceReader
+
+
+def replay(task: str, **kwargs):
+    options = SessionOptions(
+        task=task, source="trace", viser=False, headless=True, progress=False, **kwargs
+    )
+    loop = build_loop(options)
+    summary = loop.run()
+    q = loop.twin.env.data.qpos.copy()
+    loop.twin.env.close()
+    return summary, q
+
+
+@pytest.mark.parametrize("task", BENCHMARK_TASKS)
+def test_bundled_trace_replays_to_task_success(task):
+    path = bundled_trace(task)
+    assert path.is_file(), f"no bundled trace for {task}: {path}"
+    meta = TraceReader(path).metadata
+    assert meta.task == task and meta.source == "synth"
+    summary, _ = replay(task)
+    assert summary.success, summary
+    assert summary.frames_rejected == 0
+    assert summary.commands_applied > 0
+
+
+def test_replay_is_deterministic():
+    a, qa = replay("PickupBox")
+    b, qb = replay("PickupBox")
+    np.testing.assert_array_equal(qa, qb)
+    assert (a.success, a.ticks, a.commands_applied) == (b.success, b.ticks, b.commands_applied)
+
+
+def test_cli_writes_the_summary_json(tmp_path, capsys):
+    from beavr_sim.teleop.__main__ import main
+
+    out = tmp_path / "summary.json"
+    rc = main(
+        ["--task", "pickup_box", "--source", "trace", "--no-viser", "--headless", "--quiet",
+         "--summary-json", str(out)]
+    )
+    assert rc == 0
+    report = json.loads(out.read_text())
+    assert report == json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("task", "embodiment", "success", "frames_received", "frames_rejected",
+                "commands_applied", "duration_s", "latency_ms"):
+        assert key in report
+    assert report["success"] is True and report["task"] == "PickupBox"
+    assert set(report["latency_ms"]) >= {"p50", "p99"} and report["latency_ms"]["p50"] > 0
+
+
+def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
+    from beavr_sim.teleop.__main__ import main
+
+    assert main(["--task", "poor", "--source", "trace", "--no-viser"]) == 2
+    assert "Did you mean 'Pour'" in capsys.readouterr().err
+    assert main(["--task", "pour", "--source", "trace", "--trace", str(tmp_path / "x.mcap")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert main(["--task", "pour", "--source", "trace", "--embodiment", "xarm7_leap_left",
+                 "--no-viser"]) == 2
+    assert "drives xarm7_leap_right" in capsys.readouterr().err
+
+
+def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
+    """The Quest source end to end: a PUSH socket per stream like the app, real keypoint
+    strings (from a bundled trace) and malformed ones, in real time."""
+    from beavr_sim.teleop.quest_protocol import format_keypoints
+
+    transport = TransportConfig(ports=PortConfig.free())
+    context = zmq.Context()
+    options = SessionOptions(task="PickupBox", source="quest", viser=False, headless=True,
+                             progress=False, transport=transport)
+    loop = build_loop(options, context)
+    push = context.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    push.connect(transport.endpoint("quest_right", bind=False))
+    frames = [f for _, k, f in TraceReader(bundled_trace("PickupBox")).events() if k == "hand"]
+    q0 = loop.twin.env.agent_pos.copy()
+    bad = [b"garbage", b"absolute:1,2,3:", "absolute:" + "|".join(["0,1,0,2,0,3"] * 26) + ":"]
+    try:
+        for i, frame in enumerate(frames[:150]):
+            push.send(format_keypoints(frame).encode())
+            if i % 50 == 10:
+                push.send(bad[(i // 50) % len(bad)])
+            time.sleep(1 / 60)
+            if i % 2:
+                loop.tick()
+        for _ in range(10):
+            time.sleep(1 / 30)
+            loop.tick()
+        summary = loop.summary(success=False)
+    finally:
+        push.close()
+        loop.source.close()
+        loop.twin.env.close()
+        context.term()
+    assert summary.frames_received > 30
+    assert summary.frames_rejected >= 3
+    assert set(summary.rejected_by_reason) >= {"no_marker", "wrong_joint_count"}
+    moved = np.abs(loop.twin.env.agent_pos - q0).max()
+    assert moved > 0.05, "the twin did not follow the headset"
+
+
+def test_killing_the_operator_process_leaves_the_others_alive_and_the_robot_holding():
+    from beavr_sim.teleop.processes import MultiprocessSession
+
+    options = SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                             progress=False, multiprocess=True,
+                             transport=TransportConfig(ports=PortConfig.free()))
+    session = MultiprocessSession(options)
+    session.start()
+    try:
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            session.state_sub.recv_latest(0.1)
+        os.kill(session.processes["operator"].pid, signal.SIGKILL)
+        session.processes["operator"].join(5.0)
+        time.sleep(0.3)
+        first = session.state_sub.recv_latest(1.0)
+        time.sleep(1.0)
+        last = session.state_sub.recv_latest(1.0)
+        assert first is not None and last is not None, "the twin stopped publishing"
+        assert last.t > first.t
+        arm = slice(0, 7)
+        held = np.abs(np.subtract(last.positions, first.positions)[arm]).max()
+        assert held < 2e-3, f"arm moved {held} rad after the operator died"
+        assert session.dead() == ["operator"]
+    finally:
+        session.stop()
+    assert session.exits["operator"] == -signal.SIGKILL
+    assert session.exits["twin"] == 0 and session.exits["detector"] == 0
