@@ -11,10 +11,10 @@ PYTHON312 ?= $(shell for c in $$(ls -1d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3
 EXTRAS ?= viz,dev
 STAMP := $(VENV)/.installed
 
-.PHONY: help venv sysdeps demo test bench lint clean
+.PHONY: help venv sysdeps demo test bench lint clean traces
 
 help:
-	@echo "make demo   - create .venv (Python 3.12), install, run the scripted twin demo with the browser view"
+	@echo "make demo   - create .venv (Python 3.12), install, replay a bundled VR trace through teleop with the browser view"
 	@echo "make test   - create .venv if needed, run the test suite"
 	@echo "make bench  - run the simulation benchmark (JSON)"
 	@echo "make lint   - ruff"
@@ -40,14 +40,23 @@ sysdeps:
 	  fi; \
 	fi
 
+# The main job on a bundled VR trace, in real time, with the browser view (Ctrl-C to stop).
+DEMO_TASK ?= pour
 demo: venv
-	MUJOCO_GL=egl $(PY) -m beavr_sim.demo
+	MUJOCO_GL=egl $(PY) -m beavr_sim.teleop --task $(DEMO_TASK) --source trace --headless --repeat 0
 
 test: venv
 	MUJOCO_GL=egl $(PY) -m pytest -q
 
 bench: venv
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench sim
+	MUJOCO_GL=egl $(PY) -m beavr_sim.bench teleop
+	MUJOCO_GL=egl $(PY) -m beavr_sim.bench retarget
+
+# Regenerate the bundled VR traces (after changing the operator or the experts).
+TRACE_TASKS ?= pickup_box pick_place stack_blocks flip_cube lantern tape pour
+traces: venv
+	@for t in $(TRACE_TASKS); do MUJOCO_GL=egl $(PY) -m beavr_sim.traces synth --task $$t --seed 0 --tries 10 --out assets/traces/$$t.mcap || exit 1; done
 
 lint: venv
 	$(PY) -m ruff check beavr_sim tests

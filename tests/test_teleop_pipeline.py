@@ -55,14 +55,31 @@ def test_cli_writes_the_summary_json(tmp_path, capsys):
 
     out = tmp_path / "summary.json"
     rc = main(
-        ["--task", "pickup_box", "--source", "trace", "--no-viser", "--headless", "--quiet",
-         "--summary-json", str(out)]
+        [
+            "--task",
+            "pickup_box",
+            "--source",
+            "trace",
+            "--no-viser",
+            "--headless",
+            "--quiet",
+            "--summary-json",
+            str(out),
+        ]
     )
     assert rc == 0
     report = json.loads(out.read_text())
     assert report == json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    for key in ("task", "embodiment", "success", "frames_received", "frames_rejected",
-                "commands_applied", "duration_s", "latency_ms"):
+    for key in (
+        "task",
+        "embodiment",
+        "success",
+        "frames_received",
+        "frames_rejected",
+        "commands_applied",
+        "duration_s",
+        "latency_ms",
+    ):
         assert key in report
     assert report["success"] is True and report["task"] == "PickupBox"
     assert set(report["latency_ms"]) >= {"p50", "p99"} and report["latency_ms"]["p50"] > 0
@@ -75,8 +92,12 @@ def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
     assert "Did you mean 'Pour'" in capsys.readouterr().err
     assert main(["--task", "pour", "--source", "trace", "--trace", str(tmp_path / "x.mcap")]) == 2
     assert "not found" in capsys.readouterr().err
-    assert main(["--task", "pour", "--source", "trace", "--embodiment", "xarm7_leap_left",
-                 "--no-viser"]) == 2
+    assert (
+        main(
+            ["--task", "pour", "--source", "trace", "--embodiment", "xarm7_leap_left", "--no-viser"]
+        )
+        == 2
+    )
     assert "drives xarm7_leap_right" in capsys.readouterr().err
 
 
@@ -87,17 +108,27 @@ def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
 
     transport = TransportConfig(ports=PortConfig.free())
     context = zmq.Context()
-    options = SessionOptions(task="PickupBox", source="quest", viser=False, headless=True,
-                             progress=False, transport=transport)
+    options = SessionOptions(
+        task="PickupBox",
+        source="quest",
+        viser=False,
+        headless=True,
+        progress=False,
+        transport=transport,
+    )
     loop = build_loop(options, context)
     push = context.socket(zmq.PUSH)
     push.setsockopt(zmq.LINGER, 0)
     push.connect(transport.endpoint("quest_right", bind=False))
     frames = [f for _, k, f in TraceReader(bundled_trace("PickupBox")).events() if k == "hand"]
     q0 = loop.twin.env.agent_pos.copy()
-    bad = [b"garbage", b"absolute:1,2,3:", "absolute:" + "|".join(["0,1,0,2,0,3"] * 26) + ":"]
+    bad = [
+        b"garbage",
+        b"absolute:1,2,3:",
+        ("absolute:" + "|".join(["0,1,0,2,0,3"] * 26) + ":").encode(),
+    ]
     try:
-        for i, frame in enumerate(frames[:150]):
+        for i, frame in enumerate(frames[60:240]):
             push.send(format_keypoints(frame).encode())
             if i % 50 == 10:
                 push.send(bad[(i // 50) % len(bad)])
@@ -115,7 +146,7 @@ def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
         context.term()
     assert summary.frames_received > 30
     assert summary.frames_rejected >= 3
-    assert set(summary.rejected_by_reason) >= {"no_marker", "wrong_joint_count"}
+    assert set(summary.rejected_by_reason) >= {"no_marker", "wrong_joint_count", "comma_decimal"}
     moved = np.abs(loop.twin.env.agent_pos - q0).max()
     assert moved > 0.05, "the twin did not follow the headset"
 
@@ -123,9 +154,15 @@ def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
 def test_killing_the_operator_process_leaves_the_others_alive_and_the_robot_holding():
     from beavr_sim.teleop.processes import MultiprocessSession
 
-    options = SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
-                             progress=False, multiprocess=True,
-                             transport=TransportConfig(ports=PortConfig.free()))
+    options = SessionOptions(
+        task="PickupBox",
+        source="trace",
+        viser=False,
+        headless=True,
+        progress=False,
+        multiprocess=True,
+        transport=TransportConfig(ports=PortConfig.free()),
+    )
     session = MultiprocessSession(options)
     session.start()
     try:
@@ -134,7 +171,7 @@ def test_killing_the_operator_process_leaves_the_others_alive_and_the_robot_hold
             session.state_sub.recv_latest(0.1)
         os.kill(session.processes["operator"].pid, signal.SIGKILL)
         session.processes["operator"].join(5.0)
-        time.sleep(0.3)
+        time.sleep(1.0)  # the arm settles on the last targets it was given
         first = session.state_sub.recv_latest(1.0)
         time.sleep(1.0)
         last = session.state_sub.recv_latest(1.0)

@@ -60,6 +60,8 @@ GRASP_SHIFT = {"right": 0.0, "left": -0.02}
 #: The thumb closes first, a backstop on the near side, then the fingers.
 THUMB_FIRST = np.concatenate([grasps.PINCH_OPEN[:12], PINCH_FIRM[12:]])
 CLOSE_SEQUENCE = (THUMB_FIRST, PINCH_FIRM)
+#: Each closing step takes this long: slow enough for the thumb to land on the cup.
+CLOSE_SECONDS = 1.0
 
 
 @dataclass
@@ -135,7 +137,7 @@ class PourExpert(ScriptedExpert):
         yield Move(poses={effector: above}, fingers={effector: grasps.PINCH_OPEN}, settle=0.2)
         yield Move(poses={effector: grasps.T_world_hand_pinching(centre, R)}, settle=0.2)
         for shape in CLOSE_SEQUENCE:
-            yield Move(fingers={effector: shape}, duration=0.4, settle=0.1)
+            yield Move(fingers={effector: shape}, duration=CLOSE_SECONDS, settle=0.1)
         yield Move(settle=0.2)
         yield Move(poses={effector: above}, settle=0.3)
 

@@ -61,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--multiprocess", action="store_true", help="detector, operator, twin as processes"
     )
     p.add_argument("--max-seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--repeat", type=int, default=1, help="trace: play it N times, 0 = until Ctrl-C")
     p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     return p

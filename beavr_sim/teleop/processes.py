@@ -91,7 +91,8 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
                 continue
             for frame in source.poll(time.monotonic()):
                 received += 1
-                if validator.check(frame) is None and frame.side in pubs:
+                valid = source.validates or validator.check(frame) is None
+                if valid and frame.side in pubs:
                     pubs[frame.side].send(frame.side.encode(), HandFrameMsg.from_frame(frame))
             time.sleep(0.002)
     finally:

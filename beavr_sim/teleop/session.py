@@ -36,6 +36,8 @@ class SessionOptions:
     multiprocess: bool = False
     max_seconds: float | None = None
     progress: bool = True
+    #: Trace only: play it this many times (0: until Ctrl-C), resetting the episode between.
+    repeat: int = 1
     #: Ports and hosts; default: the standard ports, headset sockets on ``headset_host``.
     transport: object = None
 
@@ -63,6 +65,8 @@ class SessionOptions:
             raise ValueError("a virtual clock needs a recorded source (--source trace)")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
+        if self.repeat < 0 or (self.repeat != 1 and self.source != "trace"):
+            raise ValueError("--repeat needs --source trace and a count >= 0 (0: forever)")
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
 
@@ -90,6 +94,7 @@ class SessionOptions:
             multiprocess=args.multiprocess,
             max_seconds=args.max_seconds,
             progress=not args.quiet,
+            repeat=args.repeat,
         )
 
 
@@ -200,11 +205,27 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             closers.append(publisher.close)
             loop.listeners.append(_HeadsetListener(publisher, loop, options.headset_image_size))
         progress = ProgressLine(loop, options.progress)
-        summary = loop.run(
-            max_seconds=options.max_seconds,
-            stop_on_success=options.source == "trace",
-            progress=progress,
-        )
+        run = 0
+        while True:
+            summary = loop.run(
+                max_seconds=options.max_seconds,
+                stop_on_success=options.source == "trace",
+                progress=progress,
+            )
+            run += 1
+            if options.repeat and run >= options.repeat:
+                break
+            # Play the trace again from the start on a fresh episode.
+            if options.progress:
+                print(
+                    f"\nrun {run}: {'success' if summary.success else 'no success'}; again",
+                    file=sys.stderr,
+                )
+            from beavr_sim.teleop.sources import TraceSource
+
+            loop.source = TraceSource(options.trace, real_time=options.clock == "real")
+            loop.reset(loop.seed)
+            progress.success = False
         if options.progress:
             print(file=sys.stderr)
         return summary

@@ -29,6 +29,8 @@ class HandSource(ABC):
 
     #: True when ``t_receive`` of the frames is ``time.monotonic()`` (wall-clock latency).
     real_time: bool = False
+    #: True when the source already ran its frames through the loop's validator.
+    validates: bool = False
 
     @abstractmethod
     def poll(self, now: float) -> list[HandFrame]:
@@ -112,6 +114,7 @@ class QuestSource(HandSource):
     real_time = True
 
     def __init__(self, context, config, validator=None):
+        self.validates = validator is not None
         from beavr_sim.teleop.quest_io import QuestReceiver
 
         self.receiver = QuestReceiver(context, config, validator=validator)

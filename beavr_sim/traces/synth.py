@@ -246,6 +246,9 @@ def main(argv: list[str] | None = None) -> int:
         help="seeds to try (seed, seed+1, ...) until an episode succeeds (default 1)",
     )
     parser.add_argument("--no-verify", action="store_true", help="skip the replay check")
+    parser.add_argument(
+        "--keep-failed", action="store_true", help="write the trace even if the episode failed"
+    )
     args = parser.parse_args(argv)
     try:
         task = canonical_task_name(args.task)
@@ -262,6 +265,13 @@ def main(argv: list[str] | None = None) -> int:
     except (UnknownNameError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if not result.summary.success and not args.keep_failed:
+        print(
+            f"error: no successful episode in {max(1, args.tries)} tries; nothing written "
+            "(--keep-failed writes the last one)",
+            file=sys.stderr,
+        )
+        return 1
     write_trace(args.out, result)
     report = {
         "out": str(args.out),
