@@ -13,11 +13,11 @@ import zmq
 
 from beavr_sim.assets import bundled_trace
 from beavr_sim.tasks.registry import TASKS
-
-BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
 from beavr_sim.teleop.config import PortConfig, TransportConfig
 from beavr_sim.teleop.session import SessionOptions, build_loop
 from beavr_sim.traces.format import TraceReader
+
+BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
 
 
 def replay(task: str, **kwargs):
