@@ -107,22 +107,37 @@ class HandFrame:
         return self.joints[joint(name)]
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """3-vector cross product (np.cross costs ~20x more on single vectors)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+_WRIST, _MIDDLE_KNUCKLE = JOINT_INDEX["wrist"], JOINT_INDEX["middle_proximal"]
+_INDEX_KNUCKLE, _LITTLE_KNUCKLE = JOINT_INDEX["index_proximal"], JOINT_INDEX["little_proximal"]
+
+
 def R_world_palm(joints: np.ndarray, side: str) -> np.ndarray:
     """Rotation of the palm frame from the 26 canonical joints (see the module docstring)."""
     j = np.asarray(joints, dtype=np.float64)
-    z = j[JOINT_INDEX["middle_proximal"]] - j[JOINT_INDEX["wrist"]]
-    across = j[JOINT_INDEX["index_proximal"]] - j[JOINT_INDEX["little_proximal"]]
-    z_norm = np.linalg.norm(z)
+    z = j[_MIDDLE_KNUCKLE] - j[_WRIST]
+    across = j[_INDEX_KNUCKLE] - j[_LITTLE_KNUCKLE]
+    z_norm = float(np.sqrt(z @ z))
     if z_norm < 1e-6:
         raise ValueError("degenerate hand: wrist and middle knuckle coincide")
     z = z / z_norm
-    x = PALMAR_NORMAL_SIGN[check_name("side", side, SIDES)] * np.cross(across, z)
-    x = x - np.dot(x, z) * z
-    x_norm = np.linalg.norm(x)
+    if side not in PALMAR_NORMAL_SIGN:
+        check_name("side", side, SIDES)
+    x = PALMAR_NORMAL_SIGN[side] * _cross(across, z)
+    x = x - (x @ z) * z
+    x_norm = float(np.sqrt(x @ x))
     if x_norm < 1e-6:
         raise ValueError("degenerate hand: knuckles in line with the fingers")
     x = x / x_norm
-    return np.column_stack([x, np.cross(z, x), z])
+    R = np.empty((3, 3))
+    R[:, 0], R[:, 1], R[:, 2] = x, _cross(z, x), z
+    return R
 
 
 def T_world_palm(joints: np.ndarray, side: str) -> np.ndarray:

@@ -272,14 +272,20 @@ class _FingerCollisionLimit(mink.CollisionAvoidanceLimit):
         return np.flatnonzero((gap <= self.collision_detection_distance).all(axis=1))
 
 
-def finger_geoms(model: mujoco.MjModel) -> dict[str, list[int]]:
-    """Collision geoms of each LEAP finger (bodies named ``<finger>_*``)."""
+def finger_geoms(
+    model: mujoco.MjModel, links: tuple[str, ...] | None = None
+) -> dict[str, list[int]]:
+    """Collision geoms of each LEAP finger (bodies named ``<finger>_<link>``; all links, or
+    only those in ``links``)."""
     geoms: dict[str, list[int]] = {f: [] for f in LEAP_FINGERS}
     for g in range(model.ngeom):
-        finger = model.body(model.geom_bodyid[g]).name.partition("_")[0]
+        finger, _, link = model.body(model.geom_bodyid[g]).name.partition("_")
+        if links is not None and link not in links:
+            continue
         if finger in geoms and (model.geom_contype[g] or model.geom_conaffinity[g]):
             geoms[finger].append(g)
     return geoms
+
 
 
 class LeapRetargeter:
