@@ -205,15 +205,19 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             closers.append(publisher.close)
             loop.listeners.append(_HeadsetListener(publisher, loop, options.headset_image_size))
         progress = ProgressLine(loop, options.progress)
-        run = 0
+        run, played = 0, 0.0
         while True:
+            remaining = None if options.max_seconds is None else options.max_seconds - played
             summary = loop.run(
-                max_seconds=options.max_seconds,
+                max_seconds=remaining,
                 stop_on_success=options.source == "trace",
                 progress=progress,
             )
             run += 1
+            played += summary.duration_s
             if options.repeat and run >= options.repeat:
+                break
+            if remaining is not None and played >= options.max_seconds - 1e-9:
                 break
             # Play the trace again from the start on a fresh episode.
             if options.progress:
