@@ -185,3 +185,46 @@ def test_killing_the_operator_process_leaves_the_others_alive_and_the_robot_hold
         session.stop()
     assert session.exits["operator"] == -signal.SIGKILL
     assert session.exits["twin"] == 0 and session.exits["detector"] == 0
+
+
+def test_live_session_shows_the_twin_in_the_headset():
+    """--source quest without --headless: rendered twin images on the camera stream (PUB),
+    JPEG at the configured size; with no headset connected the robot holds."""
+    import io
+    import threading
+
+    from PIL import Image
+
+    from beavr_sim.teleop.session import run_session
+
+    transport = TransportConfig(ports=PortConfig.free())
+    options = SessionOptions(
+        task="PickupBox",
+        source="quest",
+        viser=False,
+        headless=False,
+        progress=False,
+        transport=transport,
+        max_seconds=2.5,
+        headset_image_hz=10.0,
+        headset_image_size=(320, 180),
+    )
+    result = {}
+    runner = threading.Thread(target=lambda: result.update(summary=run_session(options)))
+    context = zmq.Context()
+    sub = context.socket(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.connect(transport.endpoint("headset_camera", bind=False))
+    runner.start()
+    try:
+        assert sub.poll(5000), "no image reached the headset stream"
+        image = Image.open(io.BytesIO(sub.recv()))
+        assert image.format == "JPEG" and image.size == (320, 180)
+    finally:
+        runner.join(10.0)
+        sub.close()
+        context.term()
+    summary = result["summary"]
+    assert summary.frames_received == 0 and summary.commands_applied == 0
+    assert summary.holds.get("waiting", 0) > 0

@@ -287,7 +287,6 @@ def finger_geoms(
     return geoms
 
 
-
 class LeapRetargeter:
     """Human palm-frame keypoints -> LEAP joint targets (motor-id order) for one side."""
 

@@ -203,7 +203,11 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 rate_hz=options.headset_image_hz,
             )
             closers.append(publisher.close)
-            loop.listeners.append(_HeadsetListener(publisher, loop, options.headset_image_size))
+            loop.listeners.append(
+                _HeadsetListener(
+                    publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz
+                )
+            )
         progress = ProgressLine(loop, options.progress)
         run, played = 0, 0.0
         while True:
@@ -267,14 +271,14 @@ class _ViewListener:
 class _HeadsetListener:
     """Rendered twin images to the headset at a limited rate."""
 
-    def __init__(self, publisher, loop: TeleopLoop, size: tuple[int, int]):
+    def __init__(self, publisher, loop: TeleopLoop, size: tuple[int, int], period_s: float):
         import mujoco
 
         self.publisher = publisher
         env = loop.twin.env
         self.renderer = mujoco.Renderer(env.model, size[1], size[0])
         self.env = env
-        self.period = 1.0 / publisher.rate_hz if getattr(publisher, "rate_hz", None) else 0.1
+        self.period = period_s
         self._next = 0.0
 
     def __call__(self, tick: Tick) -> None:
