@@ -94,11 +94,14 @@ class RelativeMotionMapping:
     def release(self) -> None:
         self.T_anchor_hand = self.T_anchor_robot = None
 
-    def robot_target(self, T_world_hand: np.ndarray, resolution: str = "high") -> np.ndarray:
-        """``T_world_robot`` target for palm pose ``T_world_hand``."""
+    def _scale(self, resolution: str) -> float:
         if self.T_anchor_hand is None or self.T_anchor_robot is None:
             raise RuntimeError("mapping not anchored: call anchor() first")
-        s = RESOLUTION_SCALE[check_name("resolution", resolution, RESOLUTION_SCALE)]
+        return RESOLUTION_SCALE[check_name("resolution", resolution, RESOLUTION_SCALE)]
+
+    def robot_target(self, T_world_hand: np.ndarray, resolution: str = "high") -> np.ndarray:
+        """``T_world_robot`` target for palm pose ``T_world_hand``."""
+        s = self._scale(resolution)
         H_rel = _inv(self.T_anchor_hand) @ np.asarray(T_world_hand, dtype=np.float64)
         A_r, A_t = self.axes.A_rot, self.axes.A_trans
         conj = np.eye(4)
@@ -108,9 +111,7 @@ class RelativeMotionMapping:
 
     def hand_for(self, T_world_robot: np.ndarray, resolution: str = "high") -> np.ndarray:
         """The inverse: the palm pose that maps to ``T_world_robot`` (synthetic traces)."""
-        if self.T_anchor_hand is None or self.T_anchor_robot is None:
-            raise RuntimeError("mapping not anchored: call anchor() first")
-        s = RESOLUTION_SCALE[check_name("resolution", resolution, RESOLUTION_SCALE)]
+        s = self._scale(resolution)
         conj = _inv(self.T_anchor_robot) @ np.asarray(T_world_robot, dtype=np.float64)
         A_r, A_t = self.axes.A_rot, self.axes.A_trans
         H_rel = np.eye(4)
