@@ -92,11 +92,13 @@ class TeleopLoop:
         self.holds: dict[str, int] = {}
         self.ticks = 0
         self._t0 = 0.0
-        self.reset_requested = False
+        #: Seed of the current episode (reset with the same seed re-runs the same layout).
+        self.seed: int | None = None
 
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None) -> None:
         """Reset the twin (new episode) and re-home the operator from the measured joints."""
+        self.seed = seed
         q = self.twin.reset(seed)
         self.operator.reset(q, self.twin.slices)
         self.ticks = 0

@@ -165,7 +165,6 @@ def build_loop(options: SessionOptions, context=None):
         real_time=options.clock == "real",
     )
     loop.reset(seed)
-    loop.seed = seed
     return loop
 
 
@@ -257,7 +256,7 @@ class _ViewListener:
         self.loop.operator.set_paused(bool(self.view.paused.value))
         if self.view.reset_requested:
             self.view.reset_requested = False
-            self.loop.reset(getattr(self.loop, "seed", None))
+            self.loop.reset(self.loop.seed)
             self.success = False
         holds = {c.reason for c in tick.commands.values() if c.hold}
         status = (
