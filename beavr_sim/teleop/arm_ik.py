@@ -23,6 +23,7 @@ import numpy as np
 
 from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
+from beavr_sim.teleop.collision import CollisionLimit
 
 #: Arm links checked against the table, and arm links the hand must not hit.
 FOREARM_LINKS = ("link5", "link6", "link7")
@@ -98,7 +99,7 @@ class ArmIK:
             upper = [g for link in UPPER_ARM_LINKS for g in _body_geoms(self.model, p + link)]
             table = [self.model.geom("table_top").id]
             self.limits.append(
-                mink.CollisionAvoidanceLimit(
+                CollisionLimit(
                     self.model,
                     geom_pairs=[(hand + forearm, table), (palm, upper)],
                     minimum_distance_from_collisions=self.config.collision_margin,

@@ -33,6 +33,7 @@ import numpy as np
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
 from beavr_sim.robots.parts import LEAP_HAND
+from beavr_sim.teleop.collision import CollisionLimit
 from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, SIDES
 
 #: LEAP fingers, in the order of their motor ids' blocks below.
@@ -115,7 +116,9 @@ class RetargetConfig:
     is 9 rad/s). ``min_finger_distance``: gap (m) kept between geoms of different fingers,
     enforced once closer than ``collision_detection_distance`` (which must exceed how far two
     fingers can move towards each other in one step, or they may pass the check between
-    steps: 3 cm for 0.1 rad steps); ``collision_gain``: fraction
+    steps: 3 cm for 0.1 rad steps); pairs without the thumb use ``finger_detection_distance``
+    (the fingers only approach each other through their spread joints: under 1.5 cm per 0.1
+    rad step for two fingers); ``collision_gain``: fraction
     of the remaining gap a step may close (mink's velocity-damper gain).
     """
 
@@ -132,6 +135,7 @@ class RetargetConfig:
     max_step: float = 0.1
     min_finger_distance: float = 0.003
     collision_detection_distance: float = 0.03
+    finger_detection_distance: float = 0.015
     collision_gain: float = 0.5
 
     def __post_init__(self) -> None:
@@ -153,10 +157,16 @@ class RetargetConfig:
             raise ValueError(
                 f"RetargetConfig.collision_gain must be in (0, 1], got {self.collision_gain!r}"
             )
-        if not self.collision_detection_distance > self.min_finger_distance:
+        if not (
+            self.collision_detection_distance
+            >= self.finger_detection_distance
+            > self.min_finger_distance
+        ):
             raise ValueError(
-                "RetargetConfig.collision_detection_distance must exceed min_finger_distance, "
-                f"got {self.collision_detection_distance!r} <= {self.min_finger_distance!r}"
+                "RetargetConfig needs collision_detection_distance >= "
+                "finger_detection_distance > min_finger_distance, got "
+                f"{self.collision_detection_distance!r}, {self.finger_detection_distance!r}, "
+                f"{self.min_finger_distance!r}"
             )
         if not (isinstance(self.iterations, int) and self.iterations >= 1):
             raise ValueError(
@@ -243,35 +253,6 @@ class _PointsTask(mink.Task):
         return self._jacobian.reshape(-1, model.nv)
 
 
-class _FingerCollisionLimit(mink.CollisionAvoidanceLimit):
-    """mink's collision avoidance limit with a tighter broadphase: world-aligned boxes around
-    each geom's oriented bounding box instead of bounding spheres (neighbouring fingers are
-    always within each other's spheres). Like mink's, it only drops pairs that are farther
-    apart than the detection distance, so the constraint is the same."""
-
-    def __init__(self, model: mujoco.MjModel, geom_pairs, **kwargs):
-        super().__init__(model, geom_pairs, broadphase=True, **kwargs)
-        self.broadphase_min_pairs = 0
-        pairs = np.array(self.geom_id_pairs, dtype=int).reshape(-1, 2)
-        self._geoms, inverse = np.unique(pairs, return_inverse=True)
-        self._pair1, self._pair2 = inverse.reshape(-1, 2).T
-        self._aabb_centre = model.geom_aabb[self._geoms, :3]
-        self._aabb_half = model.geom_aabb[self._geoms, 3:]
-
-    def _broadphase_survivors(self, data: mujoco.MjData) -> np.ndarray:
-        R_world_geom = data.geom_xmat[self._geoms].reshape(-1, 3, 3)
-        centre = data.geom_xpos[self._geoms] + np.einsum(
-            "gij,gj->gi", R_world_geom, self._aabb_centre
-        )
-        half = np.einsum("gij,gj->gi", np.abs(R_world_geom), self._aabb_half)
-        gap = (
-            np.abs(centre[self._pair1] - centre[self._pair2])
-            - half[self._pair1]
-            - half[self._pair2]
-        )
-        return np.flatnonzero((gap <= self.collision_detection_distance).all(axis=1))
-
-
 def finger_geoms(
     model: mujoco.MjModel, links: tuple[str, ...] | None = None
 ) -> dict[str, list[int]]:
@@ -326,9 +307,15 @@ class LeapRetargeter:
         ]
         # Joint limits: mink's, applied as the QP's simple bounds on the step (hinges only).
         self.joint_limit = mink.ConfigurationLimit(model)
-        self.collision_limit = _FingerCollisionLimit(
+        thumb = set(geoms["thumb"])
+        self.collision_limit = CollisionLimit(
             model,
             pairs,
+            pair_detection_distance=lambda a, b: (
+                self.config.collision_detection_distance
+                if a in thumb or b in thumb
+                else self.config.finger_detection_distance
+            ),
             minimum_distance_from_collisions=self.config.min_finger_distance,
             collision_detection_distance=self.config.collision_detection_distance,
             gain=self.config.collision_gain,
