@@ -275,3 +275,32 @@ def test_commands_respect_joint_limits(operator):
         cmd = operator.command(t)["right"]
         assert np.all(cmd.positions >= op.ik.joints.lower - 1e-9)
         assert np.all(cmd.positions <= op.ik.joints.upper + 1e-9)
+
+
+def test_switching_resolution_reanchors_and_scales_motion_from_there(operator):
+    fresh(operator)
+    op = operator.effectors["right"]
+    H0 = palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(H0, 0.0))
+    operator.command(0.0)
+    H = H0.copy()
+    H[:3, 3] += [0.0, 0.04, 0.0]  # sideways: clear of the table
+    t = 0.0
+    for _ in range(60):
+        t += DT
+        operator.observe(frame(H, t))
+        operator.command(t)
+    T_before = op.ik.T_world_hand()
+    t += DT
+    operator.observe(frame(H, t, resolution="low"))
+    operator.command(t)
+    np.testing.assert_allclose(op.ik.T_world_hand()[:3, 3], T_before[:3, 3], atol=1e-3)  # no jump
+    H2 = H.copy()
+    H2[:3, 3] += [0.0, 0.05, 0.0]
+    for _ in range(60):
+        t += DT
+        operator.observe(frame(H2, t, resolution="low"))
+        operator.command(t)
+    moved = op.ik.T_world_hand()[:3, 3] - T_before[:3, 3]
+    expected = 0.6 * (T_before[:3, :3] @ H0[:3, :3].T @ np.array([0.0, 0.05, 0.0]))
+    np.testing.assert_allclose(moved, expected, atol=2e-3)

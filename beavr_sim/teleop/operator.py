@@ -17,6 +17,8 @@ Session control:
 - jumps: a palm that moved faster than ``max_hand_speed`` (and more than ``min_jump``) since
   the last accepted frame is a tracking glitch: the frame is ignored and counted. If the hand
   stays at the new place for ``reanchor_after`` frames, the mapping re-anchors there.
+- resolution: switching between high (1.0) and low (0.6) motion scale re-anchors, so the new
+  scale applies to motion from that instant and the robot does not jump.
 - reset (:meth:`Operator.reset`): re-home: IK state from the measured joints, mappings released.
 """
 
@@ -151,6 +153,9 @@ class EffectorOperator:
         self._palm_keypoints = (joints - T_smooth[:3, 3]) @ T_smooth[:3, :3]
         self._tracked = frame.tracked
         self._t_source, self._t_receive = frame.t_source, frame.t_receive
+        if frame.resolution != self._resolution and self.mapping.anchored:
+            # A new motion scale applies from here: re-anchor so the robot does not jump.
+            self.mapping.release()
         self._resolution = frame.resolution
         self._fresh = True
         return True
