@@ -13,6 +13,7 @@ from pathlib import Path
 
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.config import TransportConfig
 from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, Tick
 
 SOURCES = ("quest", "trace")
@@ -39,11 +40,9 @@ class SessionOptions:
     #: Trace only: play it this many times (0: until Ctrl-C), resetting the episode between.
     repeat: int = 1
     #: Ports and hosts; default: the standard ports, headset sockets on ``headset_host``.
-    transport: object = None
+    transport: TransportConfig | None = None
 
     def __post_init__(self) -> None:
-        from beavr_sim.teleop.config import TransportConfig
-
         if self.transport is None:
             self.transport = TransportConfig(headset_host=self.headset_host)
         from beavr_sim.tasks.registry import canonical_task_name
