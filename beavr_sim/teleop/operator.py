@@ -33,10 +33,12 @@ from beavr_sim.robots import Embodiment
 from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.teleop.arm_mapping import RelativeMotionMapping, axis_map
 from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother
-from beavr_sim.teleop.hand import SIDES, HandFrame, T_world_palm
+from beavr_sim.teleop.hand import JOINT_INDEX, SIDES, HandFrame, T_world_palm
 from beavr_sim.teleop.retarget import LeapRetargeter, RetargetConfig
 
 log = logging.getLogger("beavr_sim.teleop.operator")
+
+WRIST = JOINT_INDEX["wrist"]
 
 HOLD_REASONS = ("", "waiting", "paused", "tracking_lost")
 
@@ -143,10 +145,11 @@ class EffectorOperator:
         if not frame.palm_frame_tracked:
             self.stats.untracked_frames += 1
             return False
-        T_raw = T_world_palm(frame.joints, self.side)
-        if self._is_jump(T_raw[:3, 3], frame.t_receive):
+        # The palm frame's origin is the wrist: the jump check needs no rotation.
+        p_wrist = frame.joints[WRIST]
+        if self._is_jump(p_wrist, frame.t_receive):
             return False
-        self._p_accepted, self._t_accepted = T_raw[:3, 3].copy(), frame.t_receive
+        self._p_accepted, self._t_accepted = p_wrist.copy(), frame.t_receive
         joints = self.keypoints(frame.joints)
         T_smooth = T_world_palm(joints, self.side)
         self._T_palm = self.pose_filter(T_smooth)
