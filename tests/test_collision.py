@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from beavr_sim.robots import make_embodiment
-from beavr_sim.teleop.arm_ik import ArmIK
+from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.teleop.collision import CollisionLimit
 from beavr_sim.teleop.retarget import LeapRetargeter, finger_geoms
 
@@ -73,7 +73,7 @@ def test_per_pair_detection_distance_only_drops_far_finger_pairs():
 def test_arm_limit_matches_mink(side):
     emb = make_embodiment(f"xarm7_leap_{side}")
     ik = ArmIK(emb, side, 1 / 30)
-    limit = ik.limits[-1]
+    limit = ik.collision
     rng = np.random.default_rng(2)
     home = ik.configuration.q.copy()
     samples = []
@@ -82,3 +82,28 @@ def test_arm_limit_matches_mink(side):
         q[ik.joints.qpos_adr[:7]] += rng.normal(0.0, 0.6, 7)  # reaches down to the table
         samples.append(q)
     _compare(limit, ik.configuration, samples)
+
+
+def test_arm_ik_stops_the_fingers_above_the_table():
+    """A target 10 cm below the table: the IK keeps the fingertips at its margin; without
+    collision avoidance they would go into the table (so the check is what stops them)."""
+    emb = make_embodiment("xarm7_leap_right")
+    reached = {}
+    for avoid in (True, False):
+        ik = ArmIK(emb, "right", 1 / 30, ArmIKConfig(collision_avoidance=avoid))
+        T = ik.T_world_hand()
+        T[2, 3] -= 0.15
+        for _ in range(120):
+            ik.step(T)
+        data, table = ik.configuration.data, ik.model.geom("table_top").id
+        tips = [
+            g
+            for g in range(ik.model.ngeom)
+            if ik.model.body(ik.model.geom_bodyid[g]).name.endswith("_distal")
+        ]
+        reached[avoid] = min(
+            mujoco.mj_geomDistance(ik.model, data, g, table, 1.0, None) for g in tips
+        )
+    margin = ArmIKConfig().collision_margin
+    assert reached[True] > margin - 5e-4, reached
+    assert reached[False] < 0.0, reached

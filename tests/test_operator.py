@@ -177,7 +177,7 @@ def test_first_frame_anchors_without_a_jump_then_the_robot_follows(operator):
     assert not cmd.hold
     np.testing.assert_allclose(cmd.positions[:7], home[:7], atol=1e-3)
     H = H0.copy()
-    H[:3, 3] += [0.05, 0.0, -0.04]
+    H[:3, 3] += [-0.05, 0.0, 0.04]
     t = 0.0
     for _ in range(90):
         t += DT
@@ -185,7 +185,7 @@ def test_first_frame_anchors_without_a_jump_then_the_robot_follows(operator):
         operator.command(t)
     moved = op.ik.T_world_hand()[:3, 3] - T_robot0[:3, 3]
     # The motion in the palm's initial frame, replayed in the robot hand's initial frame.
-    expected = T_robot0[:3, :3] @ H0[:3, :3].T @ np.array([0.05, 0.0, -0.04])
+    expected = T_robot0[:3, :3] @ H0[:3, :3].T @ np.array([-0.05, 0.0, 0.04])
     np.testing.assert_allclose(moved, expected, atol=2e-3)
 
 

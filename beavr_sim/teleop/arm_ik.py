@@ -1,22 +1,29 @@
-"""The operator's arm IK: mink on a one-effector copy of the twin, with collision avoidance.
+"""The operator's arm IK: one QP step per tick on a one-effector copy of the twin.
 
 Each effector gets its own robot-only model (its arm and hand at their base pose, and the
-table), so effectors solve independently. One call to :meth:`ArmIK.step` moves the IK
-configuration one control period towards the target hand pose, under
+table), so effectors solve independently. One call to :meth:`ArmIK.step` moves the arm one
+control period towards the target hand pose: a damped Gauss-Newton step on the arm joints
+only (the quantities of ``mink.FrameTask`` and ``mink.PostureTask``: position and orientation
+error of the ``hand`` body, weighted by their costs, plus a small pull to the posture), under
 
-- joint position limits (``mink.ConfigurationLimit``),
-- arm joint velocity limits (``mink.VelocityLimit``, ``ArmIKConfig.max_joint_speed``),
-- collision avoidance (``mink.CollisionAvoidanceLimit``): hand and forearm against the table,
-  hand against the upper arm and the base (self-collision).
+- joint position limits (``mink.ConfigurationLimit``'s, gain 0.95) and arm joint velocity
+  limits (``ArmIKConfig.max_joint_speed``), both as simple bounds on the step;
+- collision avoidance (:class:`~beavr_sim.teleop.collision.CollisionLimit`, mink's rows): hand
+  and forearm against the table, hand against the upper arm and the base (self-collision), as
+  a velocity damper: one step closes at most ``collision_gain`` of the gap above the margin.
 
-The finger joints are not solved here; the caller sets them (the retargeted values) so the
-collision geometry of the fingers is where the fingers are.
+The QP is assembled here and solved with DAQP directly: ``mink.solve_ik`` builds the same
+problem over all 23 joints through generic task and limit objects, which took most of the
+operator's tick. The finger joints are not solved here; the caller sets them (the retargeted
+values) so the collision geometry of the fingers is where the fingers are, and the QP cannot
+satisfy a collision constraint by moving fingers the hand will not move.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import daqp
 import mink
 import mujoco
 import numpy as np
@@ -24,6 +31,7 @@ import numpy as np
 from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
 from beavr_sim.teleop.collision import CollisionLimit
+from beavr_sim.teleop.filters import so3_log
 
 #: Arm links checked against the table, and arm links the hand must not hit.
 FOREARM_LINKS = ("link5", "link6", "link7")
@@ -35,7 +43,14 @@ HAND_BODIES = ("palm", "thumb_distal", "index_distal", "middle_distal", "ring_di
 
 @dataclass(frozen=True)
 class ArmIKConfig:
-    """Costs, limits and solver settings of the operator's arm IK."""
+    """Costs, limits and solver settings of the operator's arm IK.
+
+    Costs weigh the hand's position error (per metre), orientation error (per radian) and the
+    pull of every arm joint to the posture (per radian), as mink's task costs do (squared in
+    the objective). ``lm_damping`` adds ``lm_damping * |weighted error|^2`` and ``damping`` a
+    constant to the Hessian's diagonal. ``collision_gain``: fraction of the gap above
+    ``collision_margin`` one step may close, once closer than ``collision_detection``.
+    """
 
     position_cost: float = 1.0
     orientation_cost: float = 0.5
@@ -43,18 +58,28 @@ class ArmIKConfig:
     lm_damping: float = 1e-3
     damping: float = 1e-4
     max_joint_speed: float = 2.0  # rad/s, under the xArm7's 180 deg/s
-    collision_margin: float = 0.005  # m kept between the checked geoms
+    collision_margin: float = 0.002  # m kept between the checked geoms
     collision_detection: float = 0.03  # m at which avoidance starts acting
+    collision_gain: float = 0.85
     collision_avoidance: bool = True
     iterations: int = 1
-    solver: str = "daqp"
 
     def __post_init__(self) -> None:
         for name in ("position_cost", "orientation_cost", "max_joint_speed", "collision_detection"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in ("posture_cost", "lm_damping", "damping", "collision_margin"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0 < self.collision_gain <= 1:
+            raise ValueError(f"collision_gain must be in (0, 1], got {self.collision_gain!r}")
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+
+
+#: mink.ConfigurationLimit's default gain: a step goes at most this fraction of the way to a
+#: joint limit.
+JOINT_LIMIT_GAIN = 0.95
 
 
 def _body_geoms(model: mujoco.MjModel, body: str) -> list[int]:
@@ -74,23 +99,21 @@ class ArmIK:
         self.single = Embodiment(EmbodimentSpec(f"{embodiment.name}:{effector}", (spec_e,)))
         self.effector = self.single.effectors[0]
         self.model = build_scene_spec(self.single, 64, 64).compile()
+        if self.model.nq != self.model.nv:
+            raise ValueError("ArmIK expects a robot-only model (hinge and slide joints)")
         self.joints = self.single.bind(self.model)
         self.n_arm = len(self.effector.arm_joints)
         self.configuration = mink.Configuration(self.model)
-        self.frame_task = mink.FrameTask(
-            frame_name=f"{effector}/hand",
-            frame_type="body",
-            position_cost=self.config.position_cost,
-            orientation_cost=self.config.orientation_cost,
-            lm_damping=self.config.lm_damping,
-        )
-        self.posture_task = mink.PostureTask(self.model, cost=self.config.posture_cost)
-        self.limits: list = [
-            mink.ConfigurationLimit(self.model),
-            mink.VelocityLimit(
-                self.model, {j: self.config.max_joint_speed for j in self.effector.arm_joints}
-            ),
-        ]
+        self._hand_body = self.model.body(f"{self.effector.name}/hand").id
+        self._arm_qpos = self.joints.qpos_adr[: self.n_arm]
+        self._arm_dofs = self.joints.qvel_adr[: self.n_arm]
+        self._arm_lower = self.joints.lower[: self.n_arm]
+        self._arm_upper = self.joints.upper[: self.n_arm]
+        self._jacp = np.zeros((3, self.model.nv))
+        self._jacr = np.zeros((3, self.model.nv))
+        self._weights = np.repeat([self.config.position_cost, self.config.orientation_cost], 3)
+        self._posture = self.configuration.q[self._arm_qpos].copy()
+        self.collision: CollisionLimit | None = None
         if self.config.collision_avoidance:
             p = self.effector.name + "/"
             hand = [g for b in HAND_BODIES for g in _body_geoms(self.model, p + b)]
@@ -98,13 +121,12 @@ class ArmIK:
             forearm = [g for link in FOREARM_LINKS for g in _body_geoms(self.model, p + link)]
             upper = [g for link in UPPER_ARM_LINKS for g in _body_geoms(self.model, p + link)]
             table = [self.model.geom("table_top").id]
-            self.limits.append(
-                CollisionLimit(
-                    self.model,
-                    geom_pairs=[(hand + forearm, table), (palm, upper)],
-                    minimum_distance_from_collisions=self.config.collision_margin,
-                    collision_detection_distance=self.config.collision_detection,
-                )
+            self.collision = CollisionLimit(
+                self.model,
+                geom_pairs=[(hand + forearm, table), (palm, upper)],
+                minimum_distance_from_collisions=self.config.collision_margin,
+                collision_detection_distance=self.config.collision_detection,
+                gain=self.config.collision_gain,
             )
         self.reset(self.joints.home)
 
@@ -113,10 +135,8 @@ class ArmIK:
         q = self.configuration.q.copy()
         q[self.joints.qpos_adr] = q_effector
         self.configuration.update(q)
-        target = q.copy()
-        if posture is not None:
-            target[self.joints.qpos_adr] = posture
-        self.posture_task.set_target(target)
+        target = q_effector if posture is None else posture
+        self._posture = np.asarray(target, dtype=np.float64)[: self.n_arm].copy()
 
     def set_fingers(self, q_hand: np.ndarray) -> None:
         """Put the finger joints where the hand command puts them (collision geometry)."""
@@ -130,23 +150,58 @@ class ArmIK:
         return self.configuration.q[self.joints.qpos_adr].copy()
 
     def T_world_hand(self) -> np.ndarray:
-        return self.configuration.get_transform_frame_to_world(
-            f"{self.effector.name}/hand", "body"
-        ).as_matrix()
+        data = self.configuration.data
+        T = np.eye(4)
+        T[:3, :3] = data.xmat[self._hand_body].reshape(3, 3)
+        T[:3, 3] = data.xpos[self._hand_body]
+        return T
 
     def step(self, T_world_target: np.ndarray) -> np.ndarray:
         """One control period towards ``T_world_target``; returns the arm joint positions."""
-        self.frame_task.set_target(mink.SE3.from_matrix(np.asarray(T_world_target)))
-        tasks = [self.frame_task, self.posture_task]
-        sub_dt = self.dt / self.config.iterations
+        T_world_target = np.asarray(T_world_target, dtype=np.float64)
+        if T_world_target.shape != (4, 4) or not np.isfinite(T_world_target).all():
+            raise ValueError(f"step needs a finite 4x4 pose, got shape {T_world_target.shape}")
         for _ in range(self.config.iterations):
-            velocity = mink.solve_ik(
-                self.configuration,
-                tasks,
-                sub_dt,
-                solver=self.config.solver,
-                damping=self.config.damping,
-                limits=self.limits,
-            )
-            self.configuration.integrate_inplace(velocity, sub_dt)
-        return self.configuration.q[self.joints.qpos_adr[: self.n_arm]].copy()
+            self._step(T_world_target, self.dt / self.config.iterations)
+        return self.configuration.q[self._arm_qpos].copy()
+
+    def _step(self, T_world_target: np.ndarray, dt: float) -> None:
+        cfg, model = self.configuration, self.model
+        data, body, arm = cfg.data, self._hand_body, self._arm_dofs
+        # Hand pose error in the world frame: position, and the rotation vector that takes
+        # the current orientation to the target's.
+        R_world_hand = data.xmat[body].reshape(3, 3)
+        error = np.empty(6)
+        error[:3] = T_world_target[:3, 3] - data.xpos[body]
+        error[3:] = so3_log(T_world_target[:3, :3] @ R_world_hand.T)
+        mujoco.mj_jacBody(model, data, self._jacp, self._jacr, body)
+        J = np.vstack([self._jacp[:, arm], self._jacr[:, arm]]) * self._weights[:, None]
+        e = self._weights * error
+        q_arm = cfg.q[self._arm_qpos]
+        w_posture = self.config.posture_cost**2
+        H = J.T @ J
+        H.flat[:: self.n_arm + 1] += (
+            w_posture + self.config.damping + self.config.lm_damping * float(e @ e)
+        )
+        c = -(e @ J) + w_posture * (q_arm - self._posture)
+        speed = self.config.max_joint_speed * dt
+        upper = np.minimum(JOINT_LIMIT_GAIN * (self._arm_upper - q_arm), speed)
+        lower = np.maximum(JOINT_LIMIT_GAIN * (self._arm_lower - q_arm), -speed)
+        # A joint already past a limit (set from outside) may only move back.
+        upper = np.maximum(upper, 0.0)
+        lower = np.minimum(lower, 0.0)
+        A = np.zeros((0, self.n_arm))
+        h = np.zeros(0)
+        if self.collision is not None:
+            # dt = 1: the bound is on the step itself (a velocity damper per tick).
+            _, rows, h = self.collision.active_rows(cfg, 1.0)
+            A = rows[:, arm]
+        bupper = np.concatenate([upper, h])
+        blower = np.concatenate([lower, np.full(h.size, -1e30)])
+        sense = np.zeros(bupper.size, dtype=np.int32)
+        dq, _, exitflag, _ = daqp.solve(H, c, np.ascontiguousarray(A), bupper, blower, sense)
+        if exitflag <= 0:  # infeasible (e.g. already in collision): hold this tick
+            return
+        q = cfg.q.copy()
+        q[self._arm_qpos] += dq
+        cfg.update(q)

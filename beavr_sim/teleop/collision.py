@@ -52,36 +52,37 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         self._body1 = model.geom_bodyid[pairs[:, 0]]
         self._body2 = model.geom_bodyid[pairs[:, 1]]
         self._bodies = np.unique(np.concatenate([self._body1, self._body2]))
-        self._jacp = np.zeros((model.nbody, 3, model.nv))
-        self._jacr = np.zeros((model.nbody, 3, model.nv))
+        self._jac = np.zeros((model.nbody, 6, model.nv))  # per body: jacp over jacr
+        self._distmax_list = self._distmax.tolist()
         self._pair_list = [(int(a), int(b)) for a, b in pairs]
         self._fromto_all = np.zeros((len(pairs), 6))
         self._dist = np.zeros(len(pairs))
         self._hits = np.zeros(len(pairs), dtype=int)
 
-    def _broadphase_survivors(self, data: mujoco.MjData) -> np.ndarray:
+    def _broadphase_survivors(self, data: mujoco.MjData) -> list[int]:
         R_world_geom = data.geom_xmat[self._geoms].reshape(-1, 3, 3)
-        centre = data.geom_xpos[self._geoms] + np.einsum(
-            "gij,gj->gi", R_world_geom, self._aabb_centre
+        centre = (
+            data.geom_xpos[self._geoms] + (R_world_geom @ self._aabb_centre[:, :, None])[:, :, 0]
         )
-        half = np.einsum("gij,gj->gi", np.abs(R_world_geom), self._aabb_half)
+        half = (np.abs(R_world_geom) @ self._aabb_half[:, :, None])[:, :, 0]
         gap = (
             np.abs(centre[self._pair1] - centre[self._pair2])
             - half[self._pair1]
             - half[self._pair2]
         )
-        return np.flatnonzero((gap <= self._distmax[:, None]).all(axis=1))
+        return np.flatnonzero(gap.max(axis=1) <= self._distmax).tolist()
 
-    def compute_qp_inequalities(self, configuration: mink.Configuration, dt: float):
+    def active_rows(
+        self, configuration: mink.Configuration, dt: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Only the pairs within their detection distance: ``(pair indices, G rows, h)``, so
+        that ``G @ dq <= h`` (in :meth:`compute_qp_inequalities` the other rows are +inf)."""
         model, data = self.model, configuration.data
-        n = self.max_num_contacts
-        upper = np.full(n, np.inf)
-        G = np.zeros((n, model.nv))
-        distmax_all = self._distmax.tolist()
+        distmax_all = self._distmax_list
         geom_distance, pair_list = mujoco.mj_geomDistance, self._pair_list
         fromto_all, dist_all, hits_all = self._fromto_all, self._dist, self._hits
         k = 0
-        for idx in self._broadphase_survivors(data).tolist():
+        for idx in self._broadphase_survivors(data):
             g1, g2 = pair_list[idx]
             distmax = distmax_all[idx]
             dist = geom_distance(model, data, g1, g2, distmax, fromto_all[k])
@@ -90,27 +91,35 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
             hits_all[k], dist_all[k] = idx, dist
             k += 1
         if k == 0:
-            return mink.Constraint(G=G, h=upper)
-        hits, dist, fromto = hits_all[:k], dist_all[:k], fromto_all[:k]
+            return hits_all[:0].copy(), np.zeros((0, model.nv)), np.zeros(0)
+        hits, dist, fromto = hits_all[:k].copy(), dist_all[:k], fromto_all[:k]
         b1, b2 = self._body1[hits], self._body2[hits]
+        jac = self._jac
         for body in set(b1.tolist()) | set(b2.tolist()):
-            mujoco.mj_jacBody(model, data, self._jacp[body], self._jacr[body], body)
+            mujoco.mj_jacBody(model, data, jac[body, :3], jac[body, 3:], body)
         p1, p2 = fromto[:, :3], fromto[:, 3:]
         normal = p2 - p1
-        length = np.sqrt(np.einsum("ki,ki->k", normal, normal))
+        length = np.sqrt((normal * normal).sum(axis=1))
         ok = length > 1e-15
         normal[ok] /= length[ok, None]
         normal[~ok] = (1.0, 0.0, 0.0)  # as mju_normalize3 does for a zero vector
-        r1, r2 = p1 - data.xpos[b1], p2 - data.xpos[b2]
-        rows = (
-            np.einsum("ki,kiv->kv", normal, self._jacp[b2] - self._jacp[b1])
-            - np.einsum("ki,kiv->kv", _cross_rows(normal, r2), self._jacr[b2])
-            + np.einsum("ki,kiv->kv", _cross_rows(normal, r1), self._jacr[b1])
-        )
+        # n^T J(p) = n^T Jp_body - (n x (p - x_body))^T Jr_body, for both witness points.
+        v1, v2 = np.empty((k, 1, 6)), np.empty((k, 1, 6))
+        v1[:, 0, :3], v2[:, 0, :3] = -normal, normal
+        v1[:, 0, 3:] = _cross_rows(normal, p1 - data.xpos[b1])
+        v2[:, 0, 3:] = -_cross_rows(normal, p2 - data.xpos[b2])
+        rows = (v1 @ jac[b1])[:, 0] + (v2 @ jac[b2])[:, 0]
         min_dist = self.minimum_distance_from_collisions
-        upper[hits] = (
+        h = (
             np.where(dist > min_dist, self.gain * (dist - min_dist) / dt, 0.0)
             + self.bound_relaxation
         )
-        G[hits] = np.where(dist >= 0, -1.0, 1.0)[:, None] * rows
+        rows *= np.where(dist >= 0, -1.0, 1.0)[:, None]
+        return hits, rows, h
+
+    def compute_qp_inequalities(self, configuration: mink.Configuration, dt: float):
+        hits, rows, h = self.active_rows(configuration, dt)
+        G = np.zeros((self.max_num_contacts, self.model.nv))
+        upper = np.full(self.max_num_contacts, np.inf)
+        G[hits], upper[hits] = rows, h
         return mink.Constraint(G=G, h=upper)

@@ -10,8 +10,7 @@ to each new measurement (LERP on position, SLERP on rotation): its time constant
 
 from __future__ import annotations
 
-from collections import deque
-
+import mujoco
 import numpy as np
 
 
@@ -22,19 +21,24 @@ class KeypointSmoother:
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window}")
         self.window = int(window)
-        self._history: deque[np.ndarray] = deque(maxlen=self.window)
+        self._buffer: np.ndarray | None = None  # ring buffer of the last `window` arrays
+        self._count = 0
 
     def reset(self) -> None:
-        self._history.clear()
+        self._count = 0
 
     def __call__(self, keypoints: np.ndarray) -> np.ndarray:
         keypoints = np.asarray(keypoints, dtype=np.float64)
-        if self._history and self._history[0].shape != keypoints.shape:
+        if self._buffer is None or (self._count == 0 and self._buffer.shape[1:] != keypoints.shape):
+            self._buffer = np.empty((self.window, *keypoints.shape))
+        elif self._buffer.shape[1:] != keypoints.shape:
             raise ValueError(
-                f"keypoints shape changed from {self._history[0].shape} to {keypoints.shape}"
+                f"keypoints shape changed from {self._buffer.shape[1:]} to {keypoints.shape}"
             )
-        self._history.append(keypoints)
-        return np.mean(self._history, axis=0)
+        self._buffer[self._count % self.window] = keypoints
+        self._count += 1
+        n = min(self._count, self.window)
+        return self._buffer[:n].sum(axis=0) / n
 
 
 class PoseSmoother:
@@ -63,36 +67,39 @@ class PoseSmoother:
         return T.copy()
 
 
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix."""
+    q = np.empty(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).ravel())
+    return q
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    R = np.empty(9)
+    mujoco.mju_quat2Mat(R, q)
+    return R.reshape(3, 3)
+
+
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle) of a rotation matrix, accurate up to and near pi."""
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    sin2 = np.linalg.norm(w)  # 2 sin(angle)
-    angle = float(np.arctan2(sin2, np.trace(R) - 1.0))
-    if angle < 1e-7:
-        return 0.5 * w
-    if angle < np.pi - 1e-3:
-        return w / sin2 * angle
-    # Near pi the skew part vanishes: the axis is the dominant column of (R + I) / 2,
-    # signed to agree with the skew part.
-    M = (R + np.eye(3)) / 2.0
-    k = int(np.argmax(np.diag(M)))
-    axis = M[:, k] / np.sqrt(max(M[k, k], 1e-300))
-    axis /= np.linalg.norm(axis)
-    if np.dot(axis, w) < 0:
-        axis = -axis
-    return axis * angle
+    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix."""
+    w = np.empty(3)
+    mujoco.mju_quat2Vel(w, quat_from_matrix(R), 1.0)
+    return w
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of a rotation vector (Rodrigues)."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = np.asarray(w, dtype=np.float64) / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    mujoco.mju_quatIntegrate(q, np.asarray(w, dtype=np.float64), 1.0)
+    return matrix_from_quat(q)
 
 
 def slerp(R_a: np.ndarray, R_b: np.ndarray, s: float) -> np.ndarray:
     """Rotation a fraction ``s`` of the way from ``R_a`` to ``R_b`` along the geodesic."""
-    return R_a @ so3_exp(s * so3_log(R_a.T @ R_b))
+    q_a, q_b = quat_from_matrix(R_a), quat_from_matrix(R_b)
+    q_a_inv, q_rel, w = np.empty(4), np.empty(4), np.empty(3)
+    mujoco.mju_negQuat(q_a_inv, q_a)
+    mujoco.mju_mulQuat(q_rel, q_a_inv, q_b)
+    mujoco.mju_quat2Vel(w, q_rel, 1.0)  # the shorter way round: angle in [0, pi]
+    mujoco.mju_quatIntegrate(q_a, w, float(s))
+    return matrix_from_quat(q_a)

@@ -295,12 +295,9 @@ class LeapRetargeter:
         self._human_ids = np.array(self._human_ids)
         self._scales = np.array([self.config.scale(f) for f in self._finger_of_point])[:, None]
         self.points = _PointsTask(model, frames, np.array(costs))
-        self.posture_task = mink.PostureTask(model, cost=self.config.posture_weight)
-        posture = np.zeros(model.nq)
+        self._posture = np.zeros(model.nq)
         if self.config.posture is not None:
-            posture[self.map.qpos_adr] = self.config.posture
-        self.posture_task.set_target(posture)
-        self.tasks = [self.points, self.posture_task]
+            self._posture[self.map.qpos_adr] = self.config.posture
         geoms = finger_geoms(model)
         pairs = [
             (geoms[a], geoms[b]) for i, a in enumerate(LEAP_FINGERS) for b in LEAP_FINGERS[i + 1 :]
@@ -405,27 +402,28 @@ class LeapRetargeter:
         are stacked, joint limits become simple bounds, and only active collision rows are kept.
         """
         cfg, nv = self.configuration, self.model.nv
-        J, e, mu = self.points.compute_qp_residual(cfg)
-        J_post, e_post, mu_post = self.posture_task.compute_qp_residual(cfg)
-        H = J.T @ J + J_post.T @ J_post
-        H.flat[:: nv + 1] += self.config.damping + mu + mu_post
-        c = -(e @ J) - (e_post @ J_post)
+        # The quantities of mink's task residuals (weights enter squared; no LM term).
+        points, w_post = self.points, self.config.posture_weight**2
+        error = points.compute_error(cfg)
+        J = points.compute_jacobian(cfg)
+        WJ = points.cost[:, None] * J
+        H = WJ.T @ WJ
+        H.flat[:: nv + 1] += self.config.damping + w_post
+        c = (points.cost * error) @ WJ + w_post * (cfg.q - self._posture)
         q = cfg.q
         gain = self.joint_limit.gain
         upper = np.minimum(gain * (self._upper_qpos - q), self.config.max_step)
         lower = np.maximum(gain * (self._lower_qpos - q), -self.config.max_step)
         upper[self._held] = 0.0
         lower[self._held] = 0.0
-        collision = self.collision_limit.compute_qp_inequalities(cfg, 1.0)
-        active = np.isfinite(collision.h)
-        A = collision.G[active]
-        bupper = np.concatenate([upper, collision.h[active]])
-        blower = np.concatenate([lower, np.full(A.shape[0], -1e30)])
+        _, A, h = self.collision_limit.active_rows(cfg, 1.0)
+        bupper = np.concatenate([upper, h])
+        blower = np.concatenate([lower, np.full(h.size, -1e30)])
         sense = np.zeros(bupper.size, dtype=np.int32)
         dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
         if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
             dq[self._held] = 0.0
-            cfg.integrate_inplace(dq, 1.0)
+            cfg.update(cfg.q + dq)  # hinges only: integrating is adding
 
     def retarget_converged(
         self, keypoints_palm: np.ndarray, iterations: int = 300, tolerance: float = 1e-7
