@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -11,8 +12,10 @@ from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, R_world_palm, keypoints
 from beavr_sim.teleop.retarget import (
     FINGER_MOTORS,
     LEAP_FINGERS,
+    NEVER_CLOSE_LINKS,
     LeapRetargeter,
     RetargetConfig,
+    finger_geoms,
     human_keypoints_for,
 )
 
@@ -229,3 +232,35 @@ def test_trace_has_no_finger_penetration_and_small_direction_error(reference_dir
     errors = result["tip_direction_error_deg"]
     assert set(errors) == set(LEAP_FINGERS)
     assert max(errors.values()) < 25.0, errors
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_links_left_out_of_the_collision_check_never_come_close(side):
+    """Every link pair in NEVER_CLOSE_LINKS stays over 2 x min_finger_distance apart across
+    the joint range (random and corner configurations), so leaving it out loses nothing."""
+    r = LeapRetargeter(side)
+    model = r.model
+    by_body: dict[str, list[int]] = {}
+    for geom_ids in finger_geoms(model).values():
+        for g in geom_ids:
+            by_body.setdefault(model.body(model.geom_bodyid[g]).name, []).append(g)
+    left_out = [
+        (g1, g2)
+        for pair in NEVER_CLOSE_LINKS
+        for a, b in [tuple(pair)]
+        if a in by_body and b in by_body  # link names of this side's hand
+        for g1 in by_body[a]
+        for g2 in by_body[b]
+    ]
+    assert left_out
+    checked = {frozenset(p) for p in r.collision_limit.geom_id_pairs}
+    assert not any(frozenset(p) in checked for p in left_out)
+    rng = np.random.default_rng(7)
+    lo, hi = r.map.range[:, 0], r.map.range[:, 1]
+    closest = np.inf
+    for i in range(1500):
+        q16 = np.where(rng.random(16) < 0.5, lo, hi) if i % 3 == 0 else rng.uniform(lo, hi)
+        r.map.forward(q16)
+        for g1, g2 in left_out:
+            closest = min(closest, mujoco.mj_geomDistance(model, r.map.data, g1, g2, 0.05, None))
+    assert closest > 2 * RetargetConfig().min_finger_distance, closest

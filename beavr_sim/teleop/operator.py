@@ -25,6 +25,7 @@ Session control:
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -170,7 +171,7 @@ class EffectorOperator:
         # Speed from the last accepted position over the time since the previous frame of
         # this side (accepted or not): a gap in tracking allows a longer move, a stream of
         # frames at a glitched place does not.
-        distance = float(np.linalg.norm(p - self._p_accepted))
+        distance = math.dist(p.tolist(), self._p_accepted.tolist())
         elapsed = max(t - self._t_seen, 1e-3)
         self._t_seen = t
         if distance <= self.config.min_jump or distance / elapsed <= self.config.max_hand_speed:
