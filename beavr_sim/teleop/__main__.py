@@ -2,13 +2,16 @@
 
     python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace] [--trace F]
         [--headless] [--no-viser] [--multiprocess] [--max-seconds N] [--summary-json F]
+        [--record DIR --repo-id NAME --episodes N --episode-seconds S --fps 30
+         --cameras front,overhead --image-size 480x640]
 
 Sources: ``quest`` (default) binds the BEAVR Quest app's PULL sockets (8087 right, 8110 left,
 8095 resolution, 8100 pause) on ``--headset-host`` (127.0.0.1 unless you give the PC's LAN
 address, e.g. 0.0.0.0, so the headset can connect); ``trace`` replays a recorded VR trace
 (``--trace F``, default: the task's bundled trace in ``assets/traces``). The browser view
 (viser) is on unless ``--no-viser``; the rendered twin goes to the headset (PUB on 10505)
-unless ``--headless``. Prints, last, one JSON summary line.
+unless ``--headless``. With ``--record DIR`` the episodes are written as a LeRobot dataset,
+each one on disk as soon as it ends. Prints, last, one JSON summary line.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import time
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.datasets.__main__ import add_recording_args
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 
@@ -64,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeat", type=int, default=1, help="trace: play it N times, 0 = until Ctrl-C")
     p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    rec = p.add_argument_group("recording a LeRobot dataset")
+    rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")
+    rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
+    add_recording_args(rec)
     return p
 
 
@@ -83,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\ninterrupted", file=sys.stderr)
         return 130
-    except (UnknownNameError, ValueError, FileNotFoundError) as exc:
+    except (UnknownNameError, ValueError, FileNotFoundError, FileExistsError, ImportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     report = summary.to_dict()

@@ -41,6 +41,13 @@ class SessionOptions:
     repeat: int = 1
     #: Ports and hosts; default: the standard ports, headset sockets on ``headset_host``.
     transport: TransportConfig | None = None
+    #: Record a LeRobot dataset into this folder (None: no recording).
+    record: Path | None = None
+    repo_id: str | None = None
+    #: Recorded episodes (each from a reset; a trace source replays its trace each time).
+    episodes: int = 1
+    #: What to record (cameras, image size, ...); default ``RecordingConfig()``.
+    recording: object | None = None
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -68,9 +75,21 @@ class SessionOptions:
             raise ValueError("--repeat needs --source trace and a count >= 0 (0: forever)")
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
+        if self.record is not None:
+            from beavr_sim.datasets.features import RecordingConfig
+
+            self.record = Path(self.record)
+            self.recording = self.recording or RecordingConfig()
+            if self.multiprocess:
+                raise ValueError("--record runs in one process; leave out --multiprocess")
+            if self.episodes < 1:
+                raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
+            self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
 
     @classmethod
     def from_args(cls, args) -> SessionOptions:
+        from beavr_sim.datasets.__main__ import recording_config
+
         size = str(args.headset_image_size).lower().split("x")
         if len(size) != 2 or not all(s.isdigit() and int(s) > 0 for s in size):
             raise ValueError(
@@ -94,6 +113,10 @@ class SessionOptions:
             max_seconds=args.max_seconds,
             progress=not args.quiet,
             repeat=args.repeat,
+            record=args.record,
+            repo_id=args.repo_id,
+            episodes=args.episodes,
+            recording=recording_config(args) if args.record is not None else None,
         )
 
 
@@ -207,6 +230,8 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 )
             )
         progress = ProgressLine(loop, options.progress)
+        if options.record is not None:
+            return _record_episodes(options, loop, progress)
         run, played = 0, 0.0
         while True:
             remaining = None if options.max_seconds is None else options.max_seconds - played
@@ -240,6 +265,55 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             close()
         if context is not None:
             context.term()
+
+
+def _record_episodes(options: SessionOptions, loop: TeleopLoop, progress) -> TeleopSummary:
+    """``--record``: ``options.episodes`` episodes, each saved to the dataset when it ends (at
+    task success, failure, the time limit or the end of the trace); Ctrl-C drops only the
+    episode in progress."""
+    from beavr_sim.datasets.features import lerobot_features
+    from beavr_sim.datasets.generate import run_recorded_episode
+    from beavr_sim.datasets.recorder import EpisodeRecorder
+    from beavr_sim.datasets.writer import EpisodeWriter
+    from beavr_sim.teleop.sources import TraceSource
+
+    config = options.recording
+    env = loop.twin.env
+    if int(round(env.control_hz)) != config.fps:
+        raise ValueError(f"--fps must equal the env's control rate ({env.control_hz:g} Hz)")
+    writer = EpisodeWriter(
+        options.record,
+        options.repo_id,
+        lerobot_features(env.embodiment, config),
+        config.fps,
+        robot_type=env.embodiment.name,
+        use_videos=config.use_videos,
+    )
+    recorder = EpisodeRecorder(writer, env, config)
+    summary = None
+    try:
+        for episode in range(options.episodes):
+            if episode > 0:
+                if options.source == "trace":
+                    loop.source = TraceSource(options.trace, real_time=options.clock == "real")
+                loop.reset(loop.seed)
+                progress.success = False
+            summary = run_recorded_episode(loop, recorder, config)
+            written = recorder.end(
+                keep=True, success=bool(summary.success), seed=loop.seed, source=options.source
+            )
+            if options.progress:
+                print(
+                    f"\nepisode {episode + 1}/{options.episodes}: "
+                    f"{'success' if summary.success else 'no success'}, "
+                    f"{summary.duration_s:.1f} s, {'saved' if written else 'empty, not saved'} "
+                    f"({writer.num_episodes} in {options.record})",
+                    file=sys.stderr,
+                )
+    finally:
+        recorder.close()
+        writer.close()
+    return summary
 
 
 class _ViewListener:

@@ -1,0 +1,95 @@
+"""What a beavr_sim LeRobot dataset holds: one :class:`RecordingConfig`, one feature dict.
+
+Features (``docs/formats.md`` lists them with shapes):
+
+- ``observation.state``: measured joint positions (rad), per effector arm then hand, as the env's
+  ``agent_pos``; names are the joint names;
+- ``action``: the joint targets actually commanded to the twin (after clipping), same order;
+- ``observation.images.<camera>``: the twin's cameras (``front``, ``overhead``), HxWx3 video;
+- ``hand.keypoints``: the raw tracked hand joints of every side the embodiment uses (26 XR Hands
+  joints x 3, metres, right-handed Z-up world frame), and ``hand.tracked`` (1 tracked, 0 not),
+  so that retargeting can be redone later. They do not start with ``observation.``, so LeRobot
+  policies do not take them as inputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from beavr_sim.envs.scene import CAMERA_NAMES
+from beavr_sim.naming import check_name
+from beavr_sim.robots import Embodiment
+from beavr_sim.teleop.hand import JOINT_NAMES, N_JOINTS
+
+STATE = "observation.state"
+ACTION = "action"
+IMAGE_PREFIX = "observation.images."
+KEYPOINTS = "hand.keypoints"
+TRACKED = "hand.tracked"
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """How episodes are recorded (one per dataset; validated here)."""
+
+    fps: int = 30
+    cameras: tuple[str, ...] = ("front", "overhead")
+    image_height: int = 480
+    image_width: int = 640
+    hand_keypoints: bool = True
+    #: Seconds after which an episode ends if the task has not succeeded (None: the env's limit).
+    episode_seconds: float | None = None
+    #: Ticks recorded after success, so the data shows the settled outcome.
+    tail_seconds: float = 0.5
+    #: Encode images as video (LeRobot's default) or store PNG frames.
+    use_videos: bool = True
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.fps, int) and self.fps > 0):
+            raise ValueError(f"fps must be a positive integer, got {self.fps!r}")
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+        for camera in self.cameras:
+            check_name("camera", camera, CAMERA_NAMES)
+        if len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(f"cameras repeat: {self.cameras}")
+        if self.image_height <= 0 or self.image_width <= 0:
+            raise ValueError(
+                f"image size must be positive, got {self.image_height}x{self.image_width}"
+            )
+        if self.episode_seconds is not None and not self.episode_seconds > 0:
+            raise ValueError(f"episode_seconds must be positive, got {self.episode_seconds!r}")
+        if not self.tail_seconds >= 0:
+            raise ValueError(f"tail_seconds must be >= 0, got {self.tail_seconds!r}")
+
+
+def hand_sides(embodiment: Embodiment) -> tuple[str, ...]:
+    """The hand sides an embodiment's operator tracks, in effector order."""
+    return tuple(dict.fromkeys(e.side for e in embodiment.effectors))
+
+
+def lerobot_features(embodiment: Embodiment, config: RecordingConfig) -> dict[str, dict]:
+    """LeRobot feature dict (``LeRobotDataset.create(features=...)``) for this embodiment."""
+    joints = list(embodiment.joint_names)
+    features: dict[str, dict] = {
+        STATE: {"dtype": "float32", "shape": (len(joints),), "names": joints},
+        ACTION: {"dtype": "float32", "shape": (len(joints),), "names": joints},
+    }
+    for camera in config.cameras:
+        features[IMAGE_PREFIX + camera] = {
+            "dtype": "video" if config.use_videos else "image",
+            "shape": (config.image_height, config.image_width, 3),
+            "names": ["height", "width", "channels"],
+        }
+    if config.hand_keypoints:
+        sides = hand_sides(embodiment)
+        features[KEYPOINTS] = {
+            "dtype": "float32",
+            "shape": (len(sides) * N_JOINTS * 3,),
+            "names": [f"{s}/{j}/{a}" for s in sides for j in JOINT_NAMES for a in "xyz"],
+        }
+        features[TRACKED] = {
+            "dtype": "float32",
+            "shape": (len(sides) * N_JOINTS,),
+            "names": [f"{s}/{j}" for s in sides for j in JOINT_NAMES],
+        }
+    return features

@@ -1,0 +1,143 @@
+"""Teleop ticks -> LeRobot frames: the recorder listens to the teleop loop.
+
+A LeRobot frame pairs an observation with the action taken from it. The loop reports each tick
+after the twin stepped, so the recorder keeps the observation made before the step (measured
+joints and camera images) and, at the tick, writes it with the action the twin was actually
+given (:attr:`TwinState.action`: the operator's targets after the twin's composition; holds
+included). Hand keypoints are the newest frame of each side up to that tick.
+
+Episodes: :meth:`EpisodeRecorder.begin` after the env reset, :meth:`EpisodeRecorder.end` with
+keep or drop. A summary line per episode goes to ``meta/beavr_episodes.jsonl`` beside LeRobot's
+metadata (seed, success, duration, source): LeRobot has no field for them.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from beavr_sim.datasets.features import (
+    ACTION,
+    IMAGE_PREFIX,
+    KEYPOINTS,
+    STATE,
+    TRACKED,
+    RecordingConfig,
+    hand_sides,
+)
+from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.teleop.hand import N_JOINTS
+from beavr_sim.teleop.pipeline import Tick
+
+
+class CameraSet:
+    """Offscreen renderers of the twin's named cameras at the recording size."""
+
+    def __init__(self, model: mujoco.MjModel, cameras: tuple[str, ...], height: int, width: int):
+        off_h, off_w = model.vis.global_.offheight, model.vis.global_.offwidth
+        if cameras and (height > off_h or width > off_w):
+            raise ValueError(
+                f"recording images of {height}x{width} exceed the scene's offscreen buffer "
+                f"({off_h}x{off_w}); record at most {off_h}x{off_w}"
+            )
+        self.cameras = cameras
+        self._renderer = mujoco.Renderer(model, height, width) if cameras else None
+
+    def render(self, data: mujoco.MjData) -> dict[str, np.ndarray]:
+        images = {}
+        for camera in self.cameras:
+            self._renderer.update_scene(data, camera=camera)
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+            images[camera] = self._renderer.render().copy()
+        return images
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+class EpisodeRecorder:
+    """A teleop-loop listener writing the ticks of each episode as LeRobot frames."""
+
+    def __init__(self, writer: EpisodeWriter, env, config: RecordingConfig):
+        self.writer = writer
+        self.env = env
+        self.config = config
+        self.task_text = env.task.instruction or env.task.name
+        self.sides = hand_sides(env.embodiment)
+        self.cameras = CameraSet(env.model, config.cameras, config.image_height, config.image_width)
+        self.recording = False
+        self._observation: dict[str, np.ndarray] | None = None
+        self._keypoints = np.zeros((len(self.sides), N_JOINTS, 3), dtype=np.float32)
+        self._tracked = np.zeros((len(self.sides), N_JOINTS), dtype=np.float32)
+        self._started_wall = 0.0
+        self.frames = 0
+
+    # ------------------------------------------------------------------ episodes
+    def begin(self) -> None:
+        """Start an episode at the env's current state (call after the reset)."""
+        self.writer.discard_episode()
+        self._keypoints[:] = 0.0
+        self._tracked[:] = 0.0
+        self._observation = self._observe()
+        self.recording = True
+        self.frames = 0
+        self._started_wall = time.perf_counter()
+
+    def end(self, keep: bool, **info) -> bool:
+        """End the episode: write it (``keep``) or drop it. Returns whether it was written."""
+        self.recording = False
+        written = keep and self.writer.save_episode()
+        if not written:
+            self.writer.discard_episode()
+        record = {
+            "episode_index": self.writer.num_episodes - 1 if written else None,
+            "kept": bool(written),
+            "frames": self.frames,
+            "seconds": round(self.frames / self.config.fps, 3),
+            "task": self.env.task.name,
+            "embodiment": self.env.embodiment.name,
+            **info,
+        }
+        log_path = Path(self.writer.root) / "meta" / "beavr_episodes.jsonl"
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        with log_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+        return bool(written)
+
+    def close(self) -> None:
+        if self.recording:
+            self.writer.discard_episode()
+            self.recording = False
+        self.cameras.close()
+
+    # ------------------------------------------------------------------ frames
+    def _observe(self) -> dict[str, np.ndarray]:
+        obs = {STATE: self.env.agent_pos.astype(np.float32)}
+        for camera, image in self.cameras.render(self.env.data).items():
+            obs[IMAGE_PREFIX + camera] = image
+        return obs
+
+    def __call__(self, tick: Tick) -> None:
+        if not self.recording or self._observation is None:
+            return
+        for frame in tick.frames:
+            i = self.sides.index(frame.side) if frame.side in self.sides else None
+            if i is None:
+                continue
+            self._keypoints[i] = np.where(frame.tracked[:, None], frame.joints, 0.0)
+            self._tracked[i] = frame.tracked
+        row = dict(self._observation)
+        row[ACTION] = np.asarray(tick.state.action, dtype=np.float32)
+        if self.config.hand_keypoints:
+            row[KEYPOINTS] = self._keypoints.reshape(-1).copy()
+            row[TRACKED] = self._tracked.reshape(-1).copy()
+        self.writer.add_frame(row, self.task_text)
+        self.frames += 1
+        self._observation = self._observe()

@@ -1,0 +1,143 @@
+"""A LeRobot v3 dataset written episode by episode, each episode safe on disk when it ends.
+
+LeRobot keeps its parquet writers open across episodes and writes their footers only in
+``finalize()``: a process killed before that leaves every episode of the session unreadable.
+:class:`EpisodeWriter` therefore finalizes after every saved episode and resumes the dataset
+for the next one (``LeRobotDataset.resume``); each episode lands in files of its own, so a
+crash during episode k loses only episode k. Metadata is flushed per episode as well.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("beavr_sim.datasets")
+
+#: Video decoding backend for reading back: PyAV works everywhere (torchcodec needs the
+#: system's FFmpeg libraries of matching versions).
+VIDEO_BACKEND = "pyav"
+
+
+def require_lerobot():
+    """Import LeRobot's dataset class, or explain how to get it."""
+    try:
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "recording LeRobot datasets needs lerobot >= 0.5 with its dataset extra "
+            "(pip install 'lerobot[training]'; Python 3.12). " + str(exc)
+        ) from exc
+    return LeRobotDataset
+
+
+def dataset_exists(root: Path) -> bool:
+    return (Path(root) / "meta" / "info.json").is_file()
+
+
+class EpisodeWriter:
+    """Frames in, one durable LeRobot episode per :meth:`save_episode`."""
+
+    def __init__(
+        self,
+        root: str | Path,
+        repo_id: str,
+        features: dict[str, dict],
+        fps: int,
+        robot_type: str,
+        use_videos: bool = True,
+        overwrite: bool = False,
+    ):
+        self.root = Path(root)
+        self.repo_id = repo_id
+        self.fps = int(fps)
+        self._dataset_cls = require_lerobot()
+        if dataset_exists(self.root):
+            if overwrite:
+                shutil.rmtree(self.root)
+            else:
+                self._check_compatible(features, fps)
+        elif self.root.exists() and any(self.root.iterdir()):
+            if not overwrite:
+                raise FileExistsError(
+                    f"{self.root} exists and is not a LeRobot dataset; pick a new folder or "
+                    "pass overwrite"
+                )
+            shutil.rmtree(self.root)
+        if not dataset_exists(self.root):
+            self._dataset = self._dataset_cls.create(
+                repo_id,
+                fps,
+                features,
+                root=self.root,
+                robot_type=robot_type,
+                use_videos=use_videos,
+                video_backend=VIDEO_BACKEND,
+                metadata_buffer_size=1,
+            )
+        else:
+            self._dataset = None  # resumed when the first frame arrives
+        self.features = features
+        self.frames_in_episode = 0
+        self.episodes_saved = 0
+
+    def _check_compatible(self, features: Mapping[str, dict], fps: int) -> None:
+        info = json.loads((self.root / "meta" / "info.json").read_text())
+        theirs = {k: (v["dtype"], tuple(v["shape"])) for k, v in info["features"].items()}
+        for key, ft in features.items():
+            if theirs.get(key) != (ft["dtype"], tuple(ft["shape"])):
+                raise ValueError(
+                    f"{self.root} holds a dataset whose feature {key!r} is {theirs.get(key)}, "
+                    f"not {(ft['dtype'], tuple(ft['shape']))}: record into a new folder"
+                )
+        if int(info["fps"]) != int(fps):
+            raise ValueError(f"{self.root} was recorded at {info['fps']} fps, not {fps}")
+
+    @property
+    def num_episodes(self) -> int:
+        """Episodes on disk."""
+        if not dataset_exists(self.root):
+            return 0
+        return int(json.loads((self.root / "meta" / "info.json").read_text())["total_episodes"])
+
+    def _open(self):
+        if self._dataset is None:
+            self._dataset = self._dataset_cls.resume(
+                self.repo_id, root=self.root, video_backend=VIDEO_BACKEND
+            )
+        return self._dataset
+
+    def add_frame(self, frame: dict[str, np.ndarray], task: str) -> None:
+        self._open().add_frame({**frame, "task": task})
+        self.frames_in_episode += 1
+
+    def save_episode(self) -> bool:
+        """Write the episode's frames; on disk and loadable when this returns. False if the
+        episode was empty (nothing written)."""
+        if self.frames_in_episode == 0:
+            return False
+        dataset = self._open()
+        dataset.save_episode()
+        dataset.finalize()  # parquet footers and metadata: the episode is now durable
+        self._dataset = None
+        self.frames_in_episode = 0
+        self.episodes_saved += 1
+        return True
+
+    def discard_episode(self) -> None:
+        """Drop the frames of the episode in progress."""
+        if self._dataset is not None and self.frames_in_episode:
+            self._dataset.clear_episode_buffer()
+        self.frames_in_episode = 0
+
+    def close(self) -> None:
+        """Drop an unfinished episode and close the files (the saved episodes stay)."""
+        self.discard_episode()
+        if self._dataset is not None:
+            self._dataset.finalize()
+            self._dataset = None
