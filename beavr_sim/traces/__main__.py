@@ -102,8 +102,10 @@ def record_trace(
 
 
 def _synth(argv: list[str]) -> int:
+    import importlib
+
     try:
-        from beavr_sim.traces import synth
+        synth = importlib.import_module("beavr_sim.traces.synth")
     except ImportError as err:
         if err.name != "beavr_sim.traces.synth":
             raise
