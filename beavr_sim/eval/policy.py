@@ -1,0 +1,73 @@
+"""A LeRobot pretrained policy directory, loaded through LeRobot's factory, behind three calls:
+``reset``, ``act`` (one action) and ``chunk`` (an action chunk), on env observations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+IMAGE_PREFIX = "observation.images."
+
+
+class LoadedPolicy:
+    """Policy + its pre/post-processors (normalisation, device) from ``path``."""
+
+    def __init__(self, path: str | Path, device: str = "cpu"):
+        path = Path(path)
+        if not (path / "config.json").is_file():
+            raise FileNotFoundError(
+                f"{path} is not a LeRobot pretrained policy folder (no config.json); pass e.g. "
+                "outputs/train/<run>/checkpoints/last/pretrained_model"
+            )
+        import torch
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        self._torch = torch
+        config = PreTrainedConfig.from_pretrained(str(path))
+        config.device = device
+        self.config = config
+        self.type = config.type
+        self.policy = get_policy_class(config.type).from_pretrained(str(path), config=config)
+        self.policy.eval()
+        self.preprocessor, self.postprocessor = make_pre_post_processors(
+            config,
+            pretrained_path=str(path),
+            preprocessor_overrides={"device_processor": {"device": device}},
+        )
+        self.cameras: dict[str, tuple[int, int]] = {
+            key.removeprefix(IMAGE_PREFIX): (int(ft.shape[1]), int(ft.shape[2]))
+            for key, ft in config.input_features.items()
+            if key.startswith(IMAGE_PREFIX)
+        }
+        self.action_dim = int(config.output_features["action"].shape[0])
+
+    def reset(self) -> None:
+        self.policy.reset()
+        for pipeline in (self.preprocessor, self.postprocessor):
+            reset = getattr(pipeline, "reset", None)
+            if callable(reset):
+                reset()
+
+    def _batch(self, observation: dict, task: str) -> dict:
+        from lerobot.envs.utils import preprocess_observation
+
+        batch = preprocess_observation(observation)
+        batch["task"] = [task]
+        return self.preprocessor(batch)
+
+    def act(self, observation: dict, task: str) -> np.ndarray:
+        """The policy's next action (its own queue of chunked actions, if it has one)."""
+        with self._torch.inference_mode():
+            action = self.policy.select_action(self._batch(observation, task))
+            action = self.postprocessor(action)
+        return action.squeeze(0).cpu().numpy().astype(np.float64)
+
+    def chunk(self, observation: dict, task: str) -> np.ndarray:
+        """A whole action chunk (k x action_dim) from one observation."""
+        with self._torch.inference_mode():
+            actions = self.policy.predict_action_chunk(self._batch(observation, task))
+            actions = self.postprocessor(actions)
+        actions = actions.cpu().numpy().astype(np.float64)
+        return actions.reshape(-1, actions.shape[-1])
