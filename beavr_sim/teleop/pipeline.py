@@ -104,6 +104,12 @@ class TeleopLoop:
         self.ticks = 0
         self._t0 = time.monotonic()
 
+    def replace_source(self, source: HandSource) -> None:
+        """A new stream (e.g. a trace played again from its start): its timestamps start over,
+        so the validator's ordering check starts over too."""
+        self.source = source
+        self.validator.reset()
+
     def now(self) -> float:
         return time.monotonic() if self.real_time else self.ticks * self.dt
 

@@ -254,7 +254,7 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 )
             from beavr_sim.teleop.sources import TraceSource
 
-            loop.source = TraceSource(options.trace, real_time=options.clock == "real")
+            loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
             loop.reset(loop.seed)
             progress.success = False
         if options.progress:
@@ -295,7 +295,9 @@ def _record_episodes(options: SessionOptions, loop: TeleopLoop, progress) -> Tel
         for episode in range(options.episodes):
             if episode > 0:
                 if options.source == "trace":
-                    loop.source = TraceSource(options.trace, real_time=options.clock == "real")
+                    loop.replace_source(
+                        TraceSource(options.trace, real_time=options.clock == "real")
+                    )
                 loop.reset(loop.seed)
                 progress.success = False
             summary = run_recorded_episode(loop, recorder, config)
