@@ -215,7 +215,8 @@ def test_info_cli(trace_path, capsys, tmp_path):
     assert done.returncode == 2 and "no trace file" in done.stderr
 
 
-def test_synth_subcommand_delegates(monkeypatch):
+def test_synth_subcommand_delegates(monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)  # were the real synth reached, it would write x.mcap here
     seen = []
     fake = types.ModuleType("beavr_sim.traces.synth")
     fake.main = lambda argv: seen.append(argv) or 0
