@@ -96,19 +96,29 @@ def test_generated_dataset_loads_with_lerobot(dataset_root):
     assert [r["kept"] for r in log] == [True, True] and all(r["success"] for r in log)
 
 
-def test_state_follows_the_recorded_action(dataset_root):
-    """observation.state[t] is measured before action[t] is applied: the arm moves towards the
-    commanded targets (a position servo), so the next state is closer to the action."""
+def test_state_is_measured_before_the_recorded_action(dataset_root):
+    """Frame t pairs the state measured before the tick with the action applied at it: reset
+    the env with the episode's seed and step the recorded actions; every next state must be
+    the recorded one exactly (a misaligned recorder would be one tick off)."""
+    import gymnasium as gym
+
     ds = LeRobotDataset(REPO_ID, root=dataset_root, video_backend="pyav")
     ep = ds.hf_dataset.filter(lambda r: r["episode_index"] == 0)
-    state = np.array(ep[STATE])
-    action = np.array(ep[ACTION])
-    arm = slice(0, 7)
-    moving = np.linalg.norm(action[:-1, arm] - state[:-1, arm], axis=1) > 1e-3
-    before = np.linalg.norm(action[:-1, arm] - state[:-1, arm], axis=1)[moving]
-    after = np.linalg.norm(action[:-1, arm] - state[1:, arm], axis=1)[moving]
-    assert moving.sum() > 20
-    assert np.mean(after < before) > 0.9
+    state = np.array(ep[STATE], dtype=np.float32)
+    action = np.array(ep[ACTION], dtype=np.float32)
+    seed = json.loads((dataset_root / "meta" / "beavr_episodes.jsonl").read_text().splitlines()[0])[
+        "seed"
+    ]
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    try:
+        env.reset(seed=seed)
+        np.testing.assert_array_equal(env.agent_pos, state[0])
+        for t in range(len(action) - 1):
+            env.step(action[t])
+            np.testing.assert_array_equal(env.agent_pos, state[t + 1], err_msg=f"tick {t}")
+    finally:
+        env.close()
+    assert np.abs(np.diff(state[:, :7], axis=0)).max() > 1e-3  # the arm did move
 
 
 def test_sigkill_during_an_episode_keeps_the_earlier_ones(tmp_path):
@@ -252,7 +262,8 @@ def test_eval_async_think_act_reports_jitter_and_starved_ticks(act_checkpoint, c
     assert result["mode"] == "async" and result["ticks"] == 60
     # The first chunk is computed while the loop already runs: at least one tick waits.
     assert 1 <= result["ticks_without_action"] < result["ticks"]
-    assert result["control_jitter_ms"]["p50"] >= 0.0
+    # The loop keeps its 30 Hz rate: the typical period error is under a period.
+    assert 0.0 <= result["control_jitter_ms"]["p50"] < 1000 / 30
 
 
 def test_eval_rejects_a_folder_that_is_no_policy(tmp_path, capsys):

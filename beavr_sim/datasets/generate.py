@@ -18,7 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
-from beavr_sim.datasets.recorder import EpisodeRecorder
+from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
 from beavr_sim.datasets.writer import EpisodeWriter
 
 
@@ -35,21 +35,6 @@ class GenerateSummary:
     seeds_failed: list[int] = field(default_factory=list)
     frames: int = 0
     wall_s: float = 0.0
-
-
-def run_recorded_episode(loop, recorder: EpisodeRecorder, config: RecordingConfig):
-    """Run the loop's current episode while recording; ticks on for ``tail_seconds`` after
-    success so the data shows the outcome settled. Returns the loop's summary."""
-    recorder.begin()
-    loop.listeners.append(recorder)
-    try:
-        summary = loop.run(max_seconds=config.episode_seconds, stop_on_success=True)
-        if summary.success:
-            for _ in range(int(round(config.tail_seconds * config.fps))):
-                loop.tick()
-    finally:
-        loop.listeners.remove(recorder)
-    return summary
 
 
 def generate(

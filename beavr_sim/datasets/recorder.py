@@ -30,36 +30,24 @@ from beavr_sim.datasets.features import (
     hand_sides,
 )
 from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.teleop.hand import N_JOINTS
 from beavr_sim.teleop.pipeline import Tick
 
 
 class CameraSet:
-    """Offscreen renderers of the twin's named cameras at the recording size."""
+    """The recorded cameras, rendered together at the recording size."""
 
     def __init__(self, model: mujoco.MjModel, cameras: tuple[str, ...], height: int, width: int):
-        off_h, off_w = model.vis.global_.offheight, model.vis.global_.offwidth
-        if cameras and (height > off_h or width > off_w):
-            raise ValueError(
-                f"recording images of {height}x{width} exceed the scene's offscreen buffer "
-                f"({off_h}x{off_w}); record at most {off_h}x{off_w}"
-            )
-        self.cameras = cameras
-        self._renderer = mujoco.Renderer(model, height, width) if cameras else None
+        self.cameras = tuple(cameras)
+        self._cameras = OffscreenCameras(model, height, width) if self.cameras else None
 
     def render(self, data: mujoco.MjData) -> dict[str, np.ndarray]:
-        images = {}
-        for camera in self.cameras:
-            self._renderer.update_scene(data, camera=camera)
-            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
-            images[camera] = self._renderer.render().copy()
-        return images
+        return {c: self._cameras.render(data, c) for c in self.cameras}
 
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        if self._cameras is not None:
+            self._cameras.close()
 
 
 class EpisodeRecorder:
@@ -141,3 +129,18 @@ class EpisodeRecorder:
         self.writer.add_frame(row, self.task_text)
         self.frames += 1
         self._observation = self._observe()
+
+
+def run_recorded_episode(loop, recorder: EpisodeRecorder, config: RecordingConfig):
+    """Run the loop's current episode while recording; ticks on for ``tail_seconds`` after
+    success so the data shows the outcome settled. Returns the loop's summary."""
+    recorder.begin()
+    loop.listeners.append(recorder)
+    try:
+        summary = loop.run(max_seconds=config.episode_seconds, stop_on_success=True)
+        if summary.success:
+            for _ in range(int(round(config.tail_seconds * config.fps))):
+                loop.tick()
+    finally:
+        loop.listeners.remove(recorder)
+    return summary

@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.envs.scene import CAMERA_NAMES, build_scene_spec
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment, make_embodiment
@@ -94,7 +95,7 @@ class BeavrEnv(gym.Env):
                 }
             )
         self.observation_space = spaces.Dict(obs_spaces)
-        self._renderer: mujoco.Renderer | None = None
+        self._renderer: OffscreenCameras | None = None
         self._elapsed_steps = 0
         self._status = TaskStatus()
 
@@ -149,13 +150,9 @@ class BeavrEnv(gym.Env):
 
     def render_camera(self, camera: str) -> np.ndarray:
         """One HxWx3 uint8 frame from a named camera (shadows and reflections off)."""
-        check_name("camera", camera, CAMERA_NAMES)
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.camera_height, self.camera_width)
-        self._renderer.update_scene(self.data, camera=camera)
-        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
-        return self._renderer.render().copy()
+            self._renderer = OffscreenCameras(self.model, self.camera_height, self.camera_width)
+        return self._renderer.render(self.data, camera)
 
     def _validate_action(self, action) -> np.ndarray:
         expected = self.action_space.shape

@@ -272,8 +272,7 @@ def _record_episodes(options: SessionOptions, loop: TeleopLoop, progress) -> Tel
     task success, failure, the time limit or the end of the trace); Ctrl-C drops only the
     episode in progress."""
     from beavr_sim.datasets.features import lerobot_features
-    from beavr_sim.datasets.generate import run_recorded_episode
-    from beavr_sim.datasets.recorder import EpisodeRecorder
+    from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
     from beavr_sim.datasets.writer import EpisodeWriter
     from beavr_sim.teleop.sources import TraceSource
 
@@ -346,23 +345,17 @@ class _HeadsetListener:
     """Rendered twin images to the headset at a limited rate."""
 
     def __init__(self, publisher, loop: TeleopLoop, size: tuple[int, int], period_s: float):
-        import mujoco
+        from beavr_sim.envs.cameras import OffscreenCameras
 
         self.publisher = publisher
-        env = loop.twin.env
-        self.renderer = mujoco.Renderer(env.model, size[1], size[0])
-        self.env = env
+        self.env = loop.twin.env
+        self.cameras = OffscreenCameras(self.env.model, size[1], size[0])
         self.period = period_s
         self._next = 0.0
 
     def __call__(self, tick: Tick) -> None:
-        import mujoco
-
         now = time.monotonic()
         if now < self._next:
             return
         self._next = now + self.period
-        self.renderer.update_scene(self.env.data, camera="front")
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
-        self.publisher.publish(self.renderer.render())
+        self.publisher.publish(self.cameras.render(self.env.data, "front"))
