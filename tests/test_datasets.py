@@ -308,3 +308,68 @@ def test_teleop_record_writes_one_episode_per_trace_replay(tmp_path, capsys):
         for i in (0, 1)
     ]
     np.testing.assert_array_equal(ep[0], ep[1])
+
+
+def test_episodes_start_stop_and_discard_on_request(tmp_path):
+    """Manual start: requests from the keyboard (a pipe here), the browser buttons and the
+    headset gesture act on the episode at tick boundaries: stop saves, discard drops, quit
+    saves and ends; every recorded episode begins from a fresh reset."""
+    import io
+
+    from beavr_sim.teleop.episodes import EpisodeControl, KeyboardControl
+    from beavr_sim.teleop.session import (
+        ProgressLine,
+        SessionOptions,
+        build_loop,
+        record_episodes,
+    )
+
+    options = SessionOptions(
+        task="PickupBox",
+        source="trace",
+        viser=False,
+        headless=True,
+        progress=False,
+        record=tmp_path / "rec",
+        repo_id=REPO_ID,
+        episodes=10,
+        recording=RecordingConfig(cameras=()),
+        auto_start=False,
+    )
+    loop = build_loop(options)
+    control = EpisodeControl()
+    ticks = []
+    script = {
+        3: lambda: control.request("start", "browser"),
+        20: lambda: control.request("toggle", "browser"),
+        40: lambda: KeyboardControl(control, io.StringIO("\n")),  # Enter: start
+        50: lambda: control.request("discard", "browser"),
+        60: lambda: control.request("toggle", "browser"),
+        70: lambda: setattr(loop.operator, "_gestures", ["record"]),  # long left pinch
+        75: lambda: control.request("start", "browser"),
+        85: lambda: KeyboardControl(control, io.StringIO("q\n")),
+    }
+
+    def listener(tick):
+        ticks.append(tick.state.t)
+        if len(ticks) in script:
+            script[len(ticks)]()
+            time.sleep(0.05)  # the keyboard thread reads its line
+
+    loop.listeners.append(listener)
+    record_episodes(options, loop, ProgressLine(loop, enabled=False), control)
+    assert len(ticks) == 85  # quit ended the session at once
+    log = [
+        json.loads(x)
+        for x in (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
+    ]
+    assert [r["ended_by"] for r in log] == ["toggle", "discard", "toggle", "quit"]
+    assert [r["kept"] for r in log] == [True, False, True, True]
+    assert [r["frames"] for r in log] == [17, 10, 10, 10]
+    ds = LeRobotDataset(REPO_ID, root=tmp_path / "rec")
+    assert ds.num_episodes == 3
+    # Each episode starts from the reset state: its first recorded state is the home pose.
+    home = loop.twin.env.joints.home
+    for i in range(3):
+        first = ds.hf_dataset.filter(lambda r, i=i: r["episode_index"] == i)[0]
+        np.testing.assert_allclose(np.asarray(first[STATE]), home, atol=1e-5)

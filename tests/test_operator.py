@@ -259,6 +259,24 @@ def test_left_hand_pinch_toggles_pause(operator):
     operator.observe(frame(L, 0.2, side="left", pinch=False))
     operator.observe(frame(L, 0.3, side="left", pinch=True))
     assert not operator.paused
+    assert operator.take_gestures() == []
+
+
+def test_long_left_pinch_is_the_record_gesture_and_leaves_pause_as_it_was(operator):
+    fresh(operator)
+    L = palm_down([0.3, 0.2, 1.0])
+    operator.observe(frame(L, -0.1, side="left", pinch=False))
+    t = 0.0
+    for _ in range(40):  # 1.3 s held
+        operator.observe(frame(L, t, side="left", pinch=True))
+        if t < 0.99:
+            assert operator.paused  # the robot holds while the gesture is made
+        t += 1 / 30
+    assert not operator.paused
+    assert operator.take_gestures() == ["record"]  # once per press
+    assert operator.take_gestures() == []
+    operator.observe(frame(L, t, side="left", pinch=False))
+    assert not operator.paused and operator.take_gestures() == []
 
 
 def test_commands_respect_joint_limits(operator):

@@ -41,6 +41,11 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-videos", action="store_true", help="store PNG frames, not video")
     p.add_argument("--no-keypoints", action="store_true", help="leave out the raw hand keypoints")
     p.add_argument(
+        "--environment-state",
+        action="store_true",
+        help="also record object and target poses (observation.environment_state)",
+    )
+    p.add_argument(
         "--episode-seconds", type=float, default=None, help="episode time limit (default: env's)"
     )
 
@@ -57,6 +62,7 @@ def recording_config(args):
         hand_keypoints=not args.no_keypoints,
         episode_seconds=args.episode_seconds,
         use_videos=not args.no_videos,
+        environment_state=args.environment_state,
     )
 
 

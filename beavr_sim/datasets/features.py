@@ -5,6 +5,9 @@ Features (``docs/formats.md`` lists them with shapes):
 - ``observation.state``: measured joint positions (rad), per effector arm then hand, as the env's
   ``agent_pos``; names are the joint names;
 - ``action``: the joint targets actually commanded to the twin (after clipping), same order;
+- ``observation.environment_state`` (only with ``RecordingConfig.environment_state``): the
+  task's object and target poses, privileged state for state-based policies; off by default
+  because ``lerobot-train`` feeds every ``observation.*`` feature to the policy;
 - ``observation.images.<camera>``: the twin's cameras (``front``, ``overhead``), HxWx3 video;
 - ``hand.keypoints``: the raw tracked hand joints of every side the embodiment uses (26 XR Hands
   joints x 3, metres, right-handed Z-up world frame), and ``hand.tracked`` (1 tracked, 0 not),
@@ -14,6 +17,7 @@ Features (``docs/formats.md`` lists them with shapes):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from beavr_sim.envs.scene import CAMERA_NAMES
@@ -22,6 +26,7 @@ from beavr_sim.robots import Embodiment
 from beavr_sim.teleop.hand import JOINT_NAMES, N_JOINTS
 
 STATE = "observation.state"
+ENV_STATE = "observation.environment_state"
 ACTION = "action"
 IMAGE_PREFIX = "observation.images."
 KEYPOINTS = "hand.keypoints"
@@ -43,6 +48,8 @@ class RecordingConfig:
     tail_seconds: float = 0.5
     #: Encode images as video (LeRobot's default) or store PNG frames.
     use_videos: bool = True
+    #: Also record the task's object and target poses (privileged state).
+    environment_state: bool = False
 
     def __post_init__(self) -> None:
         if not (isinstance(self.fps, int) and self.fps > 0):
@@ -67,13 +74,26 @@ def hand_sides(embodiment: Embodiment) -> tuple[str, ...]:
     return tuple(dict.fromkeys(e.side for e in embodiment.effectors))
 
 
-def lerobot_features(embodiment: Embodiment, config: RecordingConfig) -> dict[str, dict]:
-    """LeRobot feature dict (``LeRobotDataset.create(features=...)``) for this embodiment."""
+def lerobot_features(
+    embodiment: Embodiment,
+    config: RecordingConfig,
+    environment_state_names: Sequence[str] = (),
+) -> dict[str, dict]:
+    """LeRobot feature dict (``LeRobotDataset.create(features=...)``) for this embodiment;
+    ``environment_state_names`` (the env's) are needed when the config records that state."""
     joints = list(embodiment.joint_names)
     features: dict[str, dict] = {
         STATE: {"dtype": "float32", "shape": (len(joints),), "names": joints},
         ACTION: {"dtype": "float32", "shape": (len(joints),), "names": joints},
     }
+    if config.environment_state:
+        if not environment_state_names:
+            raise ValueError(
+                "environment_state recording needs the env's environment_state_names "
+                "(this task has no object state)"
+            )
+        names = list(environment_state_names)
+        features[ENV_STATE] = {"dtype": "float32", "shape": (len(names),), "names": names}
     for camera in config.cameras:
         features[IMAGE_PREFIX + camera] = {
             "dtype": "video" if config.use_videos else "image",

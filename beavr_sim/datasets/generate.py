@@ -64,7 +64,7 @@ def generate(
     probe = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
     if int(round(probe.control_hz)) != config.fps:
         raise ValueError(f"fps must equal the env's control rate ({probe.control_hz:g} Hz)")
-    features = lerobot_features(probe.embodiment, config)
+    features = lerobot_features(probe.embodiment, config, probe.environment_state_names)
     probe.close()
     writer = EpisodeWriter(
         out,

@@ -22,6 +22,7 @@ import numpy as np
 
 from beavr_sim.datasets.features import (
     ACTION,
+    ENV_STATE,
     IMAGE_PREFIX,
     KEYPOINTS,
     STATE,
@@ -108,6 +109,8 @@ class EpisodeRecorder:
     # ------------------------------------------------------------------ frames
     def _observe(self) -> dict[str, np.ndarray]:
         obs = {STATE: self.env.agent_pos.astype(np.float32)}
+        if self.config.environment_state:
+            obs[ENV_STATE] = self.env.environment_state
         for camera, image in self.cameras.render(self.env.data).items():
             obs[IMAGE_PREFIX + camera] = image
         return obs
@@ -131,13 +134,21 @@ class EpisodeRecorder:
         self._observation = self._observe()
 
 
-def run_recorded_episode(loop, recorder: EpisodeRecorder, config: RecordingConfig):
-    """Run the loop's current episode while recording; ticks on for ``tail_seconds`` after
-    success so the data shows the outcome settled. Returns the loop's summary."""
+def run_recorded_episode(
+    loop, recorder: EpisodeRecorder, config: RecordingConfig, progress=None, stop_when=None
+):
+    """Run the loop's current episode while recording, until it ends by itself (success,
+    failure, time limit, end of a trace) or ``stop_when()``; ticks on for ``tail_seconds``
+    after success so the data shows the outcome settled. Returns the loop's summary."""
     recorder.begin()
     loop.listeners.append(recorder)
     try:
-        summary = loop.run(max_seconds=config.episode_seconds, stop_on_success=True)
+        summary = loop.run(
+            max_seconds=config.episode_seconds,
+            stop_on_success=True,
+            progress=progress,
+            stop_when=stop_when,
+        )
         if summary.success:
             for _ in range(int(round(config.tail_seconds * config.fps))):
                 loop.tick()

@@ -1,8 +1,9 @@
 """The one gymnasium env of beavr_sim, parameterised by task and embodiment.
 
 Observations follow LeRobot's gym-env convention: ``agent_pos`` (measured joint positions,
-per effector arm then hand, float32) and, when cameras are on, ``pixels`` (camera name ->
-HxWx3 uint8). Actions are joint position targets in the same order. ``terminated`` means
+per effector arm then hand, float32), ``environment_state`` (the task's object and target
+poses, float32: privileged state, names in ``env.environment_state_names``) and, when cameras
+are on, ``pixels`` (camera name -> HxWx3 uint8). Actions are joint position targets in the same order. ``terminated`` means
 task success or failure, ``truncated`` the time limit; ``info["is_success"]`` is always set.
 """
 
@@ -85,6 +86,11 @@ class BeavrEnv(gym.Env):
         obs_spaces: dict[str, spaces.Space] = {
             "agent_pos": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float32)
         }
+        self.environment_state_names = self.task.state_names
+        if self.environment_state_names:
+            obs_spaces["environment_state"] = spaces.Box(
+                -np.inf, np.inf, shape=(len(self.environment_state_names),), dtype=np.float32
+            )
         if self.cameras:
             obs_spaces["pixels"] = spaces.Dict(
                 {
@@ -148,6 +154,11 @@ class BeavrEnv(gym.Env):
     def agent_pos(self) -> np.ndarray:
         return self.data.qpos[self.joints.qpos_adr].astype(np.float32)
 
+    @property
+    def environment_state(self) -> np.ndarray:
+        """The task's object and target poses (names in ``environment_state_names``)."""
+        return self.task.state(self.data).astype(np.float32)
+
     def render_camera(self, camera: str) -> np.ndarray:
         """One HxWx3 uint8 frame from a named camera (shadows and reflections off)."""
         if self._renderer is None:
@@ -174,6 +185,8 @@ class BeavrEnv(gym.Env):
 
     def _observation(self) -> dict[str, Any]:
         obs: dict[str, Any] = {"agent_pos": self.agent_pos}
+        if self.environment_state_names:
+            obs["environment_state"] = self.environment_state
         if self.cameras:
             obs["pixels"] = {c: self.render_camera(c) for c in self.cameras}
         return obs

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 IMAGE_PREFIX = "observation.images."
+ENV_STATE = "observation.environment_state"
 
 
 class LoadedPolicy:
@@ -42,6 +43,7 @@ class LoadedPolicy:
             if key.startswith(IMAGE_PREFIX)
         }
         self.action_dim = int(config.output_features["action"].shape[0])
+        self.uses_environment_state = ENV_STATE in config.input_features
 
     def reset(self) -> None:
         self.policy.reset()
@@ -53,6 +55,8 @@ class LoadedPolicy:
     def _batch(self, observation: dict, task: str) -> dict:
         from lerobot.envs.utils import preprocess_observation
 
+        if not self.uses_environment_state:
+            observation = {k: v for k, v in observation.items() if k != "environment_state"}
         batch = preprocess_observation(observation)
         batch["task"] = [task]
         return self.preprocessor(batch)

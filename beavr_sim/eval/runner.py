@@ -36,6 +36,8 @@ class EpisodeResult:
 
 def _observation(env, cameras: CameraSet) -> dict:
     obs = {"agent_pos": env.agent_pos.copy()}
+    if env.environment_state_names:
+        obs["environment_state"] = env.environment_state
     pixels = cameras.render(env.data)
     if pixels:
         obs["pixels"] = pixels

@@ -48,6 +48,16 @@ class Task(ABC):
     ) -> None:
         """Place objects for a new episode, drawing from ``rng`` only; reset any latches."""
 
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Names of the entries of :meth:`state` (empty: the task has no state of its own)."""
+        return ()
+
+    def state(self, data: mujoco.MjData) -> np.ndarray:
+        """The task's own state (object and target poses): the env's ``environment_state``,
+        privileged information a state-based policy may take in place of images."""
+        return np.zeros(0)
+
     @abstractmethod
     def evaluate(self, model: mujoco.MjModel, data: mujoco.MjData) -> TaskStatus:
         """Success / failure of the current state (may update documented latches)."""

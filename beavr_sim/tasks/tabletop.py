@@ -75,6 +75,10 @@ class Workspace:
         return Workspace(x=self.x, y=(centre - half_width, centre + half_width))
 
 
+#: Components of one pose in :meth:`TabletopTask.state`.
+POSE_COMPONENTS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
 class TabletopTask(Task):
     """Free objects, fixtures and target areas on the table; subclasses add a checker."""
 
@@ -106,6 +110,24 @@ class TabletopTask(Task):
     ) -> None:
         self.reset_latches()
         self.place_objects(data, rng)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        things = (*self.object_names, *self.fixture_names)
+        return tuple(f"{n}/{c}" for n in things for c in POSE_COMPONENTS)
+
+    def state(self, data: mujoco.MjData) -> np.ndarray:
+        """Pose of every object, then every fixture: position (m) and unit quaternion (w >= 0)."""
+        poses = [np.concatenate([o.pos(data), o.quat(data)]) for o in self.objects.values()]
+        poses += [
+            np.concatenate([data.mocap_pos[f.mocap_id], data.mocap_quat[f.mocap_id]])
+            for f in self.fixtures.values()
+        ]
+        if not poses:
+            return np.zeros(0)
+        state = np.stack(poses)
+        state[state[:, 3] < 0, 3:] *= -1.0
+        return state.reshape(-1)
 
     def evaluate(self, model: mujoco.MjModel, data: mujoco.MjData) -> TaskStatus:
         fallen = [n for n, o in self.objects.items() if self.off_table(o.pos(data))]

@@ -11,7 +11,8 @@ address, e.g. 0.0.0.0, so the headset can connect); ``trace`` replays a recorded
 (``--trace F``, default: the task's bundled trace in ``assets/traces``). The browser view
 (viser) is on unless ``--no-viser``; the rendered twin goes to the headset (PUB on 10505)
 unless ``--headless``. With ``--record DIR`` the episodes are written as a LeRobot dataset,
-each one on disk as soon as it ends. Prints, last, one JSON summary line.
+each one on disk as soon as it ends; live episodes start and stop on Enter (``d`` discards,
+``q`` quits), the browser's Record / Discard buttons or a left-hand pinch held one second. Prints, last, one JSON summary line.
 """
 
 from __future__ import annotations
@@ -71,6 +72,21 @@ def build_parser() -> argparse.ArgumentParser:
     rec = p.add_argument_group("recording a LeRobot dataset")
     rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
+    start = rec.add_mutually_exclusive_group()
+    start.add_argument(
+        "--auto-start",
+        dest="auto_start",
+        action="store_true",
+        default=None,
+        help="start each episode at once (default for --source trace)",
+    )
+    start.add_argument(
+        "--manual-start",
+        dest="auto_start",
+        action="store_false",
+        help="start each episode on Enter, the Record button or a long left pinch "
+        "(default for live sources)",
+    )
     add_recording_args(rec)
     return p
 

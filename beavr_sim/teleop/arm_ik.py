@@ -124,6 +124,7 @@ class ArmIK:
             self.collision = CollisionLimit(
                 self.model,
                 geom_pairs=[(hand + forearm, table), (palm, upper)],
+                spec=build_scene_spec(self.single, 64, 64),
                 minimum_distance_from_collisions=self.config.collision_margin,
                 collision_detection_distance=self.config.collision_detection,
                 gain=self.config.collision_gain,

@@ -1,11 +1,33 @@
-"""A faster drop-in for ``mink.CollisionAvoidanceLimit`` (same constraint rows), shared by the
-operator's arm IK and the LEAP retargeting, where it dominated the per-tick time."""
+"""Collision avoidance rows for the operator's QPs (arm IK and LEAP retargeting): mink's
+``CollisionAvoidanceLimit`` constraint, with every distance query of a tick done in one call.
+
+mink calls ``mj_geomDistance`` once per geom pair from Python; at 20-30 pairs per tick that
+was most of the retargeting time. :class:`CollisionLimit` instead compiles a private
+*distance model* from the robot's spec: no geom collides except the watched pairs, declared
+as explicit contact pairs whose margin is the pair's detection distance, so one
+``mj_collision`` (C: broadphase and narrowphase of every pair) returns a contact for each
+pair closer than its detection distance, with the signed distance, the midpoint and the
+normal. Box-box pairs are queried on convex-mesh twins of the boxes: MuJoCo's box-box
+collider reports contacts for penetration but misses boxes that are apart yet inside the
+margin, while the general convex collider (the one ``mj_geomDistance`` uses) gets those.
+
+The rows are mink's: for a pair at distance ``d`` with normal ``n`` (geom 1 -> geom 2) and
+witness points ``p1``, ``p2``, ``-n^T (J(p2) - J(p1)) dq <= gain (d - margin) / dt`` (0 once
+within the margin), kept only for pairs within their detection distance. ``J(p)`` comes from
+one ``mj_jacBody`` per body involved, shifted to the witness point:
+``n^T J(p) = n^T Jp_body - (n x (p - x_body))^T Jr_body``.
+"""
 
 from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
 
 import mink
 import mujoco
 import numpy as np
+
+_BOX = mujoco.mjtGeom.mjGEOM_BOX
 
 
 def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -17,108 +39,171 @@ def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-class CollisionLimit(mink.CollisionAvoidanceLimit):
-    """mink's collision avoidance limit, computed faster (the same constraint rows):
+def distance_model(
+    spec: mujoco.MjSpec,
+    model: mujoco.MjModel,
+    pairs: Sequence[tuple[int, int]],
+    detection: Sequence[float],
+) -> tuple[mujoco.MjModel, np.ndarray]:
+    """Compile ``spec`` (a fresh, uncompiled twin of the spec ``model`` came from; it is
+    changed) so that only ``pairs`` (geom ids of ``model``) collide, each as an explicit pair
+    with margin ``detection[i]``.
 
-    - broadphase: world-aligned boxes around each geom's oriented bounding box instead of
-      bounding spheres (neighbouring fingers are always within each other's spheres); like
-      mink's, it only drops pairs farther apart than their detection distance;
-    - a detection distance per pair (``pair_detection_distance(geom1, geom2)``), for pairs
-      that can approach each other at different speeds;
-    - contact Jacobians from one ``mj_jacBody`` per body involved, shifted to the witness
-      points and projected on the normals for all pairs at once, instead of two ``mj_jac``
-      calls and a product per pair: n^T J(p) = n^T Jp_body - (n x (p - x_body))^T Jr_body.
+    Returns the distance model (same bodies and joints as ``model``) and its pair lookup:
+    ``lookup[g1, g2]`` is the index in ``pairs`` of a contact between distance-model geoms
+    ``g1`` and ``g2`` (-1 for none).
+    """
+    s = spec
+    geoms = list(s.geoms)
+    if len(geoms) != model.ngeom:
+        raise ValueError(
+            f"spec has {len(geoms)} geoms but the model {model.ngeom}: pass the spec the "
+            "model was compiled from"
+        )
+    for i, geom in enumerate(geoms):
+        geom.contype = geom.conaffinity = 0
+        if not geom.name:
+            geom.name = f"__geom{i}"
+    names = [g.name for g in geoms]
+    boxes = {
+        g
+        for a, b in pairs
+        if model.geom_type[a] == _BOX and model.geom_type[b] == _BOX
+        for g in (a, b)
+    }
+    twin: dict[int, str] = {}
+    for g in sorted(boxes):
+        body = model.body(model.geom_bodyid[g]).name
+        if not body:
+            raise ValueError(f"geom {names[g]!r} is in an unnamed body; name it")
+        hx, hy, hz = model.geom_size[g]
+        corners = itertools.product((-hx, hx), (-hy, hy), (-hz, hz))
+        mesh = s.add_mesh(name=f"__box_mesh{g}", uservert=np.ravel(list(corners)).tolist())
+        twin[g] = f"__box_twin{g}"
+        s.body(body).add_geom(
+            name=twin[g],
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=mesh.name,
+            pos=model.geom_pos[g].tolist(),
+            quat=model.geom_quat[g].tolist(),
+            contype=0,
+            conaffinity=0,
+            density=0.0,
+            group=5,
+            rgba=[0, 0, 0, 0],
+        )
+    for (a, b), margin in zip(pairs, detection, strict=True):
+        both_boxes = a in boxes and b in boxes
+        s.add_pair(
+            geomname1=twin[a] if both_boxes else names[a],
+            geomname2=twin[b] if both_boxes else names[b],
+            margin=float(margin),
+            gap=0.0,
+        )
+    dmodel = s.compile()
+    if dmodel.nbody != model.nbody or dmodel.nq != model.nq:
+        raise ValueError("the spec does not match the model (bodies or joints differ)")
+    # The compiler may reorder pairs: map each back to its index in ``pairs`` by geom names.
+    original = {name: g for g, name in enumerate(names)} | {n: g for g, n in twin.items()}
+    index = {frozenset(p): i for i, p in enumerate(pairs)}
+    lookup = np.full((dmodel.ngeom, dmodel.ngeom), -1, dtype=int)
+    for i in range(dmodel.npair):
+        g1, g2 = int(dmodel.pair_geom1[i]), int(dmodel.pair_geom2[i])
+        key = frozenset((original[dmodel.geom(g1).name], original[dmodel.geom(g2).name]))
+        lookup[g1, g2] = lookup[g2, g1] = index[key]
+    return dmodel, lookup
+
+
+class CollisionLimit(mink.CollisionAvoidanceLimit):
+    """mink's collision avoidance limit (same rows, up to the distance solver's tolerance),
+    with all distance queries of a tick in one ``mj_collision`` on a private distance model.
+
+    ``spec``: a fresh, uncompiled twin of the spec ``model`` was compiled from; the distance
+    model is built from it (it is changed, so do not reuse it).
+    ``pair_detection_distance(geom1, geom2)``: detection distance per geom pair, for pairs
+    that can approach each other at different speeds (default: ``collision_detection_distance``
+    for all). Other arguments as ``mink.CollisionAvoidanceLimit``.
     """
 
-    def __init__(self, model: mujoco.MjModel, geom_pairs, pair_detection_distance=None, **kwargs):
-        super().__init__(model, geom_pairs, broadphase=True, **kwargs)
-        self.broadphase_min_pairs = 0
-        pairs = np.array(self.geom_id_pairs, dtype=int).reshape(-1, 2)
-        self._pairs = pairs
-        #: Detection distance of each pair (callable geom1, geom2 -> metres; default: all
-        #: the limit's own).
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        geom_pairs,
+        *,
+        spec: mujoco.MjSpec,
+        pair_detection_distance: Callable[[int, int], float] | None = None,
+        **kwargs,
+    ):
+        super().__init__(model, geom_pairs, broadphase=False, **kwargs)
+        pairs = [(int(a), int(b)) for a, b in self.geom_id_pairs]
         self._distmax = np.array(
             [
                 self.collision_detection_distance
                 if pair_detection_distance is None
-                else pair_detection_distance(int(a), int(b))
+                else pair_detection_distance(a, b)
                 for a, b in pairs
             ]
         )
-        self._geoms, inverse = np.unique(pairs, return_inverse=True)
-        self._pair1, self._pair2 = inverse.reshape(-1, 2).T
-        self._aabb_centre = model.geom_aabb[self._geoms, :3]
-        self._aabb_half = model.geom_aabb[self._geoms, 3:]
-        self._body1 = model.geom_bodyid[pairs[:, 0]]
-        self._body2 = model.geom_bodyid[pairs[:, 1]]
-        self._bodies = np.unique(np.concatenate([self._body1, self._body2]))
+        self.distance_model, self._lookup = distance_model(spec, model, pairs, self._distmax)
+        self._ddata = mujoco.MjData(self.distance_model)
+        self._geom_body = self.distance_model.geom_bodyid
         self._jac = np.zeros((model.nbody, 6, model.nv))  # per body: jacp over jacr
-        self._distmax_list = self._distmax.tolist()
-        self._pair_list = [(int(a), int(b)) for a, b in pairs]
-        self._fromto_all = np.zeros((len(pairs), 6))
-        self._dist = np.zeros(len(pairs))
-        self._hits = np.zeros(len(pairs), dtype=int)
 
-    def _broadphase_survivors(self, data: mujoco.MjData) -> list[int]:
-        R_world_geom = data.geom_xmat[self._geoms].reshape(-1, 3, 3)
-        centre = (
-            data.geom_xpos[self._geoms] + (R_world_geom @ self._aabb_centre[:, :, None])[:, :, 0]
-        )
-        half = (np.abs(R_world_geom) @ self._aabb_half[:, :, None])[:, :, 0]
-        gap = (
-            np.abs(centre[self._pair1] - centre[self._pair2])
-            - half[self._pair1]
-            - half[self._pair2]
-        )
-        return np.flatnonzero(gap.max(axis=1) <= self._distmax).tolist()
+    def distances(self, configuration: mink.Configuration):
+        """Contacts of the pairs within their detection distance at ``configuration``:
+        ``(pair indices, distances, normals (geom 1 -> geom 2), witness points on geom 1, on
+        geom 2, body of geom 1, body of geom 2)``, one row per contact (a pair may have
+        several, e.g. a capsule lying along a box face: each is a valid constraint)."""
+        dmodel, ddata = self.distance_model, self._ddata
+        ddata.qpos[:] = configuration.data.qpos
+        mujoco.mj_kinematics(dmodel, ddata)
+        mujoco.mj_collision(dmodel, ddata)
+        n = ddata.ncon
+        contact = ddata.contact
+        geom = contact.geom[:n]
+        dist = contact.dist[:n]
+        normal = contact.frame[:n, :3]
+        half = 0.5 * dist[:, None] * normal
+        pos = contact.pos[:n]
+        body = self._geom_body[geom]
+        pair = self._lookup[geom[:, 0], geom[:, 1]]
+        return pair, dist, normal, pos - half, pos + half, body[:, 0], body[:, 1]
 
     def active_rows(
         self, configuration: mink.Configuration, dt: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Only the pairs within their detection distance: ``(pair indices, G rows, h)``, so
-        that ``G @ dq <= h`` (in :meth:`compute_qp_inequalities` the other rows are +inf)."""
+        """One row per contact of the pairs within their detection distance: ``(pair
+        indices, G rows, h)``, so that ``G @ dq <= h``."""
+        hits, _, rows, h = self._rows(configuration, dt)
+        return hits, rows, h
+
+    def _rows(self, configuration: mink.Configuration, dt: float):
         model, data = self.model, configuration.data
-        distmax_all = self._distmax_list
-        geom_distance, pair_list = mujoco.mj_geomDistance, self._pair_list
-        fromto_all, dist_all, hits_all = self._fromto_all, self._dist, self._hits
-        k = 0
-        for idx in self._broadphase_survivors(data):
-            g1, g2 = pair_list[idx]
-            distmax = distmax_all[idx]
-            dist = geom_distance(model, data, g1, g2, distmax, fromto_all[k])
-            if abs(dist - distmax) < 1e-12:
-                continue
-            hits_all[k], dist_all[k] = idx, dist
-            k += 1
+        hits, dist, normal, p1, p2, b1, b2 = self.distances(configuration)
+        k = hits.size
         if k == 0:
-            return hits_all[:0].copy(), np.zeros((0, model.nv)), np.zeros(0)
-        hits, dist, fromto = hits_all[:k].copy(), dist_all[:k], fromto_all[:k]
-        b1, b2 = self._body1[hits], self._body2[hits]
+            return hits, dist, np.zeros((0, model.nv)), np.zeros(0)
         jac = self._jac
         for body in set(b1.tolist()) | set(b2.tolist()):
             mujoco.mj_jacBody(model, data, jac[body, :3], jac[body, 3:], body)
-        p1, p2 = fromto[:, :3], fromto[:, 3:]
-        normal = p2 - p1
-        length = np.sqrt((normal * normal).sum(axis=1))
-        ok = length > 1e-15
-        normal[ok] /= length[ok, None]
-        normal[~ok] = (1.0, 0.0, 0.0)  # as mju_normalize3 does for a zero vector
-        # n^T J(p) = n^T Jp_body - (n x (p - x_body))^T Jr_body, for both witness points.
+        # -n^T (J(p2) - J(p1)), J(p) = Jp_body - [p - x_body]x Jr_body.
         v1, v2 = np.empty((k, 1, 6)), np.empty((k, 1, 6))
-        v1[:, 0, :3], v2[:, 0, :3] = -normal, normal
-        v1[:, 0, 3:] = _cross_rows(normal, p1 - data.xpos[b1])
-        v2[:, 0, 3:] = -_cross_rows(normal, p2 - data.xpos[b2])
+        v1[:, 0, :3], v2[:, 0, :3] = normal, -normal
+        v1[:, 0, 3:] = -_cross_rows(normal, p1 - data.xpos[b1])
+        v2[:, 0, 3:] = _cross_rows(normal, p2 - data.xpos[b2])
         rows = (v1 @ jac[b1])[:, 0] + (v2 @ jac[b2])[:, 0]
         min_dist = self.minimum_distance_from_collisions
         h = (
             np.where(dist > min_dist, self.gain * (dist - min_dist) / dt, 0.0)
             + self.bound_relaxation
         )
-        rows *= np.where(dist >= 0, -1.0, 1.0)[:, None]
-        return hits, rows, h
+        return hits, dist, rows, h
 
     def compute_qp_inequalities(self, configuration: mink.Configuration, dt: float):
-        hits, rows, h = self.active_rows(configuration, dt)
+        """mink's form: one row per pair (its closest contact), +inf for pairs out of range."""
+        hits, dist, rows, h = self._rows(configuration, dt)
+        order = np.lexsort((-dist, hits))  # per pair, the closest contact last: it wins below
+        hits, rows, h = hits[order], rows[order], h[order]
         G = np.zeros((self.max_num_contacts, self.model.nv))
         upper = np.full(self.max_num_contacts, np.inf)
         G[hits], upper[hits] = rows, h

@@ -11,6 +11,9 @@ Session control:
 - pause: the source's pause stream (``HandFrame.paused``), a left-hand pinch (rising edge of
   ``HandFrame.pinch`` toggles), or the UI (:meth:`Operator.set_paused`). Paused effectors
   hold their last command; on resume every mapping is re-anchored so nothing jumps.
+- gesture: a left-hand pinch held for ``long_pinch_s`` (source time) is the "record" gesture
+  (start / stop a recorded episode): the pause its press toggled is undone and ``"record"``
+  is queued for :meth:`Operator.take_gestures`. The robot holds during the gesture.
 - tracking loss: no usable frame (palm joints tracked) for ``tracking_timeout_s``: the effector
   holds where it is and a warning is logged; when tracking returns it continues from the same
   anchor (the hand may have moved meanwhile, within the jump limit).
@@ -56,13 +59,14 @@ class OperatorConfig:
     min_jump: float = 0.05  # m
     reanchor_after: int = 10  # frames
     pinch_pauses: bool = True
+    long_pinch_s: float = 1.0
     arm_ik: ArmIKConfig = field(default_factory=ArmIKConfig)
     retarget: RetargetConfig = field(default_factory=RetargetConfig)
 
     def __post_init__(self) -> None:
         if self.keypoint_window < 1:
             raise ValueError(f"keypoint_window must be >= 1, got {self.keypoint_window}")
-        for name in ("tracking_timeout_s", "max_hand_speed", "min_jump"):
+        for name in ("tracking_timeout_s", "max_hand_speed", "min_jump", "long_pinch_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
         if self.reanchor_after < 1:
@@ -252,6 +256,8 @@ class Operator:
         self._stream_paused = False
         self._pinch_paused = False
         self._last_pinch = {s: False for s in SIDES}
+        self._pinch_start: float | None = None  # source time of the held pinch's press
+        self._gestures: list[str] = []
         self._was_paused = False
 
     @property
@@ -274,10 +280,26 @@ class Operator:
         if self.config.pinch_pauses and frame.side == "left":
             if frame.pinch and not self._last_pinch["left"]:
                 self._pinch_paused = not self._pinch_paused
+                self._pinch_start = frame.t_source
                 log.info("left-hand pinch: %s", "pause" if self._pinch_paused else "resume")
+            elif not frame.pinch:
+                self._pinch_start = None
+            elif (
+                self._pinch_start is not None
+                and frame.t_source - self._pinch_start >= self.config.long_pinch_s
+            ):
+                self._pinch_start = None  # one gesture per press
+                self._pinch_paused = not self._pinch_paused  # undo the press's toggle
+                self._gestures.append("record")
+                log.info("left-hand long pinch: record gesture")
             self._last_pinch["left"] = frame.pinch
         for op in self._by_side[frame.side]:
             op.observe(frame)
+
+    def take_gestures(self) -> list[str]:
+        """Gestures recognised since the last call (``"record"``: long left pinch)."""
+        gestures, self._gestures = self._gestures, []
+        return gestures
 
     def command(self, now: float) -> dict[str, JointCommand]:
         """One control tick: a command per effector."""

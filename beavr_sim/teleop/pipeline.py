@@ -150,9 +150,11 @@ class TeleopLoop:
         stop_on_success: bool = True,
         tail_seconds: float = 2.0,
         progress: Callable[[Tick], None] | None = None,
+        stop_when: Callable[[], bool] | None = None,
     ) -> TeleopSummary:
         """Tick until success / failure / the env's time limit / ``max_seconds`` / the end of
-        a finite source plus ``tail_seconds`` (objects settle)."""
+        a finite source plus ``tail_seconds`` (objects settle) / ``stop_when()`` (asked after
+        every tick)."""
         start_wall = time.perf_counter()
         finished_at: float | None = None
         success = False
@@ -168,6 +170,8 @@ class TeleopLoop:
             success = success or tick.state.success
             elapsed = self.ticks * self.dt
             if (tick.state.success and stop_on_success) or tick.state.failure:
+                break
+            if stop_when is not None and stop_when():
                 break
             if tick.state.truncated or (max_seconds is not None and elapsed >= max_seconds):
                 break

@@ -354,6 +354,7 @@ class LeapRetargeter:
         self.collision_limit = CollisionLimit(
             model,
             pairs,
+            spec=mujoco.MjSpec.from_file(str(mjcf_path(LEAP_HAND.mjcf(self.side)))),
             pair_detection_distance=lambda a, b: (
                 self.config.collision_detection_distance
                 if a in thumb or b in thumb

@@ -48,6 +48,9 @@ class SessionOptions:
     episodes: int = 1
     #: What to record (cameras, image size, ...); default ``RecordingConfig()``.
     recording: object | None = None
+    #: Start each recorded episode at once (default for traces) instead of on a start request
+    #: (keyboard, browser button, headset gesture: the default for live sources).
+    auto_start: bool | None = None
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -85,6 +88,8 @@ class SessionOptions:
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
+        if self.auto_start is None:
+            self.auto_start = self.source == "trace"
 
     @classmethod
     def from_args(cls, args) -> SessionOptions:
@@ -117,6 +122,7 @@ class SessionOptions:
             repo_id=args.repo_id,
             episodes=args.episodes,
             recording=recording_config(args) if args.record is not None else None,
+            auto_start=args.auto_start,
         )
 
 
@@ -128,6 +134,8 @@ class ProgressLine:
         self.enabled = enabled
         self._last = 0.0
         self.success = False
+        #: Shown first (e.g. the recorded episode and its state).
+        self.label = ""
 
     def __call__(self, tick: Tick) -> None:
         self.success = self.success or tick.state.success
@@ -138,7 +146,7 @@ class ProgressLine:
         lat = self.loop.latencies_ms[-200:]
         lat_s = f"{sorted(lat)[len(lat) // 2]:.2f} ms" if lat else "-"
         print(
-            f"\rt={tick.state.t:6.1f} s  frames={self.loop.frames_received}"
+            f"\r{self.label + '  ' if self.label else ''}t={tick.state.t:6.1f} s  frames={self.loop.frames_received}"
             f"  rejected={self.loop.validator.rejected}  latency p50={lat_s}"
             f"  {'SUCCESS' if self.success else ''}   ",
             end="",
@@ -202,6 +210,15 @@ def run_session(options: SessionOptions) -> TeleopSummary:
         context = zmq.Context()
     loop = build_loop(options, context)
     closers = [loop.source.close, loop.twin.env.close]
+    control = None
+    progress = ProgressLine(loop, options.progress)
+    if options.record is not None:
+        from beavr_sim.teleop.episodes import EpisodeControl, KeyboardControl
+
+        control = EpisodeControl()
+        if not options.auto_start and sys.stdin is not None and sys.stdin.isatty():
+            KeyboardControl(control)
+            print(KeyboardControl.HELP, file=sys.stderr)
     try:
         if options.viser:
             from beavr_sim.viz.twin_view import TwinView
@@ -211,10 +228,11 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 host=options.viser_host,
                 port=options.viser_port,
                 title=f"beavr_sim — {options.task} — {loop.twin.env.embodiment.name}",
+                episode_control=control,
             )
             closers.append(view.close)
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
-            loop.listeners.append(_ViewListener(view, loop))
+            loop.listeners.append(_ViewListener(view, loop, progress))
         if not options.headless and options.source == "quest":
             from beavr_sim.teleop.quest_io import HeadsetImagePublisher
 
@@ -229,9 +247,8 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                     publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz
                 )
             )
-        progress = ProgressLine(loop, options.progress)
         if options.record is not None:
-            return _record_episodes(options, loop, progress)
+            return record_episodes(options, loop, progress, control)
         run, played = 0, 0.0
         while True:
             remaining = None if options.max_seconds is None else options.max_seconds - played
@@ -267,62 +284,136 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             context.term()
 
 
-def _record_episodes(options: SessionOptions, loop: TeleopLoop, progress) -> TeleopSummary:
-    """``--record``: ``options.episodes`` episodes, each saved to the dataset when it ends (at
-    task success, failure, the time limit or the end of the trace); Ctrl-C drops only the
-    episode in progress."""
+class _EpisodeRequests:
+    """``stop_when`` for the loop: takes the episode requests (and turns the operator's record
+    gesture into one); true when one of ``accepted`` came, which is kept in :attr:`last`."""
+
+    def __init__(self, control, operator):
+        self.control = control
+        self.operator = operator
+        self.last: list[str] = []
+
+    def taker(self, *accepted: str):
+        def stop_when() -> bool:
+            for _ in self.operator.take_gestures():
+                self.control.request("toggle", "headset gesture")
+            self.last = [r for r in self.control.take() if r in accepted]
+            return bool(self.last)
+
+        return stop_when
+
+
+def record_episodes(
+    options: SessionOptions, loop: TeleopLoop, progress: ProgressLine, control=None
+) -> TeleopSummary:
+    """``--record``: episodes saved to the dataset each as soon as it ends.
+
+    An episode starts at once (``options.auto_start``: the default for traces) or on a start
+    request (keyboard, browser button, headset gesture; live sources), always from a fresh
+    reset; until then the twin follows the hands without recording. It ends at task success
+    (plus the recording's tail), failure, the time limit, the end of a trace, or a stop
+    (saved), discard (dropped) or quit (saved, then the session ends) request. A trace is
+    replayed ``options.episodes`` times; a live session records until that many are saved.
+    Ctrl-C drops only the episode in progress.
+    """
     from beavr_sim.datasets.features import lerobot_features
     from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
     from beavr_sim.datasets.writer import EpisodeWriter
+    from beavr_sim.teleop.episodes import EpisodeControl
     from beavr_sim.teleop.sources import TraceSource
 
     config = options.recording
     env = loop.twin.env
     if int(round(env.control_hz)) != config.fps:
         raise ValueError(f"--fps must equal the env's control rate ({env.control_hz:g} Hz)")
+    control = control or EpisodeControl()
+    requests = _EpisodeRequests(control, loop.operator)
+    trace = options.source == "trace"
+    # A trace plays its own layout every time; live episodes get seed, seed + 1, ...
+    first_seed = loop.seed if trace or options.seed is not None else int(time.time()) % 100_000
+
+    def seed_of(attempt: int) -> int | None:
+        return loop.seed if trace else first_seed + attempt
+
     writer = EpisodeWriter(
         options.record,
         options.repo_id,
-        lerobot_features(env.embodiment, config),
+        lerobot_features(env.embodiment, config, env.environment_state_names),
         config.fps,
         robot_type=env.embodiment.name,
         use_videos=config.use_videos,
     )
     recorder = EpisodeRecorder(writer, env, config)
     summary = None
+    attempts = saved = 0
+
+    def fresh_episode() -> None:
+        if trace and attempts > 0:
+            loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
+        loop.reset(seed_of(attempts))
+        progress.success = False
+
     try:
-        for episode in range(options.episodes):
-            if episode > 0:
-                if options.source == "trace":
-                    loop.replace_source(
-                        TraceSource(options.trace, real_time=options.clock == "real")
+        while saved < options.episodes and not (trace and attempts >= options.episodes):
+            name = f"episode {saved + 1}/{options.episodes}"
+            if not options.auto_start:
+                progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
+                while True:
+                    loop.run(
+                        stop_on_success=False,
+                        progress=progress,
+                        stop_when=requests.taker("toggle", "start", "quit"),
                     )
-                loop.reset(loop.seed)
-                progress.success = False
-            summary = run_recorded_episode(loop, recorder, config)
-            written = recorder.end(
-                keep=True, success=bool(summary.success), seed=loop.seed, source=options.source
+                    if requests.last or (trace and loop.source.finished):
+                        break
+                    loop.reset(loop.seed)  # the scene failed or timed out while idle
+                if "quit" in requests.last or not requests.last:
+                    break
+            if attempts > 0 or not options.auto_start:
+                fresh_episode()
+            progress.label = f"{name}: REC"
+            summary = run_recorded_episode(
+                loop,
+                recorder,
+                config,
+                progress=progress,
+                stop_when=requests.taker("toggle", "stop", "discard", "quit"),
             )
+            asked = requests.last
+            written = recorder.end(
+                keep="discard" not in asked,
+                success=bool(summary.success),
+                seed=loop.seed,
+                source=options.source,
+                ended_by=asked[0] if asked else "auto",
+            )
+            attempts += 1
+            saved += int(written)
             if options.progress:
                 print(
-                    f"\nepisode {episode + 1}/{options.episodes}: "
-                    f"{'success' if summary.success else 'no success'}, "
-                    f"{summary.duration_s:.1f} s, {'saved' if written else 'empty, not saved'} "
+                    f"\n{name}: {'success' if summary.success else 'no success'}, "
+                    f"{summary.duration_s:.1f} s, "
+                    f"{'saved' if written else 'discarded' if asked else 'empty, not saved'} "
                     f"({writer.num_episodes} in {options.record})",
                     file=sys.stderr,
                 )
+            if "quit" in asked:
+                break
     finally:
         recorder.close()
         writer.close()
+    if summary is None:
+        summary = loop.summary(False)
     return summary
 
 
 class _ViewListener:
     """Browser view: poses every tick; pause and reset buttons act on the loop."""
 
-    def __init__(self, view, loop: TeleopLoop):
+    def __init__(self, view, loop: TeleopLoop, progress: ProgressLine | None = None):
         self.view = view
         self.loop = loop
+        self.progress = progress
         self.success = False
 
     def __call__(self, tick: Tick) -> None:
@@ -333,8 +424,10 @@ class _ViewListener:
             self.loop.reset(self.loop.seed)
             self.success = False
         holds = {c.reason for c in tick.commands.values() if c.hold}
+        label = self.progress.label if self.progress is not None else ""
         status = (
-            f"**{self.loop.twin.env.task.name}** · t = {tick.state.t:5.1f} s · "
+            (f"{label}  \n" if label else "")
+            + f"**{self.loop.twin.env.task.name}** · t = {tick.state.t:5.1f} s · "
             f"{'**success**' if self.success else 'running'}"
             + (f" · holding ({', '.join(sorted(holds))})" if holds else "")
         )

@@ -26,6 +26,7 @@ class TwinView:
         host: str = DEFAULT_HOST,
         port: int = DEFAULT_PORT,
         title: str = "beavr_sim twin",
+        episode_control=None,
     ):
         import viser  # optional dependency (extra "viz")
 
@@ -40,6 +41,11 @@ class TwinView:
         self.reset_requested = False
         reset = self.server.gui.add_button("Reset")
         reset.on_click(lambda _: setattr(self, "reset_requested", True))
+        if episode_control is not None:  # recording: start / stop and discard episodes
+            record = self.server.gui.add_button("Record: start / stop episode")
+            record.on_click(lambda _: episode_control.request("toggle", "browser"))
+            discard = self.server.gui.add_button("Discard episode")
+            discard.on_click(lambda _: episode_control.request("discard", "browser"))
         self.status = self.server.gui.add_markdown(f"**{title}**")
 
     @property
