@@ -232,7 +232,7 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             )
             closers.append(view.close)
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
-            loop.listeners.append(_ViewListener(view, loop, progress))
+            loop.listeners.append(_ViewListener(view, loop, progress, control))
         if not options.headless and options.source == "quest":
             from beavr_sim.teleop.quest_io import HeadsetImagePublisher
 
@@ -410,10 +410,11 @@ def record_episodes(
 class _ViewListener:
     """Browser view: poses every tick; pause and reset buttons act on the loop."""
 
-    def __init__(self, view, loop: TeleopLoop, progress: ProgressLine | None = None):
+    def __init__(self, view, loop: TeleopLoop, progress: ProgressLine | None = None, control=None):
         self.view = view
         self.loop = loop
         self.progress = progress
+        self.control = control  # recording: a reset drops the episode in progress
         self.success = False
 
     def __call__(self, tick: Tick) -> None:
@@ -421,6 +422,8 @@ class _ViewListener:
         self.loop.operator.set_paused(bool(self.view.paused.value))
         if self.view.reset_requested:
             self.view.reset_requested = False
+            if self.control is not None:
+                self.control.request("discard", "browser reset")
             self.loop.reset(self.loop.seed)
             self.success = False
         holds = {c.reason for c in tick.commands.values() if c.hold}
