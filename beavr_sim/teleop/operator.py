@@ -89,6 +89,27 @@ class JointCommand:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class EffectorTargets:
+    """What one effector is steering towards, in the world frame (for views and logs).
+
+    ``T_world_target``: the arm's hand-frame target (None until the mapping is anchored);
+    ``T_world_hand``: the hand frame the IK reached; ``finger_targets_world``: the LEAP tip and
+    distal targets (8 x 3, placed on ``T_world_hand``); ``keypoints_world``: the operator's
+    hand skeleton (26 canonical joints) drawn at the arm target with the finger scale, so the
+    human hand and the robot hand overlap. The last two are None before the first frame.
+    """
+
+    effector: str
+    side: str
+    T_world_target: np.ndarray | None
+    T_world_hand: np.ndarray
+    finger_targets_world: np.ndarray | None
+    keypoints_world: np.ndarray | None
+    hold: bool
+    reason: str
+
+
 @dataclass
 class OperatorStats:
     frames: int = 0
@@ -134,6 +155,8 @@ class EffectorOperator:
         self._resolution = "high"
         self._lost = False
         self._fresh = False
+        self._T_target: np.ndarray | None = None
+        self._last_reason = "waiting"
 
     def release(self) -> None:
         """Forget the anchor: the next tracked frame anchors again (resume)."""
@@ -224,6 +247,7 @@ class EffectorOperator:
                 self.mapping.anchor(self._T_palm, self.ik.T_world_hand())
                 self.stats.reanchors += 1
             target = self.mapping.robot_target(self._T_palm, self._resolution)
+            self._T_target = target
             if self._fresh:
                 self._q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
                 self.ik.set_fingers(self._q_hand)
@@ -231,6 +255,7 @@ class EffectorOperator:
             q_arm = self.ik.step(target)
         positions = np.concatenate([q_arm, self._q_hand])
         positions = np.clip(positions, self.ik.joints.lower, self.ik.joints.upper)
+        self._last_reason = reason
         return JointCommand(
             effector=self.effector.name,
             positions=positions,
@@ -238,6 +263,31 @@ class EffectorOperator:
             t_receive=self._t_receive,
             hold=bool(reason),
             reason=reason,
+        )
+
+
+    def targets(self) -> EffectorTargets:
+        """The current targets in the world frame (computed on demand, not per tick)."""
+        T_world_hand = self.ik.T_world_hand()
+        fingers = skeleton = None
+        if self._palm_keypoints is not None:
+            hand_map = self.retargeter.map
+            fingers = self.retargeter.targets(self._palm_keypoints)
+            fingers = fingers @ T_world_hand[:3, :3].T + T_world_hand[:3, 3]
+            T_at = self._T_target if self._T_target is not None else T_world_hand
+            p_hand = hand_map.origin_offset + self.retargeter.config.finger_scale * (
+                self._palm_keypoints
+            )
+            skeleton = p_hand @ T_at[:3, :3].T + T_at[:3, 3]
+        return EffectorTargets(
+            effector=self.effector.name,
+            side=self.side,
+            T_world_target=None if self._T_target is None else self._T_target.copy(),
+            T_world_hand=T_world_hand,
+            finger_targets_world=fingers,
+            keypoints_world=skeleton,
+            hold=bool(self._last_reason),
+            reason=self._last_reason,
         )
 
 
@@ -300,6 +350,10 @@ class Operator:
         """Gestures recognised since the last call (``"record"``: long left pinch)."""
         gestures, self._gestures = self._gestures, []
         return gestures
+
+    def targets(self) -> dict[str, EffectorTargets]:
+        """Each effector's current targets in the world frame (views, logs)."""
+        return {name: op.targets() for name, op in self.effectors.items()}
 
     def command(self, now: float) -> dict[str, JointCommand]:
         """One control tick: a command per effector."""

@@ -28,6 +28,10 @@ class TwinState:
     terminated: bool
     truncated: bool
     info: dict = field(default_factory=dict)
+    #: The collision guard refused a command this tick (those effectors held their last
+    #: safe target); ``guard_blocked_effectors`` names them.
+    guard_blocked: bool = False
+    guard_blocked_effectors: tuple[str, ...] = ()
 
 
 class TwinInterface:
