@@ -40,6 +40,8 @@ class TeleopSummary:
     ticks: int = 0
     loop_rate_hz: float | None = None
     processes: dict = field(default_factory=dict)
+    #: Commands the collision guard refused, per effector.
+    guard_blocks: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -198,4 +200,5 @@ class TeleopLoop:
             operator={name: asdict(op.stats) for name, op in self.operator.effectors.items()},
             ticks=self.ticks,
             loop_rate_hz=self.ticks / wall_s if wall_s else None,
+            guard_blocks=dict(getattr(self.twin, "guard_blocks", {})),
         )

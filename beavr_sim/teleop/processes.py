@@ -245,13 +245,27 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     if options["viser"]:
         from beavr_sim.viz.twin_view import TwinView
 
-        view = TwinView(env.model, host=options["viser_host"], port=options["viser_port"])
+        from beavr_sim.viz.twin_view import subtree_bodies
+
+        joints = env.joints
+        view = TwinView(
+            env.model,
+            host=options["viser_host"],
+            port=options["viser_port"],
+            task=env.task.name,
+            embodiment=env.embodiment.name,
+            effector_bodies=subtree_bodies(
+                env.model, {n: joints.names[sl] for n, sl in joints.slices.items()}
+            ),
+            rate_hz=options.get("viser_rate_hz", 30.0),
+        )
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)
     poller = zmq.Poller()
     for sub in subs.values():
         poller.register(sub.socket, zmq.POLLIN)
     conn.send_bytes(b"ready")
     latencies: list[float] = []
+    blocked: set[str] = set()  # effectors the guard blocked since the last view update
     success = False
     details: dict = {}
     dt = 1.0 / env.control_hz
@@ -304,12 +318,20 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     positions=st.positions.tolist(),
                     velocities=st.velocities.tolist(),
                     success=success,
+                    guard_blocked=st.guard_blocked,
                 ),
             )
             if view is not None:
-                view.update(
-                    env.data, status=f"t = {st.t:5.1f} s · {'success' if success else 'running'}"
-                )
+                if st.guard_blocked:  # shown at the next update even if it cleared since
+                    blocked |= set(st.guard_blocked_effectors or view.guard.geoms)
+                if view.due():
+                    view.update(
+                        env.data,
+                        status=f"t = {st.t:5.1f} s · {'success' if success else 'running'}",
+                        guard_blocked=blocked,
+                        success=success,
+                    )
+                    blocked = set()
             next_tick = max(next_tick + dt, time.monotonic() - dt)
     finally:
         conn.send_bytes(

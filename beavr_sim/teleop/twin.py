@@ -2,7 +2,9 @@
 
 It owns the env. Each control tick it composes the newest command of every effector into
 one action (an effector with no command yet, or whose commands stopped, holds its last
-target: the robot never goes limp and never jumps) and steps the env one control period.
+target: the robot never goes limp and never jumps), lets the collision guard
+(:mod:`beavr_sim.teleop.guard`) refuse what would collide (that effector holds its last safe
+target), and steps the env one control period.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from beavr_sim.teleop.guard import CollisionGuard, GuardConfig, GuardVerdict
 from beavr_sim.teleop.operator import JointCommand
 
 
@@ -35,11 +38,19 @@ class TwinState:
 
 
 class TwinInterface:
-    def __init__(self, env):
+    def __init__(self, env, guard: GuardConfig | None = None, use_guard: bool = True):
         self.env = env.unwrapped
         self.slices = self.env.joints.slices
         self.action = self.env.joints.home.astype(np.float64).copy()
         self.commands_applied = 0
+        self.guard: CollisionGuard | None = None
+        if use_guard:
+            self.guard = CollisionGuard(
+                self.env.model, self.env.embodiment, self.env.joints, guard or GuardConfig()
+            )
+        #: The guard's last refusal (None until one happens).
+        self.last_refusal: GuardVerdict | None = None
+        self.guard_blocks: dict[str, int] = {}
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset the env; returns the measured joint positions (action order)."""
@@ -58,9 +69,22 @@ class TwinInterface:
                     f"command for {name} has shape {cmd.positions.shape}, "
                     f"expected ({sl.stop - sl.start},)"
                 )
-            if not cmd.hold:
-                self.commands_applied += 1
-            self.action[sl] = cmd.positions
+        previous = self.action.copy()
+        for name, cmd in commands.items():
+            self.action[self.slices[name]] = cmd.positions
+        blocked: tuple[str, ...] = ()
+        if self.guard is not None and commands:
+            self.action, verdict = self.guard.filter(
+                self.action, previous, self.env.data.qpos, self.slices
+            )
+            blocked = verdict.blocked
+            if blocked:
+                self.last_refusal = verdict
+                for name in blocked:
+                    self.guard_blocks[name] = self.guard_blocks.get(name, 0) + 1
+        self.commands_applied += sum(
+            1 for name, cmd in commands.items() if not cmd.hold and name not in blocked
+        )
         _, _, terminated, truncated, info = self.env.step(self.action.astype(np.float32))
         data = self.env.data
         return TwinState(
@@ -73,4 +97,6 @@ class TwinInterface:
             terminated=bool(terminated),
             truncated=bool(truncated),
             info=info,
+            guard_blocked=bool(blocked),
+            guard_blocked_effectors=blocked,
         )
