@@ -15,6 +15,7 @@ IK cannot see (a stale command, a bad retarget, the other arm).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -22,6 +23,8 @@ import mujoco
 import numpy as np
 
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
+
+_ROBOT, _STATIC = 1, 2  # contype / conaffinity bits of the guard's private model
 
 
 @dataclass(frozen=True)
@@ -65,9 +68,7 @@ class CollisionGuard:
         joints: JointIndex,
         config: GuardConfig | None = None,
     ):
-        self.model = model
         self.config = config or GuardConfig()
-        self.data = mujoco.MjData(model)
         self.joints = joints
         # Owner of each geom: the effector whose subtree it is in; "static" for bodies welded
         # to the world (table, fixtures); None for objects (bodies that move freely, never
@@ -97,6 +98,23 @@ class CollisionGuard:
             elif owner == "static":
                 self._tolerance[g] = np.inf  # the robot geom's tolerance decides
             self._geom_names.append(model.geom(g).name or f"{body_name or 'world'}/geom{g}")
+        # A private copy of the model in which only robot-static and robot-robot pairs can
+        # collide (contype / conaffinity bits): objects, and the scene with itself, are never
+        # checked, so the cost does not grow with the task's objects (e.g. pour's particles).
+        self.model = copy.deepcopy(model)
+        for g, owner in enumerate(self._owner):
+            if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
+                continue  # visual only
+            if owner is None:
+                self.model.geom_contype[g] = self.model.geom_conaffinity[g] = 0
+            elif owner == "static":
+                self.model.geom_contype[g], self.model.geom_conaffinity[g] = _STATIC, 0
+            else:
+                self.model.geom_contype[g], self.model.geom_conaffinity[g] = (
+                    _ROBOT,
+                    _ROBOT | _STATIC,
+                )
+        self.data = mujoco.MjData(self.model)
         self.checks = 0
         self.refusals = 0
 
@@ -110,17 +128,17 @@ class CollisionGuard:
         self.checks += 1
         blocked: set[str] = set()
         offending = []
-        tol = self._tolerance
-        for i in range(d.ncon):
-            c = d.contact[i]
-            if c.dist >= -min(tol[c.geom1], tol[c.geom2]):
-                continue
-            a, b = self._owner[c.geom1], self._owner[c.geom2]
-            if a is None or b is None or (a == "static" and b == "static"):
-                continue  # objects may be touched; the scene never collides with itself
-            hit = {a, b} - {"static"}
-            blocked |= hit
-            offending.append((self._geom_names[c.geom1], self._geom_names[c.geom2], float(-c.dist)))
+        n = d.ncon
+        if n:
+            contacts = d.contact
+            g1, g2, dist = contacts.geom1[:n], contacts.geom2[:n], contacts.dist[:n]
+            deep = dist < -np.minimum(self._tolerance[g1], self._tolerance[g2])
+            for i in np.flatnonzero(deep):
+                a, b = self._owner[g1[i]], self._owner[g2[i]]
+                blocked |= {a, b} - {"static"}
+                offending.append(
+                    (self._geom_names[g1[i]], self._geom_names[g2[i]], float(-dist[i]))
+                )
         if blocked:
             self.refusals += 1
         return GuardVerdict(tuple(sorted(blocked)), tuple(offending))

@@ -5,9 +5,10 @@ Used by tests, deterministic replay and the single-process CLI. On the virtual c
 source delivers the frames stamped up to that time: a replay is bit-for-bit repeatable. In
 real time the loop sleeps to the control rate and the clock is ``time.monotonic()``.
 
-Latency is measured per applied (non-hold) command from the moment its hand frame entered
-the pipeline (received by the detector: ``t_receive`` in real time, the poll on the virtual
-clock) to the moment the command is handed to the twin's actuators.
+Latency is measured per applied (non-hold, not refused) command from the moment its hand frame
+entered the pipeline (received by the detector: ``t_receive`` in real time, the poll on the
+virtual clock) to the moment the command, past the collision guard, is handed to the twin's
+actuators.
 """
 
 from __future__ import annotations
@@ -126,19 +127,18 @@ class TeleopLoop:
                 self.operator.observe(frame)
                 used.append(frame)
         commands = self.operator.command(now)
-        apply_wall = time.perf_counter()
-        if used:
-            for cmd in commands.values():
-                if cmd.hold:
-                    continue
-                if self.real_time:
-                    self.latencies_ms.append((time.monotonic() - cmd.t_receive) * 1e3)
-                else:
-                    self.latencies_ms.append((apply_wall - poll_wall) * 1e3)
         for cmd in commands.values():
             if cmd.hold:
                 self.holds[cmd.reason] = self.holds.get(cmd.reason, 0) + 1
         state = self.twin.apply(commands)
+        if used:
+            for cmd in commands.values():
+                if cmd.hold or cmd.effector in state.guard_blocked_effectors:
+                    continue
+                if self.real_time:
+                    self.latencies_ms.append((self.twin.applied_monotonic - cmd.t_receive) * 1e3)
+                else:
+                    self.latencies_ms.append((self.twin.applied_perf - poll_wall) * 1e3)
         self.ticks += 1
         tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
         for listener in self.listeners:

@@ -9,6 +9,7 @@ target), and steps the env one control period.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -51,6 +52,7 @@ class TwinInterface:
         #: The guard's last refusal (None until one happens).
         self.last_refusal: GuardVerdict | None = None
         self.guard_blocks: dict[str, int] = {}
+        self.applied_perf = self.applied_monotonic = float("nan")
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset the env; returns the measured joint positions (action order)."""
@@ -85,6 +87,8 @@ class TwinInterface:
         self.commands_applied += sum(
             1 for name, cmd in commands.items() if not cmd.hold and name not in blocked
         )
+        # The instant the (guarded) action goes to the actuators: where latency ends.
+        self.applied_perf, self.applied_monotonic = time.perf_counter(), time.monotonic()
         _, _, terminated, truncated, info = self.env.step(self.action.astype(np.float32))
         data = self.env.data
         return TwinState(
