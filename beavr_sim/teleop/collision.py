@@ -27,16 +27,9 @@ import mink
 import mujoco
 import numpy as np
 
+from beavr_sim.teleop.jacobians import PointJacobians
+
 _BOX = mujoco.mjtGeom.mjGEOM_BOX
-
-
-def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (k, 3) arrays."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
 
 
 def distance_model(
@@ -122,7 +115,9 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
     model is built from it (it is changed, so do not reuse it).
     ``pair_detection_distance(geom1, geom2)``: detection distance per geom pair, for pairs
     that can approach each other at different speeds (default: ``collision_detection_distance``
-    for all). Other arguments as ``mink.CollisionAvoidanceLimit``.
+    for all). ``closest_only``: keep only each pair's closest contact (mink's choice: fewer
+    QP rows) rather than every contact MuJoCo reports for it. Other arguments as
+    ``mink.CollisionAvoidanceLimit``.
     """
 
     def __init__(
@@ -132,9 +127,11 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         *,
         spec: mujoco.MjSpec,
         pair_detection_distance: Callable[[int, int], float] | None = None,
+        closest_only: bool = False,
         **kwargs,
     ):
         super().__init__(model, geom_pairs, broadphase=False, **kwargs)
+        self.closest_only = bool(closest_only)
         pairs = [(int(a), int(b)) for a, b in self.geom_id_pairs]
         self._distmax = np.array(
             [
@@ -147,7 +144,7 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         self.distance_model, self._lookup = distance_model(spec, model, pairs, self._distmax)
         self._ddata = mujoco.MjData(self.distance_model)
         self._geom_body = self.distance_model.geom_bodyid
-        self._jac = np.zeros((model.nbody, 6, model.nv))  # per body: jacp over jacr
+        self._jacobians = PointJacobians(model)
 
     def distances(self, configuration: mink.Configuration):
         """Contacts of the pairs within their detection distance at ``configuration``:
@@ -167,6 +164,17 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         pos = contact.pos[:n]
         body = self._geom_body[geom]
         pair = self._lookup[geom[:, 0], geom[:, 1]]
+        if self.closest_only and n > 1:
+            order = np.lexsort((dist, pair))
+            keep = order[np.r_[True, pair[order[1:]] != pair[order[:-1]]]]
+            pair, dist, normal, pos, half, body = (
+                pair[keep],
+                dist[keep],
+                normal[keep],
+                pos[keep],
+                half[keep],
+                body[keep],
+            )
         return pair, dist, normal, pos - half, pos + half, body[:, 0], body[:, 1]
 
     def active_rows(
@@ -178,20 +186,12 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         return hits, rows, h
 
     def _rows(self, configuration: mink.Configuration, dt: float):
-        model, data = self.model, configuration.data
+        model, data = self.model, configuration.data  # data: kinematics and comPos done
         hits, dist, normal, p1, p2, b1, b2 = self.distances(configuration)
         k = hits.size
         if k == 0:
             return hits, dist, np.zeros((0, model.nv)), np.zeros(0)
-        jac = self._jac
-        for body in set(b1.tolist()) | set(b2.tolist()):
-            mujoco.mj_jacBody(model, data, jac[body, :3], jac[body, 3:], body)
-        # -n^T (J(p2) - J(p1)), J(p) = Jp_body - [p - x_body]x Jr_body.
-        v1, v2 = np.empty((k, 1, 6)), np.empty((k, 1, 6))
-        v1[:, 0, :3], v2[:, 0, :3] = normal, -normal
-        v1[:, 0, 3:] = -_cross_rows(normal, p1 - data.xpos[b1])
-        v2[:, 0, 3:] = _cross_rows(normal, p2 - data.xpos[b2])
-        rows = (v1 @ jac[b1])[:, 0] + (v2 @ jac[b2])[:, 0]
+        rows = self._jacobians.normal_rows(data, normal, b1, p1, b2, p2)
         min_dist = self.minimum_distance_from_collisions
         h = (
             np.where(dist > min_dist, self.gain * (dist - min_dist) / dt, 0.0)
