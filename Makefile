@@ -39,6 +39,16 @@ sysdeps:
 	    echo "Headless rendering needs: sudo apt-get install libegl1 libgl1 libgl1-mesa-dri libgles2" >&2; exit 1; \
 	  fi; \
 	fi
+	@# The real-browser test of the view (tests/test_browser_view.py) drives Debian's chromium
+	@# through playwright (never `playwright install`); without it that test skips.
+	@if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing chromium for the browser-view test"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	  else \
+	    echo "The browser-view test needs: sudo apt-get install chromium (it skips without)" >&2; \
+	  fi; \
+	fi
 
 # The main job on a bundled VR trace, in real time, with the browser view (Ctrl-C to stop).
 DEMO_TASK ?= pour
@@ -52,6 +62,7 @@ bench: venv
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench sim
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench teleop
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench retarget
+	MUJOCO_GL=egl $(PY) -m beavr_sim.bench view
 
 # Regenerate the bundled VR traces (after changing the operator or the experts).
 TRACE_TASKS ?= pickup_box pick_place stack_blocks flip_cube lantern tape pour

@@ -68,11 +68,10 @@ def main(argv: list[str] | None = None) -> int:
     ticks = 0
     try:
         while args.seconds <= 0 or t_sim < args.seconds:
-            if view is not None and view.reset_requested:
-                view.reset_requested = False
+            if view is not None and view.take_reset():
                 env.reset(seed=0)
                 t_sim = 0.0
-            if view is None or not view.paused.value:
+            if view is None or not view.paused:
                 env.step(scripted_targets(env, t_sim))
                 t_sim += period
                 ticks += 1

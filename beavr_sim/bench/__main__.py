@@ -1,44 +1,74 @@
-"""``python -m beavr_sim.bench {sim,retarget,teleop} [--seconds S] [--frames N]``: prints JSON."""
+"""``python -m beavr_sim.bench {sim,retarget,teleop,view} [--seconds S] [--frames N] [--plot DIR]``:
+prints JSON; ``--plot DIR`` also writes latency / timing histograms (PNG) into DIR."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim", "retarget", "teleop")
+BENCHMARKS = ("sim", "retarget", "teleop", "view")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
     parser.add_argument(
-        "--seconds", type=float, default=2.0, help="time per measurement (default 2)"
+        "--seconds",
+        type=float,
+        default=None,
+        help="time per measurement (default 2); teleop: length of the real-time replay (default 5)",
     )
     parser.add_argument(
         "--frames",
         type=int,
         default=None,
-        help="sim: rendered frames to time (default 20); retarget: trace frames (default all)",
+        help="sim: rendered frames to time (default 20); retarget: trace frames (default all); "
+        "teleop: control ticks per trace on the virtual clock (default: the whole trace)",
+    )
+    parser.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="write histograms of the measured samples (PNG) into DIR (created); see "
+        "docs/benchmarks.md for the file names",
     )
     args = parser.parse_args(argv)
+    if args.seconds is None:
+        args.seconds = 5.0 if args.benchmark == "teleop" else 2.0
+    samples: dict = {}
     if args.benchmark == "sim":
         from beavr_sim.bench.sim import run
 
         print(f"benchmarking simulation ({args.seconds:g} s per measurement)...", file=sys.stderr)
-        result = run(seconds=args.seconds, render_frames=args.frames or 20)
+        result = run(seconds=args.seconds, render_frames=args.frames or 20, samples=samples)
     elif args.benchmark == "retarget":
         from beavr_sim.bench.retarget import run as run_retarget
 
         print("benchmarking LEAP retargeting on the human hand trace...", file=sys.stderr)
-        result = run_retarget(frames=args.frames)
+        result = run_retarget(frames=args.frames, samples=samples)
     elif args.benchmark == "teleop":
         from beavr_sim.bench.teleop import run as run_teleop
 
         print("benchmarking the teleop pipeline on bundled VR traces...", file=sys.stderr)
-        result = run_teleop()
+        result = run_teleop(real_time_seconds=args.seconds, max_ticks=args.frames, samples=samples)
+    elif args.benchmark == "view":
+        from beavr_sim.bench.view import run as run_view
+
+        print(
+            f"benchmarking the browser view's cost to the loop ({args.seconds:g} s per run)...",
+            file=sys.stderr,
+        )
+        result = run_view(seconds=args.seconds)
+    if args.plot is not None and args.benchmark != "view":  # view: no samples to plot
+        from beavr_sim.bench.plots import write as write_plots
+
+        result["plots"] = write_plots(args.benchmark, samples, args.plot, result)
+        print(f"plots: {len(result['plots'])} PNG files in {args.plot}", file=sys.stderr)
     print(json.dumps(result, indent=2))
     return 0
 

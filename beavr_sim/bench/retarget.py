@@ -221,8 +221,12 @@ def run_dex(keypoints_palm: np.ndarray, urdf: Path, scorer: HandScorer):
     return np.array(Q), np.array(times), config
 
 
-def run(frames: int | None = None, reference_dir: Path | None = None) -> dict:
-    """Run both retargeters on the trace; returns the JSON-ready result."""
+def run(
+    frames: int | None = None, reference_dir: Path | None = None, samples: dict | None = None
+) -> dict:
+    """Run both retargeters on the trace; returns the JSON-ready result. ``samples``: a dict
+    filled with each method's time per frame (ms arrays, keys ``ours``, ``dex-retargeting``)."""
+    samples = {} if samples is None else samples
     reference_dir = reference_dir or find_reference_dir()
     if reference_dir is None:
         raise FileNotFoundError(
@@ -237,6 +241,7 @@ def run(frames: int | None = None, reference_dir: Path | None = None) -> dict:
     scorer = HandScorer("right")
     Q, times = run_ours(keypoints)
     result = {"frames": len(keypoints), "ours": scorer.score(Q, keypoints, times)}
+    samples["ours"] = np.asarray(times) * 1e3
     try:
         import dex_retargeting.retargeting_config  # noqa: F401
     except ImportError as error:
@@ -248,6 +253,7 @@ def run(frames: int | None = None, reference_dir: Path | None = None) -> dict:
     urdf = reference_dir / "dex_urdf_leap_hand" / "leap_hand_right.urdf"
     Q_dex, times_dex, config = run_dex(keypoints, urdf, scorer)
     result["dex_retargeting"] = scorer.score(Q_dex, keypoints, times_dex)
+    samples["dex-retargeting"] = np.asarray(times_dex) * 1e3
     result["dex_retargeting"]["config"] = {
         k: (v.tolist() if isinstance(v, np.ndarray) else v)
         for k, v in config.items()

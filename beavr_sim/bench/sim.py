@@ -14,12 +14,20 @@ from beavr_sim.reference import build_reference_model, find_reference_dir
 from beavr_sim.robots import EMBODIMENTS
 
 
-def _rate(fn: Callable[[], None], batch: int, seconds: float) -> float:
-    """Calls of ``fn`` per second (``batch`` units per call), measured for ~``seconds``."""
+def _rate(
+    fn: Callable[[], None], batch: int, seconds: float, times_ms: list | None = None
+) -> float:
+    """Calls of ``fn`` per second (``batch`` units per call), measured for ~``seconds``;
+    ``times_ms`` gets each call's duration (ms) when given."""
     fn()  # warm up
     count, start = 0, time.perf_counter()
     while (elapsed := time.perf_counter() - start) < seconds:
-        fn()
+        if times_ms is None:
+            fn()
+        else:
+            t0 = time.perf_counter()
+            fn()
+            times_ms.append((time.perf_counter() - t0) * 1e3)
         count += batch
     return count / elapsed
 
@@ -38,7 +46,17 @@ def _physics_rate(model: mujoco.MjModel, data: mujoco.MjData, seconds: float) ->
     return _rate(block, 100, seconds)
 
 
-def run(seconds: float = 2.0, render_frames: int = 20, height: int = 480, width: int = 640) -> dict:
+def run(
+    seconds: float = 2.0,
+    render_frames: int = 20,
+    height: int = 480,
+    width: int = 640,
+    samples: dict | None = None,
+) -> dict:
+    """The JSON-ready result. ``samples``: a dict filled with per-call times (ms):
+    ``env_step_ms`` ({embodiment: array}) and ``render_ms``."""
+    samples = {} if samples is None else samples
+    step_ms: dict[str, list[float]] = samples.setdefault("env_step_ms", {})
     result: dict = {
         "machine": {
             "python": platform.python_version(),
@@ -61,7 +79,7 @@ def run(seconds: float = 2.0, render_frames: int = 20, height: int = 480, width:
         def env_step(env=env, home=home, rng=rng):
             env.step(home + rng.normal(0, 0.02, home.shape).astype(np.float32))
 
-        env_rate = _rate(env_step, 1, seconds)
+        env_rate = _rate(env_step, 1, seconds, step_ms.setdefault(name, []))
         result["embodiments"][name] = {
             "physics_steps_per_s": round(physics),
             "env_steps_per_s": round(env_rate),
@@ -78,10 +96,14 @@ def run(seconds: float = 2.0, render_frames: int = 20, height: int = 480, width:
     env.reset(seed=0)
     u = env.unwrapped
     u.render_camera("front")  # create the GL context outside the timing
+    render_ms: list[float] = []
     start = time.perf_counter()
     for i in range(render_frames):
+        t0 = time.perf_counter()
         u.render_camera("front" if i % 2 == 0 else "overhead")
+        render_ms.append((time.perf_counter() - t0) * 1e3)
     result["render_ms_per_frame"] = round(1000 * (time.perf_counter() - start) / render_frames, 2)
+    samples["render_ms"] = render_ms
     result["render_size"] = [height, width]
     env.close()
 

@@ -2,6 +2,7 @@
 
     python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace] [--trace F]
         [--headless] [--no-viser] [--multiprocess] [--max-seconds N] [--summary-json F]
+        [--rerun F.rrd [--rerun-image-hz 5]]
         [--record DIR --repo-id NAME --episodes N --episode-seconds S --fps 30
          --cameras front,overhead --image-size 480x640]
 
@@ -9,7 +10,8 @@ Sources: ``quest`` (default) binds the BEAVR Quest app's PULL sockets (8087 righ
 8095 resolution, 8100 pause) on ``--headset-host`` (127.0.0.1 unless you give the PC's LAN
 address, e.g. 0.0.0.0, so the headset can connect); ``trace`` replays a recorded VR trace
 (``--trace F``, default: the task's bundled trace in ``assets/traces``). The browser view
-(viser) is on unless ``--no-viser``; the rendered twin goes to the headset (PUB on 10505)
+(viser; http://127.0.0.1:8080, ``--viser-host`` / ``--viser-port``) is on unless
+``--no-viser``; the rendered twin goes to the headset (PUB on 10505)
 unless ``--headless``. With ``--record DIR`` the episodes are written as a LeRobot dataset,
 each one on disk as soon as it ends; live episodes start and stop on Enter (``d`` discards,
 ``q`` quits), the browser's Record / Discard buttons or a left-hand pinch held one second. Prints, last, one JSON summary line.
@@ -56,6 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--viser-host", default="127.0.0.1")
     p.add_argument("--viser-port", type=int, default=8080)
     p.add_argument(
+        "--viser-rate-hz",
+        type=float,
+        default=30.0,
+        help="browser view updates per second at most (default 30; never slows the loop)",
+    )
+    p.add_argument(
         "--headset-host",
         default="127.0.0.1",
         help="address the headset sockets bind (a LAN address or 0.0.0.0 for a real headset)",
@@ -69,6 +77,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeat", type=int, default=1, help="trace: play it N times, 0 = until Ctrl-C")
     p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument(
+        "--rerun",
+        type=Path,
+        default=None,
+        metavar="F.rrd",
+        help="log hands, targets, joints, guard events, images and latencies to a Rerun "
+        "recording (open it with: rerun F.rrd)",
+    )
+    p.add_argument(
+        "--rerun-image-hz",
+        type=float,
+        default=5.0,
+        help="camera images in the Rerun log per second of session time (default 5; 0: none)",
+    )
     rec = p.add_argument_group("recording a LeRobot dataset")
     rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")

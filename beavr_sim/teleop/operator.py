@@ -265,7 +265,6 @@ class EffectorOperator:
             reason=reason,
         )
 
-
     def targets(self) -> EffectorTargets:
         """The current targets in the world frame (computed on demand, not per tick)."""
         T_world_hand = self.ik.T_world_hand()

@@ -243,9 +243,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     state_pub.wait_for_subscribers(2, HANDSHAKE_TIMEOUT_S)  # operator + supervisor
     view = None
     if options["viser"]:
-        from beavr_sim.viz.twin_view import TwinView
-
-        from beavr_sim.viz.twin_view import subtree_bodies
+        from beavr_sim.viz.twin_view import TwinView, subtree_bodies
 
         joints = env.joints
         view = TwinView(

@@ -31,6 +31,8 @@ class SessionOptions:
     viser: bool = True
     viser_host: str = "127.0.0.1"
     viser_port: int = 8080
+    #: Browser view updates per wall second at most (the loop itself is never slowed).
+    viser_rate_hz: float = 30.0
     headset_host: str = "127.0.0.1"
     headset_image_hz: float = 10.0
     headset_image_size: tuple[int, int] = (640, 360)
@@ -51,6 +53,10 @@ class SessionOptions:
     #: Start each recorded episode at once (default for traces) instead of on a start request
     #: (keyboard, browser button, headset gesture: the default for live sources).
     auto_start: bool | None = None
+    #: Log the session to this Rerun recording (``.rrd``; None: no log).
+    rerun: Path | None = None
+    #: Camera images in the Rerun log per second of session time (0: none).
+    rerun_image_hz: float = 5.0
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -90,6 +96,14 @@ class SessionOptions:
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
+        if self.rerun is not None:
+            from beavr_sim.viz.rerun_log import check_rrd_path
+
+            self.rerun = check_rrd_path(self.rerun)
+            if self.multiprocess:
+                raise ValueError("--rerun runs in one process; leave out --multiprocess")
+        if not 0 <= self.rerun_image_hz < float("inf"):
+            raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
 
     @classmethod
     def from_args(cls, args) -> SessionOptions:
@@ -111,6 +125,7 @@ class SessionOptions:
             viser=not args.no_viser,
             viser_host=args.viser_host,
             viser_port=args.viser_port,
+            viser_rate_hz=getattr(args, "viser_rate_hz", 30.0),
             headset_host=args.headset_host,
             headset_image_hz=args.headset_image_hz,
             headset_image_size=(int(size[0]), int(size[1])),
@@ -123,6 +138,8 @@ class SessionOptions:
             episodes=args.episodes,
             recording=recording_config(args) if args.record is not None else None,
             auto_start=args.auto_start,
+            rerun=getattr(args, "rerun", None),
+            rerun_image_hz=getattr(args, "rerun_image_hz", 5.0),
         )
 
 
@@ -220,19 +237,30 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             KeyboardControl(control)
             print(KeyboardControl.HELP, file=sys.stderr)
     try:
-        if options.viser:
-            from beavr_sim.viz.twin_view import TwinView
+        if options.rerun is not None:
+            from beavr_sim.viz.rerun_log import RerunLogger
 
-            view = TwinView(
-                loop.twin.env.model,
-                host=options.viser_host,
-                port=options.viser_port,
-                title=f"beavr_sim — {options.task} — {loop.twin.env.embodiment.name}",
-                episode_control=control,
+            logger = RerunLogger(
+                options.rerun, loop, image_hz=options.rerun_image_hz, source=options.source
+            )
+            closers.append(logger.close)
+            loop.listeners.append(logger)
+            print(f"rerun log: {options.rerun} (open: rerun {options.rerun})", file=sys.stderr)
+        if options.viser:
+            from beavr_sim.teleop.view import attach_view
+
+            # No hardware mirroring yet: no emergency-stop button (mirroring=False).
+            view = attach_view(
+                loop,
+                options.viser_host,
+                options.viser_port,
+                progress,
+                control,
+                mirroring=False,
+                rate_hz=options.viser_rate_hz,
             )
             closers.append(view.close)
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
-            loop.listeners.append(_ViewListener(view, loop, progress, control))
         if not options.headless and options.source == "quest":
             from beavr_sim.teleop.quest_io import HeadsetImagePublisher
 
@@ -405,36 +433,6 @@ def record_episodes(
     if summary is None:
         summary = loop.summary(False)
     return summary
-
-
-class _ViewListener:
-    """Browser view: poses every tick; pause and reset buttons act on the loop."""
-
-    def __init__(self, view, loop: TeleopLoop, progress: ProgressLine | None = None, control=None):
-        self.view = view
-        self.loop = loop
-        self.progress = progress
-        self.control = control  # recording: a reset drops the episode in progress
-        self.success = False
-
-    def __call__(self, tick: Tick) -> None:
-        self.success = self.success or tick.state.success
-        self.loop.operator.set_paused(bool(self.view.paused.value))
-        if self.view.reset_requested:
-            self.view.reset_requested = False
-            if self.control is not None:
-                self.control.request("discard", "browser reset")
-            self.loop.reset(self.loop.seed)
-            self.success = False
-        holds = {c.reason for c in tick.commands.values() if c.hold}
-        label = self.progress.label if self.progress is not None else ""
-        status = (
-            (f"{label}  \n" if label else "")
-            + f"**{self.loop.twin.env.task.name}** · t = {tick.state.t:5.1f} s · "
-            f"{'**success**' if self.success else 'running'}"
-            + (f" · holding ({', '.join(sorted(holds))})" if holds else "")
-        )
-        self.view.update(self.loop.twin.env.data, status=status)
 
 
 class _HeadsetListener:

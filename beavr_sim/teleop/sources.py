@@ -76,6 +76,11 @@ class FrameListSource(HandSource):
             self._next += 1
         return out
 
+    def rewind(self) -> None:
+        """Deliver the frames again from the first (a trace replayed from its start)."""
+        self._next = 0
+        self._offset = None
+
     def push(self, frame: HandFrame) -> None:
         """Append a frame (not older than the last one): a source fed while it runs."""
         if self.frames and frame.t_source < self.frames[-1].t_source:

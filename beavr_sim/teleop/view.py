@@ -1,0 +1,126 @@
+"""The browser view attached to a teleop loop (single process): :func:`attach_view`.
+
+:class:`ViewListener` runs after every tick, in the loop's thread. Each tick it only takes the
+buttons (pause / resume goes to the operator; Reset resets the episode and replays a recorded
+source from its start; while recording it drops the episode in progress), counts the tick for the loop-rate readout and remembers
+whether the collision guard blocked; at most ``rate_hz`` times per wall second (the view's
+:meth:`~beavr_sim.viz.twin_view.TwinView.due`) it asks the operator for its targets and sends
+one update: poses, hand skeletons, arm target frames, fingertip targets, guard colours,
+success, status and readouts. A guard block between two updates is shown at the next one.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+from beavr_sim.teleop.pipeline import TeleopLoop, Tick
+from beavr_sim.viz.twin_view import DEFAULT_RATE_HZ, RateMeter, TwinView, recent_p50
+
+_EPISODE = re.compile(r"episode (\d+)/(\d+): (REC|idle)")
+
+
+def episode_line(label: str) -> str:
+    """The recording panel's line from the session's progress label
+    (``"episode 2/5: REC"`` -> ``"episode **2** of **5** · recording"``)."""
+    m = _EPISODE.match(label or "")
+    if m is None:
+        return label or "idle"
+    state = "**recording**" if m.group(3) == "REC" else "idle"
+    return f"episode **{m.group(1)}** of **{m.group(2)}** · {state}"
+
+
+class ViewListener:
+    """Browser view of a running loop: see the module docstring."""
+
+    def __init__(self, view, loop: TeleopLoop, progress=None, control=None):
+        self.view = view
+        self.loop = loop
+        self.progress = progress
+        self.control = control  # recording: a reset drops the episode in progress
+        self.success = False
+        self.rate = RateMeter(1.0)
+        self._blocked: set[str] = set()
+        self.resets = 0
+        self._t = -float("inf")
+
+    def __call__(self, tick: Tick) -> None:
+        now = time.perf_counter()
+        self.rate.tick(now)
+        state = tick.state
+        if state.t < self._t:  # a new episode (the session replays the trace, or a reset)
+            self.success = False
+        self._t = state.t
+        self.success = self.success or state.success
+        if state.guard_blocked:
+            self._blocked |= set(state.guard_blocked_effectors or self.view.guard.geoms)
+        view = self.view
+        self.loop.operator.set_paused(view.paused or view.estop_requested)
+        if view.take_reset():
+            if self.control is not None:
+                self.control.request("discard", "browser reset")
+            rewind = getattr(self.loop.source, "rewind", None)
+            if rewind is not None:  # a recorded source plays from its start again
+                rewind()
+                self.loop.replace_source(self.loop.source)  # its clock starts over
+            self.loop.reset(self.loop.seed)
+            self.success = False
+            self._t = -float("inf")
+            self.resets += 1
+        if not view.due(now):
+            return
+        targets = self.loop.operator.targets()
+        holds = {c.reason for c in tick.commands.values() if c.hold}
+        env = self.loop.twin.env
+        label = self.progress.label if self.progress is not None else ""
+        status = (
+            f"t = {state.t:5.1f} s · "
+            + ("**success**" if self.success else "running")
+            + (f" · holding ({', '.join(sorted(holds))})" if holds else "")
+            + (" · **paused**" if self.loop.operator.paused else "")
+        )
+        view.update(
+            env.data,
+            status=status,
+            targets=targets,
+            guard_blocked=self._blocked,
+            success=self.success,
+            loop_rate_hz=self.rate.rate_hz(),
+            latency_ms=recent_p50(self.loop.latencies_ms),
+            episode=episode_line(label) if self.control is not None else None,
+        )
+        self._blocked = set()
+
+
+def attach_view(
+    loop: TeleopLoop,
+    host: str,
+    port: int,
+    progress=None,
+    control=None,
+    *,
+    mirroring: bool = False,
+    rate_hz: float = DEFAULT_RATE_HZ,
+) -> TwinView:
+    """A :class:`TwinView` of ``loop``'s twin, driven by a :class:`ViewListener` appended to
+    the loop's listeners. ``mirroring``: there is no hardware mirroring yet; pass True only
+    from a session that drives hardware and stops it on ``view.estop_requested``."""
+    env = loop.twin.env
+    joints = env.joints
+    by_effector = {name: joints.names[sl] for name, sl in joints.slices.items()}
+    from beavr_sim.viz.twin_view import subtree_bodies
+
+    view = TwinView(
+        env.model,
+        host=host,
+        port=port,
+        title="beavr_sim twin",
+        episode_control=control,
+        task=env.task.name,
+        embodiment=env.embodiment.name,
+        effector_bodies=subtree_bodies(env.model, by_effector),
+        mirroring=mirroring,
+        rate_hz=rate_hz,
+    )
+    loop.listeners.append(ViewListener(view, loop, progress, control))
+    return view

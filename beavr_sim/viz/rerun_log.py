@@ -1,0 +1,409 @@
+"""Logging a teleop session to a Rerun recording (``.rrd``): ``--rerun F.rrd``.
+
+:class:`RerunLogger` is a tick listener of :class:`~beavr_sim.teleop.pipeline.TeleopLoop`. It
+owns one ``rr.RecordingStream`` that writes to the file (no global recording, no viewer
+spawned) and logs, on the ``session_time`` timeline (seconds
+from the first tick, continuing across episode resets) and the ``tick`` sequence:
+
+- the operator's hands and the effectors' targets (3D, world frame, Z-up);
+- the robot's joint positions and commands, holds, guard blocks, task success and latencies
+  (scalars);
+- events (episode starts, holds, guard blocks, success) as text logs, and the twin's camera
+  images (JPEG, at a limited rate of session time: each one is an offscreen render).
+
+Per-tick data is buffered per entity and sent in columns, one entity every few ticks in
+turn, so that logging costs the loop a steady fraction of a millisecond per tick rather than
+one ``log`` call per joint per tick. Static things (joint names, the hand skeleton's bones,
+colours) are logged once.
+
+The entity paths are listed in ``docs/formats.md``. Open the file with ``rerun F.rrd``.
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import math
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import rerun as rr
+
+from beavr_sim.teleop.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, SIDES
+
+TIMELINE = "session_time"
+TICK_TIMELINE = "tick"
+#: Buffered per-tick data of an entity goes to the file about this often (and on close).
+SEND_EVERY_S = 4.0
+
+#: Bones of the 26-joint hand skeleton (pairs of canonical joint indices): wrist to each
+#: fingertip, and across the knuckles. Drawn by the viewer from the annotation context.
+BONES: tuple[tuple[int, int], ...] = tuple(
+    pair
+    for chain in (
+        *(
+            (JOINT_INDEX["wrist"], *(i for i, n in enumerate(JOINT_NAMES) if n.startswith(f + "_")))
+            for f in FINGERS
+        ),
+        tuple(JOINT_INDEX[f"{f}_proximal"] for f in FINGERS[1:]),
+    )
+    for pair in itertools.pairwise(chain)
+) + ((JOINT_INDEX["wrist"], JOINT_INDEX["palm"]),)
+
+_HAND_CLASS = 0
+_SIDE_COLORS = {"right": (230, 120, 40), "left": (60, 140, 230)}
+_TARGET_COLOR = (40, 200, 120)
+_SKELETON_COLOR = (200, 200, 200)
+_ALL_JOINTS = np.arange(len(JOINT_NAMES))
+
+
+def check_rrd_path(path: str | Path) -> Path:
+    """``path`` as a Path if a Rerun recording can be written there; raises a clear error
+    otherwise (wrong suffix, missing folder, a folder in the way)."""
+    path = Path(path).expanduser()
+    if path.suffix != ".rrd":
+        raise ValueError(f"--rerun needs a .rrd file name, got {str(path)!r}")
+    if path.is_dir():
+        raise ValueError(f"--rerun {path} is a folder; give a file name such as {path}/session.rrd")
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"--rerun {path}: folder {path.parent} does not exist")
+    return path
+
+
+class _Columns:
+    """Per-tick data buffered per entity and sent as columns (``send_columns``), one entity
+    per tick in turn: a steady, small cost per tick instead of one ``log`` per entity.
+
+    Kinds: ``scalar`` (a float), ``points`` (N x 3 positions and optional keypoint ids),
+    ``transform`` (a 4x4 pose, sent as translation + quaternion).
+    """
+
+    def __init__(self, rec: rr.RecordingStream, rows: int = 120):
+        self.rec = rec
+        self.rows = int(rows)
+        self._steps = 0
+        self.kinds: dict[str, str] = {}
+        self.series: dict[str, tuple[list[float], list[int], list]] = {}
+        self._order: list[str] = []
+        self._next = 0
+
+    def add(self, kind: str, path: str, t: float, tick: int, row) -> None:
+        s = self.series.get(path)
+        if s is None:
+            s = self.series[path] = ([], [], [])
+            self.kinds[path] = kind
+            self._order.append(path)
+        s[0].append(t)
+        s[1].append(tick)
+        s[2].append(row)
+
+    def scalar(self, path: str, t: float, tick: int, value: float) -> None:
+        self.add("scalar", path, t, tick, float(value))
+
+    def points(self, path: str, t: float, tick: int, positions, ids=None) -> None:
+        self.add("points", path, t, tick, (np.asarray(positions, dtype=np.float32), ids))
+
+    def transform(self, path: str, t: float, tick: int, T: np.ndarray) -> None:
+        q = np.empty(4)
+        mujoco.mju_mat2Quat(q, np.ascontiguousarray(T[:3, :3]).ravel())
+        self.add("transform", path, t, tick, (T[:3, 3].copy(), q[[1, 2, 3, 0]]))  # xyzw
+
+    def _columns(self, kind: str, rows: list):
+        if kind == "scalar":
+            return rr.Scalars.columns(scalars=np.asarray(rows, dtype=np.float64))
+        if kind == "points":
+            positions = np.concatenate([p for p, _ in rows])
+            fields = {"positions": positions}
+            if rows[0][1] is not None:
+                fields["keypoint_ids"] = np.concatenate([i for _, i in rows])
+            return rr.Points3D.columns(**fields).partition([len(p) for p, _ in rows])
+        if kind == "transform":
+            return rr.Transform3D.columns(
+                translation=np.array([tr for tr, _ in rows]),
+                quaternion=np.array([q for _, q in rows]),
+            )
+        raise ValueError(f"unknown column kind {kind!r}")
+
+    def send(self, path: str) -> None:
+        times, ticks, rows = self.series[path]
+        if not rows:
+            return
+        self.rec.send_columns(
+            path,
+            indexes=[
+                rr.TimeColumn(TIMELINE, duration=np.asarray(times, dtype=np.float64)),
+                rr.TimeColumn(TICK_TIMELINE, sequence=np.asarray(ticks, dtype=np.int64)),
+            ],
+            columns=self._columns(self.kinds[path], rows),
+        )
+        self.series[path] = ([], [], [])
+
+    def step(self) -> None:
+        """Once a tick: send the next entity's buffer (round robin) every few ticks, so that
+        each entity goes out about every ``rows`` ticks (sending costs a few hundred
+        microseconds per entity, almost whatever the number of rows)."""
+        if not self._order:
+            return
+        self._steps += 1
+        if self._steps % max(1, math.ceil(self.rows / len(self._order))):
+            return
+        self._next %= len(self._order)
+        self.send(self._order[self._next])
+        self._next += 1
+
+    def send_all(self) -> None:
+        for path in self._order:
+            self.send(path)
+
+
+class RerunLogger:
+    """A :class:`TeleopLoop` tick listener that logs the session to ``path`` (``.rrd``).
+
+    ``image_hz``: rate (session time) of the camera images, 0 for none; ``cameras``: which
+    of the scene's cameras, rendered at ``image_size`` (height, width) and JPEG-encoded.
+    Close it (or use it as a context manager) to flush the file.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        loop,
+        *,
+        image_hz: float = 5.0,
+        cameras: tuple[str, ...] = ("front",),
+        image_size: tuple[int, int] = (240, 320),
+        jpeg_quality: int = 80,
+        source: str | None = None,
+    ):
+        if not (image_hz >= 0 and np.isfinite(image_hz)):
+            raise ValueError(f"image rate must be >= 0 (0: no images), got {image_hz}")
+        self.path = Path(path)
+        self.loop = loop
+        env = loop.twin.env
+        self.env = env
+        self.joint_names: tuple[str, ...] = tuple(env.joints.names)
+        self.image_period = 1.0 / image_hz if image_hz > 0 else None
+        self.cameras_names = tuple(cameras) if self.image_period else ()
+        self.jpeg_quality = int(jpeg_quality)
+        self._cameras = None
+        if self.cameras_names:
+            from beavr_sim.envs.cameras import OffscreenCameras
+            from beavr_sim.envs.scene import CAMERA_NAMES
+            from beavr_sim.naming import check_name
+
+            for c in self.cameras_names:
+                check_name("camera", c, CAMERA_NAMES)
+            self._cameras = OffscreenCameras(env.model, *image_size)
+
+        self.rec = rr.RecordingStream("beavr_sim_teleop")
+        self.rec.save(self.path)
+        self.columns = _Columns(self.rec, rows=max(1, round(SEND_EVERY_S * env.control_hz)))
+        self._closed = False
+        self._ticks = 0
+        self._session_t = 0.0
+        self._offset = 0.0
+        self._prev_t: float | None = None
+        self._prev_state_t: float | None = None
+        self._episode = 0
+        self._next_image_t = 0.0
+        self._n_latencies = len(loop.latencies_ms)
+        self._hold_reason: dict[str, str] = {}
+        self._guard: tuple[str, ...] = ()
+        self._success = False
+        self._log_static(source)
+
+    # ------------------------------------------------------------------ static
+    def _log_static(self, source: str | None) -> None:
+        env, rec = self.env, self.rec
+        rec.send_recording_name(f"{env.task.name} / {env.embodiment.name}")
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        effectors = list(self.loop.twin.slices)
+        values = {
+            "task": env.task.name,
+            "embodiment": env.embodiment.name,
+            "control_hz": float(env.control_hz),
+            "effectors": effectors,
+            "joint_names": list(self.joint_names),
+        }
+        if source:
+            values["source"] = source
+        if self.cameras_names:
+            values["cameras"] = list(self.cameras_names)
+        rec.log("session", rr.AnyValues(**values), static=True)
+        # One hand class for every skeleton under world/: joint names (hover) and bones.
+        rec.log(
+            "world",
+            rr.AnnotationContext(
+                [
+                    rr.ClassDescription(
+                        info=(_HAND_CLASS, "hand"),
+                        keypoint_annotations=list(enumerate(JOINT_NAMES)),
+                        keypoint_connections=BONES,
+                    )
+                ]
+            ),
+            static=True,
+        )
+        # What does not change per tick is static; per tick only positions (and ids) go out.
+        for side in SIDES:
+            rec.log(
+                f"world/hands/{side}/keypoints",
+                rr.Points3D.from_fields(
+                    radii=0.006, colors=_SIDE_COLORS[side], class_ids=_HAND_CLASS
+                ),
+                static=True,
+            )
+        for name in effectors:
+            base = f"world/targets/{name}"
+            rec.log(f"{base}/arm", rr.TransformAxes3D(0.1), static=True)
+            rec.log(f"{base}/reached", rr.TransformAxes3D(0.06), static=True)
+            rec.log(
+                f"{base}/fingers",
+                rr.Points3D.from_fields(radii=0.008, colors=_TARGET_COLOR),
+                static=True,
+            )
+            rec.log(
+                f"{base}/skeleton",
+                rr.Points3D.from_fields(
+                    radii=0.004,
+                    colors=_SKELETON_COLOR,
+                    class_ids=_HAND_CLASS,
+                    keypoint_ids=_ALL_JOINTS,
+                ),
+                static=True,
+            )
+
+    # ------------------------------------------------------------------ per tick
+    def __call__(self, tick) -> None:
+        if self._closed:
+            return
+        t = self._advance(tick)
+        rec, k = self.rec, self._ticks
+        rec.set_time(TIMELINE, duration=t)
+        rec.set_time(TICK_TIMELINE, sequence=k)
+        state = tick.state
+        if self._prev_state_t is not None and state.t < self._prev_state_t:
+            self._episode += 1
+            self._success = False
+            rec.log(
+                "events",
+                rr.TextLog(f"episode {self._episode} starts (reset)", level=rr.TextLogLevel.INFO),
+            )
+        self._prev_state_t = state.t
+
+        cols = self.columns
+        self._log_hands(tick.frames, t, k)
+        self._log_targets(t, k)
+        for name, q, u in zip(self.joint_names, state.positions, state.action, strict=True):
+            cols.scalar(f"robot/joints/{name}/position", t, k, q)
+            cols.scalar(f"robot/joints/{name}/command", t, k, u)
+        for name, cmd in tick.commands.items():
+            cols.scalar(f"robot/hold/{name}", t, k, float(cmd.hold))
+            reason = cmd.reason if cmd.hold else ""
+            if reason != self._hold_reason.get(name, ""):
+                text = f"{name}: holding ({reason})" if reason else f"{name}: tracking"
+                rec.log("events", rr.TextLog(text, level=rr.TextLogLevel.INFO))
+            self._hold_reason[name] = reason
+        blocked = tuple(state.guard_blocked_effectors) if state.guard_blocked else ()
+        if state.guard_blocked and not blocked:
+            blocked = ("an effector",)
+        cols.scalar("guard/blocked", t, k, float(bool(blocked)))
+        if blocked != self._guard:
+            if blocked:
+                text = f"collision guard blocked the command of {', '.join(blocked)}"
+                rec.log("guard/events", rr.TextLog(text, level=rr.TextLogLevel.WARN))
+            else:
+                rec.log("guard/events", rr.TextLog("guard released", level=rr.TextLogLevel.INFO))
+            self._guard = blocked
+        cols.scalar("task/success", t, k, float(state.success))
+        cols.scalar("task/failure", t, k, float(state.failure))
+        if state.success and not self._success:
+            rec.log("events", rr.TextLog("task success", level=rr.TextLogLevel.INFO))
+        self._success = self._success or state.success
+        lat = self.loop.latencies_ms
+        if len(lat) < self._n_latencies:  # a new list: start over
+            self._n_latencies = 0
+        for v in lat[self._n_latencies :]:
+            cols.scalar("latency/ms", t, k, v)
+        self._n_latencies = len(lat)
+
+        if self.image_period is not None and t >= self._next_image_t - 1e-9:
+            # On a grid of the period (no drift); after a stall, on from now.
+            self._next_image_t += self.image_period
+            if self._next_image_t <= t:
+                self._next_image_t = t + self.image_period
+            self._log_images()
+        cols.step()
+        self._ticks += 1
+
+    def _advance(self, tick) -> float:
+        """Session time: the tick's time plus an offset that starts the real clock at 0 and
+        carries on across resets of the virtual clock (which start over at 0)."""
+        t = float(tick.t)
+        if self._prev_t is None:
+            self._offset = -t if self.loop.real_time else 0.0
+        elif t <= self._prev_t:  # a new episode on the virtual clock
+            self._offset = self._session_t + self.loop.dt - t
+        self._prev_t = t
+        self._session_t = t + self._offset
+        return self._session_t
+
+    def _log_hands(self, frames, t: float, k: int) -> None:
+        newest = {f.side: f for f in frames}  # frames come in order: keep each side's last
+        for side, f in newest.items():
+            ids = np.flatnonzero(f.tracked).astype(np.uint16)
+            self.columns.points(f"world/hands/{side}/keypoints", t, k, f.joints[ids], ids)
+
+    def _log_targets(self, t: float, k: int) -> None:
+        cols = self.columns
+        for name, tg in self.loop.operator.targets().items():
+            base = f"world/targets/{name}"
+            if tg.T_world_target is not None:
+                cols.transform(f"{base}/arm", t, k, tg.T_world_target)
+            cols.transform(f"{base}/reached", t, k, tg.T_world_hand)
+            if tg.finger_targets_world is not None:
+                cols.points(f"{base}/fingers", t, k, tg.finger_targets_world)
+            if tg.keypoints_world is not None:
+                cols.points(f"{base}/skeleton", t, k, tg.keypoints_world)
+
+    def _log_images(self) -> None:
+        from PIL import Image
+
+        for name in self.cameras_names:
+            try:
+                pixels = self._cameras.render(self.env.data, name)
+            except Exception as exc:  # no GL here: go on without images, say so once
+                print(f"warning: rerun log without camera images: {exc}", file=sys.stderr)
+                self.rec.log(
+                    "events",
+                    rr.TextLog(f"no camera images: {exc}", level=rr.TextLogLevel.WARN),
+                )
+                self.image_period = None
+                return
+            buf = io.BytesIO()
+            Image.fromarray(pixels).save(buf, format="JPEG", quality=self.jpeg_quality)
+            self.rec.log(
+                f"camera/{name}", rr.EncodedImage(contents=buf.getvalue(), media_type="image/jpeg")
+            )
+
+    # ------------------------------------------------------------------ closing
+    def close(self) -> None:
+        """Send what is buffered and close the file (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.columns.send_all()
+            self.rec.flush()
+            self.rec.disconnect()
+        finally:
+            if self._cameras is not None:
+                self._cameras.close()
+
+    def __enter__(self) -> RerunLogger:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
