@@ -97,11 +97,15 @@ class TeleopLoop:
         self._t0 = 0.0
         #: Seed of the current episode (reset with the same seed re-runs the same layout).
         self.seed: int | None = None
+        #: How many times the loop was reset (a reset during :meth:`run` starts the wait for
+        #: the end of the source over).
+        self.resets = 0
 
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None) -> None:
         """Reset the twin (new episode) and re-home the operator from the measured joints."""
         self.seed = seed
+        self.resets += 1
         q = self.twin.reset(seed)
         self.operator.reset(q, self.twin.slices)
         self.ticks = 0
@@ -159,6 +163,7 @@ class TeleopLoop:
         every tick)."""
         start_wall = time.perf_counter()
         finished_at: float | None = None
+        resets = self.resets
         success = False
         while True:
             if self.real_time:
@@ -177,6 +182,8 @@ class TeleopLoop:
                 break
             if tick.state.truncated or (max_seconds is not None and elapsed >= max_seconds):
                 break
+            if self.resets != resets:  # reset from a view or a listener: a new episode
+                resets, finished_at = self.resets, None
             if self.source.finished:
                 finished_at = elapsed if finished_at is None else finished_at
                 if elapsed - finished_at >= tail_seconds:
