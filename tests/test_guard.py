@@ -90,3 +90,42 @@ def test_fingertips_pressing_on_the_table_are_allowed(twin):
     assert fingers and arm
     names = {guard._geom_names[g] for g in fingers}
     assert any("distal" in n for n in names) and not any("link" in n for n in names)
+
+
+def test_arms_driven_into_each_other_are_refused():
+    """Bimanual: the two arms swung towards each other collide; both commands are refused."""
+    env = gym.make("beavr_sim/PickPlace-v0", embodiment="xarm7_leap_bimanual")
+    try:
+        twin = TwinInterface(env)
+        twin.reset(seed=0)
+        q0 = twin.action.copy()
+        right, left = twin.slices["right"], twin.slices["left"]
+
+        def arms_touch(v):
+            return [c for c in v.contacts if {c[0][:4], c[1][:4]} == {"left", "righ"}]
+
+        verdicts = []
+        for yaw in np.linspace(0.0, 1.6, 17):
+            q = q0.copy()
+            q[right.start], q[left.start] = yaw, -yaw  # shoulders turn towards each other
+            q[right.start + 1] = q[left.start + 1] = 0.0
+            q[right.start + 3] = q[left.start + 3] = 1.0
+            verdicts.append((yaw, twin.guard.check(q, twin.env.data.qpos)))
+        touching = [(yaw, v) for yaw, v in verdicts if arms_touch(v)]
+        assert touching, "the arms never met"
+        yaw, verdict = touching[0]
+        assert verdict.blocked == ("left", "right")
+        assert verdicts[0][1].ok  # facing forward they are apart
+        q = q0.copy()
+        q[right.start], q[left.start] = yaw, -yaw
+        q[right.start + 3] = q[left.start + 3] = 1.0
+        q[right.start + 1] = q[left.start + 1] = 0.0
+        commands = {
+            name: JointCommand(name, q[sl], t_source=0.0, t_receive=0.0)
+            for name, sl in twin.slices.items()
+        }
+        state = twin.apply(commands)
+        assert state.guard_blocked_effectors == ("left", "right")
+        np.testing.assert_array_equal(state.action, q0)
+    finally:
+        env.close()

@@ -59,7 +59,7 @@ class BeavrEnv(gym.Env):
         self.embodiment: Embodiment = make_embodiment(embodiment)
         self.task: Task = task_class(task)(self.embodiment)
         if self.task.embodiments is not None:
-            check_name(f"embodiment for task {task}", embodiment, self.task.embodiments)
+            check_name("embodiment", embodiment, self.task.embodiments, f"for task {task}")
         self.max_episode_seconds = float(
             self.task.max_episode_seconds if max_episode_seconds is None else max_episode_seconds
         )
