@@ -138,6 +138,24 @@ def test_moving_average_and_complementary_filter():
         PoseSmoother(0.0)
 
 
+def test_pose_smoother_is_lerp_and_slerp_of_each_measurement():
+    """The quaternion-state filter equals the matrix definition step by step."""
+    f = PoseSmoother(0.3, 0.7)
+    T_expected = None
+    for _ in range(20):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = random_rotation(rng), rng.normal(size=3)
+        out = f(T)
+        if T_expected is None:
+            T_expected = T.copy()
+        else:
+            T_expected[:3, 3] += 0.3 * (T[:3, 3] - T_expected[:3, 3])
+            T_expected[:3, :3] = slerp(T_expected[:3, :3], T[:3, :3], 0.7)
+        np.testing.assert_allclose(out, T_expected, atol=1e-9)
+    f.reset(T)
+    np.testing.assert_allclose(f(np.eye(4))[:3, 3], 0.7 * T[:3, 3], atol=1e-12)
+
+
 # ------------------------------------------------------------------------------- operator
 DT = 1 / 30
 

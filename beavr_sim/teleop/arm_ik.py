@@ -109,9 +109,9 @@ class ArmIK:
         self._arm_dofs = self.joints.qvel_adr[: self.n_arm]
         self._arm_lower = self.joints.lower[: self.n_arm]
         self._arm_upper = self.joints.upper[: self.n_arm]
-        self._jacp = np.zeros((3, self.model.nv))
-        self._jacr = np.zeros((3, self.model.nv))
+        self._jac = np.zeros((6, self.model.nv))  # translation rows, then rotation rows
         self._weights = np.repeat([self.config.position_cost, self.config.orientation_cost], 3)
+        self._weights_col = self._weights[:, None]
         self._posture = self.configuration.q[self._arm_qpos].copy()
         self.collision: CollisionLimit | None = None
         if self.config.collision_avoidance:
@@ -141,7 +141,7 @@ class ArmIK:
 
     def set_fingers(self, q_hand: np.ndarray) -> None:
         """Put the finger joints where the hand command puts them (collision geometry)."""
-        q = self.configuration.q.copy()
+        q = self.configuration.q  # a copy
         q[self.joints.qpos_adr[self.n_arm :]] = q_hand
         self.configuration.update(q)
 
@@ -164,7 +164,7 @@ class ArmIK:
             raise ValueError(f"step needs a finite 4x4 pose, got shape {T_world_target.shape}")
         for _ in range(self.config.iterations):
             self._step(T_world_target, self.dt / self.config.iterations)
-        return self.configuration.q[self._arm_qpos].copy()
+        return self.configuration.data.qpos[self._arm_qpos]  # fancy index: a copy
 
     def _step(self, T_world_target: np.ndarray, dt: float) -> None:
         cfg, model = self.configuration, self.model
@@ -175,10 +175,10 @@ class ArmIK:
         error = np.empty(6)
         error[:3] = T_world_target[:3, 3] - data.xpos[body]
         error[3:] = so3_log(T_world_target[:3, :3] @ R_world_hand.T)
-        mujoco.mj_jacBody(model, data, self._jacp, self._jacr, body)
-        J = np.vstack([self._jacp[:, arm], self._jacr[:, arm]]) * self._weights[:, None]
+        mujoco.mj_jacBody(model, data, self._jac[:3], self._jac[3:], body)
+        J = self._jac[:, arm] * self._weights_col
         e = self._weights * error
-        q_arm = cfg.q[self._arm_qpos]
+        q_arm = cfg.data.qpos[self._arm_qpos]  # a copy (fancy index)
         w_posture = self.config.posture_cost**2
         H = J.T @ J
         H.flat[:: self.n_arm + 1] += (
@@ -203,6 +203,6 @@ class ArmIK:
         dq, _, exitflag, _ = daqp.solve(H, c, np.ascontiguousarray(A), bupper, blower, sense)
         if exitflag <= 0:  # infeasible (e.g. already in collision): hold this tick
             return
-        q = cfg.q.copy()
+        q = cfg.q  # a copy
         q[self._arm_qpos] += dq
         cfg.update(q)

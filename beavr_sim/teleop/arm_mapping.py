@@ -67,6 +67,9 @@ def axis_map(embodiment: str, side: str) -> AxisMap:
     return AXIS_MAPS[key]
 
 
+_BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def _inv(T: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = T[:3, :3].T
@@ -90,6 +93,12 @@ class RelativeMotionMapping:
         """Store the palm pose and the robot hand pose that correspond from now on."""
         self.T_anchor_hand = np.array(T_world_hand, dtype=np.float64)
         self.T_anchor_robot = np.array(T_world_robot, dtype=np.float64)
+        # robot_target's products that depend only on the anchor, computed once here:
+        # R_target = R_ar A_r R_ah^T R A_r^T, p_target = p_ar + s R_ar A_t R_ah^T (p - p_ah).
+        R_ar, R_ah_T = self.T_anchor_robot[:3, :3], self.T_anchor_hand[:3, :3].T
+        self._R_left = R_ar @ self.axes.A_rot @ R_ah_T
+        self._R_right = np.ascontiguousarray(self.axes.A_rot.T)
+        self._P = R_ar @ self.axes.A_trans @ R_ah_T
 
     def release(self) -> None:
         self.T_anchor_hand = self.T_anchor_robot = None
@@ -102,12 +111,16 @@ class RelativeMotionMapping:
     def robot_target(self, T_world_hand: np.ndarray, resolution: str = "high") -> np.ndarray:
         """``T_world_robot`` target for palm pose ``T_world_hand``."""
         s = self._scale(resolution)
-        H_rel = _inv(self.T_anchor_hand) @ np.asarray(T_world_hand, dtype=np.float64)
-        A_r, A_t = self.axes.A_rot, self.axes.A_trans
-        conj = np.eye(4)
-        conj[:3, :3] = A_r @ H_rel[:3, :3] @ A_r.T
-        conj[:3, 3] = s * (A_t @ H_rel[:3, 3])
-        return self.T_anchor_robot @ conj
+        # T_anchor_robot @ conj(inv(T_anchor_hand) @ T_world_hand), with the anchor's part
+        # of the products precomputed in anchor().
+        T_world_hand = np.asarray(T_world_hand, dtype=np.float64)
+        out = np.empty((4, 4))
+        out[3] = _BOTTOM_ROW
+        out[:3, :3] = self._R_left @ T_world_hand[:3, :3] @ self._R_right
+        out[:3, 3] = self.T_anchor_robot[:3, 3] + s * (
+            self._P @ (T_world_hand[:3, 3] - self.T_anchor_hand[:3, 3])
+        )
+        return out
 
     def hand_for(self, T_world_robot: np.ndarray, resolution: str = "high") -> np.ndarray:
         """The inverse: the palm pose that maps to ``T_world_robot`` (synthetic traces)."""

@@ -159,22 +159,19 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         contact = ddata.contact
         geom = contact.geom[:n]
         dist = contact.dist[:n]
-        normal = contact.frame[:n, :3]
-        half = 0.5 * dist[:, None] * normal
-        pos = contact.pos[:n]
-        body = self._geom_body[geom]
         pair = self._lookup[geom[:, 0], geom[:, 1]]
         if self.closest_only and n > 1:
             order = np.lexsort((dist, pair))
-            keep = order[np.r_[True, pair[order[1:]] != pair[order[:-1]]]]
-            pair, dist, normal, pos, half, body = (
-                pair[keep],
-                dist[keep],
-                normal[keep],
-                pos[keep],
-                half[keep],
-                body[keep],
-            )
+            first = np.empty(n, dtype=bool)  # the first (closest) contact of each pair
+            first[0] = True
+            np.not_equal(pair[order[1:]], pair[order[:-1]], out=first[1:])
+            keep = order[first]
+            geom, dist, pair = geom[keep], dist[keep], pair[keep]
+            normal, pos = contact.frame[keep, :3], contact.pos[keep]
+        else:
+            normal, pos = contact.frame[:n, :3], contact.pos[:n]
+        half = (0.5 * dist)[:, None] * normal
+        body = self._geom_body[geom]
         return pair, dist, normal, pos - half, pos + half, body[:, 0], body[:, 1]
 
     def active_rows(

@@ -42,7 +42,11 @@ class KeypointSmoother:
 
 
 class PoseSmoother:
-    """Complementary filter on a 4x4 pose: LERP position, SLERP rotation, gain ``alpha``."""
+    """Complementary filter on a 4x4 pose: LERP position, SLERP rotation, gain ``alpha``.
+
+    The filtered rotation is kept as a unit quaternion, so a step converts only the new
+    measurement (one ``mju_mat2Quat``) and writes the result into a preallocated pose.
+    """
 
     def __init__(self, alpha_position: float = 0.6, alpha_rotation: float = 0.6):
         for name, a in (("alpha_position", alpha_position), ("alpha_rotation", alpha_rotation)):
@@ -51,19 +55,34 @@ class PoseSmoother:
         self.alpha_position = float(alpha_position)
         self.alpha_rotation = float(alpha_rotation)
         self._T: np.ndarray | None = None
+        self._q = np.empty(4)  # filtered rotation
+        self._q_measured, self._q_inv, self._q_rel = np.empty(4), np.empty(4), np.empty(4)
+        self._w, self._R = np.empty(3), np.empty(9)
 
     def reset(self, T: np.ndarray | None = None) -> None:
-        self._T = None if T is None else np.array(T, dtype=np.float64)
+        self._T = None
+        if T is not None:
+            self._start(np.asarray(T, dtype=np.float64))
+
+    def _start(self, T: np.ndarray) -> np.ndarray:
+        self._T = T.copy()
+        mujoco.mju_mat2Quat(self._q, np.ascontiguousarray(T[:3, :3]).ravel())
+        return self._T.copy()
 
     def __call__(self, T_measured: np.ndarray) -> np.ndarray:
         T_measured = np.asarray(T_measured, dtype=np.float64)
         if self._T is None:
-            self._T = T_measured.copy()
-            return self._T.copy()
-        T = np.eye(4)
-        T[:3, 3] = self._T[:3, 3] + self.alpha_position * (T_measured[:3, 3] - self._T[:3, 3])
-        T[:3, :3] = slerp(self._T[:3, :3], T_measured[:3, :3], self.alpha_rotation)
-        self._T = T
+            return self._start(T_measured)
+        T = self._T
+        T[:3, 3] += self.alpha_position * (T_measured[:3, 3] - T[:3, 3])
+        # SLERP: q <- q * exp(alpha * log(q^-1 q_measured)), the shorter way round.
+        mujoco.mju_mat2Quat(self._q_measured, np.ascontiguousarray(T_measured[:3, :3]).ravel())
+        mujoco.mju_negQuat(self._q_inv, self._q)
+        mujoco.mju_mulQuat(self._q_rel, self._q_inv, self._q_measured)
+        mujoco.mju_quat2Vel(self._w, self._q_rel, 1.0)
+        mujoco.mju_quatIntegrate(self._q, self._w, self.alpha_rotation)
+        mujoco.mju_quat2Mat(self._R, self._q)
+        T[:3, :3] = self._R.reshape(3, 3)
         return T.copy()
 
 

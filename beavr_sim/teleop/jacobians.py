@@ -16,14 +16,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(k, 3) vectors -> (k, 3, 3) matrices with ``S @ x = v x x``."""
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
+#: Index orders for cross products written over arrays: (a x b) = a[YZX] b[ZXY] - a[ZXY] b[YZX].
+_YZX, _ZXY = np.array([1, 2, 0]), np.array([2, 0, 1])
 
 
 class PointJacobians:
@@ -48,10 +42,14 @@ class PointJacobians:
     def points(self, data: mujoco.MjData, bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(k, 3, nv) Jacobians of ``points`` (k x 3, world) fixed to ``bodies`` (k)."""
         bodies = np.asarray(bodies, dtype=int)
-        ang, lin = data.cdof[:, :3], data.cdof[:, 3:]
-        # ang_k x o = -o x ang_k = -[o]x @ ang_k.
-        J = lin.T[None] - _skew(self._offsets(data, bodies, points)) @ ang.T[None]
-        return J * self.chain[bodies][:, None, :]
+        ang_t, lin_t = data.cdof[:, :3].T, data.cdof[:, 3:].T
+        o = self._offsets(data, bodies, points)[:, :, None]
+        # Column k: lin_k + ang_k x o, the cross product written over arrays.
+        J = ang_t[_YZX] * o[:, _ZXY]
+        J -= ang_t[_ZXY] * o[:, _YZX]
+        J += lin_t
+        J *= self.chain[bodies][:, None, :]
+        return J
 
     def normal_rows(
         self,
@@ -66,16 +64,14 @@ class PointJacobians:
         along ``normals`` (geom 1 -> geom 2) shrinks per unit joint velocity."""
         ang, lin = data.cdof[:, :3], data.cdof[:, 3:]
         k = len(normals)
-        # n . (ang_k x o) = ang_k . (o x n); both points' terms in one product.
-        o = np.empty((2 * k, 3))
-        o[:k] = self._offsets(data, bodies1, points1)
-        o[k:] = self._offsets(data, bodies2, points2)
+        bodies = np.concatenate([bodies1, bodies2])
+        o = np.concatenate([points1, points2]) - data.subtree_com[self.root[bodies]]
         n = np.concatenate([normals, normals])
-        x = np.empty((2 * k, 3))
-        x[:, 0] = o[:, 1] * n[:, 2] - o[:, 2] * n[:, 1]
-        x[:, 1] = o[:, 2] * n[:, 0] - o[:, 0] * n[:, 2]
-        x[:, 2] = o[:, 0] * n[:, 1] - o[:, 1] * n[:, 0]
-        terms = (x @ ang.T + (normals @ lin.T)[np.r_[0:k, 0:k]]) * self.chain[
-            np.concatenate([bodies1, bodies2])
-        ]
+        # n . (ang_k x o) = ang_k . (o x n); both points' terms in one product.
+        x = o[:, _YZX] * n[:, _ZXY] - o[:, _ZXY] * n[:, _YZX]
+        terms = x @ ang.T
+        lin_n = normals @ lin.T
+        terms[:k] += lin_n
+        terms[k:] += lin_n
+        terms *= self.chain[bodies]
         return terms[:k] - terms[k:]

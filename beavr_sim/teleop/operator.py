@@ -254,7 +254,7 @@ class EffectorOperator:
                 self._fresh = False
             q_arm = self.ik.step(target)
         positions = np.concatenate([q_arm, self._q_hand])
-        positions = np.clip(positions, self.ik.joints.lower, self.ik.joints.upper)
+        positions = np.minimum(np.maximum(positions, self.ik.joints.lower), self.ik.joints.upper)
         self._last_reason = reason
         return JointCommand(
             effector=self.effector.name,

@@ -272,11 +272,23 @@ class _PointsTask(mink.Task):
             ]
         )
         self._jacobians = PointJacobians(model)
+        self._site_rows, self._body_rows = (
+            np.flatnonzero(self.is_site),
+            np.flatnonzero(~self.is_site),
+        )
+        self._site_ids, self._body_ids = self.ids[self._site_rows], self.ids[self._body_rows]
 
     def _update_positions(self, data: mujoco.MjData) -> np.ndarray:
-        self._positions[self.is_site] = data.site_xpos[self.ids[self.is_site]]
-        self._positions[~self.is_site] = data.xpos[self.ids[~self.is_site]]
+        self._positions[self._site_rows] = data.site_xpos[self._site_ids]
+        self._positions[self._body_rows] = data.xpos[self._body_ids]
         return self._positions
+
+    def error_and_jacobian(self, configuration: mink.Configuration):
+        """``compute_error`` and ``compute_jacobian`` sharing one position update."""
+        data = configuration.data
+        positions = self._update_positions(data)
+        J = self._jacobians.points(data, self._bodies, positions)
+        return (positions - self.targets).ravel(), J.reshape(-1, self.model.nv)
 
     def compute_error(self, configuration: mink.Configuration) -> np.ndarray:
         return (self._update_positions(configuration.data) - self.targets).ravel()
@@ -445,7 +457,10 @@ class LeapRetargeter:
                     self._held[self._finger_dofs[finger]] = True
         for _ in range(self.config.iterations):
             self._step()
-        q = np.clip(self.configuration.q[self.map.qpos_adr], self._lower, self._upper)
+        # np.minimum/np.maximum: several times cheaper than np.clip on 16 values.
+        q = np.minimum(
+            np.maximum(self.configuration.data.qpos[self.map.qpos_adr], self._lower), self._upper
+        )
         return q
 
     def _step(self) -> None:
@@ -457,13 +472,12 @@ class LeapRetargeter:
         cfg, nv = self.configuration, self.model.nv
         # The quantities of mink's task residuals (weights enter squared; no LM term).
         points, w_post = self.points, self.config.posture_weight**2
-        error = points.compute_error(cfg)
-        J = points.compute_jacobian(cfg)
+        error, J = points.error_and_jacobian(cfg)
         WJ = points.cost[:, None] * J
         H = WJ.T @ WJ
         H.flat[:: nv + 1] += self.config.damping + w_post
-        c = (points.cost * error) @ WJ + w_post * (cfg.q - self._posture)
-        q = cfg.q
+        q = cfg.data.qpos  # read only here (mink's cfg.q is a copy)
+        c = (points.cost * error) @ WJ + w_post * (q - self._posture)
         gain = self.joint_limit.gain
         upper = np.minimum(gain * (self._upper_qpos - q), self.config.max_step)
         lower = np.maximum(gain * (self._lower_qpos - q), -self.config.max_step)
@@ -476,7 +490,7 @@ class LeapRetargeter:
         dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
         if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
             dq[self._held] = 0.0
-            cfg.update(cfg.q + dq)  # hinges only: integrating is adding
+            cfg.update(q + dq)  # hinges only: integrating is adding
 
     def retarget_converged(
         self, keypoints_palm: np.ndarray, iterations: int = 300, tolerance: float = 1e-7
