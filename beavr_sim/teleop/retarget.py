@@ -383,6 +383,8 @@ class LeapRetargeter:
             gain=self.config.collision_gain,
         )
         self._held = np.zeros(model.nv, dtype=bool)
+        self._any_held = False
+        self._H_diagonal = (self.config.damping + self.config.posture_weight**2) * np.eye(model.nv)
         # Degrees of freedom (qvel addresses) and target points of each finger.
         self._finger_dofs = {
             f: np.array([model.joint(LEAP_HAND.joints[m]).dofadr[0] for m in FINGER_MOTORS[f]])
@@ -450,7 +452,8 @@ class LeapRetargeter:
         self.points.targets[used] = self.targets(keypoints)[used]
         self.points.cost[:] = self.points.base_cost
         self._held[:] = False
-        if not used.all():
+        self._any_held = not used.all()
+        if self._any_held:
             for finger in LEAP_FINGERS:
                 if not used[self._finger_points[finger]].all():
                     self.points.cost.reshape(-1, 3)[self._finger_points[finger]] = 0.0
@@ -469,27 +472,29 @@ class LeapRetargeter:
         Assembled here rather than by ``mink.solve_ik`` for speed: the tasks' weighted residuals
         are stacked, joint limits become simple bounds, and only active collision rows are kept.
         """
-        cfg, nv = self.configuration, self.model.nv
+        cfg = self.configuration
         # The quantities of mink's task residuals (weights enter squared; no LM term).
         points, w_post = self.points, self.config.posture_weight**2
         error, J = points.error_and_jacobian(cfg)
         WJ = points.cost[:, None] * J
         H = WJ.T @ WJ
-        H.flat[:: nv + 1] += self.config.damping + w_post
+        H += self._H_diagonal  # damping + posture weight on the diagonal
         q = cfg.data.qpos  # read only here (mink's cfg.q is a copy)
         c = (points.cost * error) @ WJ + w_post * (q - self._posture)
         gain = self.joint_limit.gain
         upper = np.minimum(gain * (self._upper_qpos - q), self.config.max_step)
         lower = np.maximum(gain * (self._lower_qpos - q), -self.config.max_step)
-        upper[self._held] = 0.0
-        lower[self._held] = 0.0
+        if self._any_held:
+            upper[self._held] = 0.0
+            lower[self._held] = 0.0
         _, A, h = self.collision_limit.active_rows(cfg, 1.0)
         bupper = np.concatenate([upper, h])
         blower = np.concatenate([lower, np.full(h.size, -1e30)])
         sense = np.zeros(bupper.size, dtype=np.int32)
         dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
         if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
-            dq[self._held] = 0.0
+            if self._any_held:
+                dq[self._held] = 0.0
             cfg.update(q + dq)  # hinges only: integrating is adding
 
     def retarget_converged(
