@@ -30,8 +30,8 @@ import numpy as np
 
 from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
+from beavr_sim.teleop import kernels
 from beavr_sim.teleop.collision import CollisionLimit
-from beavr_sim.teleop.filters import so3_log
 
 #: Arm links checked against the table, and arm links the hand must not hit.
 FOREARM_LINKS = ("link5", "link6", "link7")
@@ -105,13 +105,13 @@ class ArmIK:
         self.n_arm = len(self.effector.arm_joints)
         self.configuration = mink.Configuration(self.model)
         self._hand_body = self.model.body(f"{self.effector.name}/hand").id
-        self._arm_qpos = self.joints.qpos_adr[: self.n_arm]
-        self._arm_dofs = self.joints.qvel_adr[: self.n_arm]
+        self._arm_qpos = self.joints.qpos_adr[: self.n_arm].astype(np.int64)
+        self._arm_dofs = self.joints.qvel_adr[: self.n_arm].astype(np.int64)
         self._arm_lower = self.joints.lower[: self.n_arm]
         self._arm_upper = self.joints.upper[: self.n_arm]
         self._jac = np.zeros((6, self.model.nv))  # translation rows, then rotation rows
         self._weights = np.repeat([self.config.position_cost, self.config.orientation_cost], 3)
-        self._weights_col = self._weights[:, None]
+        self._no_rows = (np.zeros((0, self.n_arm)), np.zeros(0))
         self._posture = self.configuration.q[self._arm_qpos].copy()
         self.collision: CollisionLimit | None = None
         if self.config.collision_avoidance:
@@ -168,39 +168,24 @@ class ArmIK:
 
     def _step(self, T_world_target: np.ndarray, dt: float) -> None:
         cfg, model = self.configuration, self.model
-        data, body, arm = cfg.data, self._hand_body, self._arm_dofs
-        # Hand pose error in the world frame: position, and the rotation vector that takes
-        # the current orientation to the target's.
-        R_world_hand = data.xmat[body].reshape(3, 3)
-        error = np.empty(6)
-        error[:3] = T_world_target[:3, 3] - data.xpos[body]
-        error[3:] = so3_log(T_world_target[:3, :3] @ R_world_hand.T)
+        data, body = cfg.data, self._hand_body
+        # Hand pose error in the world frame (position, and the rotation vector that takes the
+        # current orientation to the target's), weighted; Jacobian of the hand body.
         mujoco.mj_jacBody(model, data, self._jac[:3], self._jac[3:], body)
-        J = self._jac[:, arm] * self._weights_col
-        e = self._weights * error
-        q_arm = cfg.data.qpos[self._arm_qpos]  # a copy (fancy index)
-        w_posture = self.config.posture_cost**2
-        H = J.T @ J
-        H.flat[:: self.n_arm + 1] += (
-            w_posture + self.config.damping + self.config.lm_damping * float(e @ e)
-        )
-        c = -(e @ J) + w_posture * (q_arm - self._posture)
-        speed = self.config.max_joint_speed * dt
-        upper = np.minimum(JOINT_LIMIT_GAIN * (self._arm_upper - q_arm), speed)
-        lower = np.maximum(JOINT_LIMIT_GAIN * (self._arm_lower - q_arm), -speed)
-        # A joint already past a limit (set from outside) may only move back.
-        upper = np.maximum(upper, 0.0)
-        lower = np.minimum(lower, 0.0)
-        A = np.zeros((0, self.n_arm))
-        h = np.zeros(0)
+        config = self.config
+        H, c, lower, upper = kernels.arm_qp(
+            self._jac, self._arm_dofs, self._weights, T_world_target,
+            data.xpos[body], data.xmat[body].reshape(3, 3), data.qpos, self._arm_qpos,
+            self._posture, config.posture_cost**2, config.damping, config.lm_damping,
+            config.max_joint_speed * dt, self._arm_lower, self._arm_upper, JOINT_LIMIT_GAIN,
+        )  # fmt: skip
+        A, h = self._no_rows
         if self.collision is not None:
             # dt = 1: the bound is on the step itself (a velocity damper per tick).
             _, rows, h = self.collision.active_rows(cfg, 1.0)
-            A = rows[:, arm]
-        bupper = np.concatenate([upper, h])
-        blower = np.concatenate([lower, np.full(h.size, -1e30)])
-        sense = np.zeros(bupper.size, dtype=np.int32)
-        dq, _, exitflag, _ = daqp.solve(H, c, np.ascontiguousarray(A), bupper, blower, sense)
+            A = rows[:, self._arm_dofs]  # fancy index: a C-contiguous copy
+        bupper, blower, sense = kernels.stack_bounds(lower, upper, h)
+        dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
         if exitflag <= 0:  # infeasible (e.g. already in collision): hold this tick
             return
         q = cfg.q  # a copy

@@ -27,6 +27,7 @@ import mink
 import mujoco
 import numpy as np
 
+from beavr_sim.teleop import kernels
 from beavr_sim.teleop.jacobians import PointJacobians
 
 _BOX = mujoco.mjtGeom.mjGEOM_BOX
@@ -99,7 +100,7 @@ def distance_model(
     # The compiler may reorder pairs: map each back to its index in ``pairs`` by geom names.
     original = {name: g for g, name in enumerate(names)} | {n: g for g, n in twin.items()}
     index = {frozenset(p): i for i, p in enumerate(pairs)}
-    lookup = np.full((dmodel.ngeom, dmodel.ngeom), -1, dtype=int)
+    lookup = np.full((dmodel.ngeom, dmodel.ngeom), -1, dtype=np.int64)
     for i in range(dmodel.npair):
         g1, g2 = int(dmodel.pair_geom1[i]), int(dmodel.pair_geom2[i])
         key = frozenset((original[dmodel.geom(g1).name], original[dmodel.geom(g2).name]))
@@ -143,7 +144,8 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         )
         self.distance_model, self._lookup = distance_model(spec, model, pairs, self._distmax)
         self._ddata = mujoco.MjData(self.distance_model)
-        self._geom_body = self.distance_model.geom_bodyid
+        self._geom_body = self.distance_model.geom_bodyid.astype(np.int64)
+        self._npairs = len(pairs)
         self._jacobians = PointJacobians(model)
 
     def distances(self, configuration: mink.Configuration):
@@ -151,28 +153,25 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         ``(pair indices, distances, normals (geom 1 -> geom 2), witness points on geom 1, on
         geom 2, body of geom 1, body of geom 2)``, one row per contact (a pair may have
         several, e.g. a capsule lying along a box face: each is a valid constraint)."""
+        ddata = self._query(configuration)
+        contact = ddata.contact
+        geom, dist = contact.geom, contact.dist
+        keep, pair = kernels.select_contacts(
+            geom, dist, self._lookup, self._npairs, self.closest_only
+        )
+        geom, dist = geom[keep], dist[keep]
+        normal, pos = contact.frame[keep, :3], contact.pos[keep]
+        half = (0.5 * dist)[:, None] * normal
+        body = self._geom_body[geom]
+        return pair, dist, normal, pos - half, pos + half, body[:, 0], body[:, 1]
+
+    def _query(self, configuration: mink.Configuration) -> mujoco.MjData:
+        """The distance model's data after one ``mj_collision`` at ``configuration``."""
         dmodel, ddata = self.distance_model, self._ddata
         ddata.qpos[:] = configuration.data.qpos
         mujoco.mj_kinematics(dmodel, ddata)
         mujoco.mj_collision(dmodel, ddata)
-        n = ddata.ncon
-        contact = ddata.contact
-        geom = contact.geom[:n]
-        dist = contact.dist[:n]
-        pair = self._lookup[geom[:, 0], geom[:, 1]]
-        if self.closest_only and n > 1:
-            order = np.lexsort((dist, pair))
-            first = np.empty(n, dtype=bool)  # the first (closest) contact of each pair
-            first[0] = True
-            np.not_equal(pair[order[1:]], pair[order[:-1]], out=first[1:])
-            keep = order[first]
-            geom, dist, pair = geom[keep], dist[keep], pair[keep]
-            normal, pos = contact.frame[keep, :3], contact.pos[keep]
-        else:
-            normal, pos = contact.frame[:n, :3], contact.pos[:n]
-        half = (0.5 * dist)[:, None] * normal
-        body = self._geom_body[geom]
-        return pair, dist, normal, pos - half, pos + half, body[:, 0], body[:, 1]
+        return ddata
 
     def active_rows(
         self, configuration: mink.Configuration, dt: float
@@ -183,18 +182,16 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         return hits, rows, h
 
     def _rows(self, configuration: mink.Configuration, dt: float):
-        model, data = self.model, configuration.data  # data: kinematics and comPos done
-        hits, dist, normal, p1, p2, b1, b2 = self.distances(configuration)
-        k = hits.size
-        if k == 0:
-            return hits, dist, np.zeros((0, model.nv)), np.zeros(0)
-        rows = self._jacobians.normal_rows(data, normal, b1, p1, b2, p2)
-        min_dist = self.minimum_distance_from_collisions
-        h = (
-            np.where(dist > min_dist, self.gain * (dist - min_dist) / dt, 0.0)
-            + self.bound_relaxation
-        )
-        return hits, dist, rows, h
+        data = configuration.data  # kinematics and comPos done
+        contact = self._query(configuration).contact
+        jac = self._jacobians
+        return kernels.contact_rows(
+            contact.geom, contact.dist, contact.frame, contact.pos,
+            self._lookup, self._geom_body, self._npairs, self.closest_only,
+            data.cdof, data.subtree_com, jac.root, jac.chain,
+            float(self.gain), float(self.minimum_distance_from_collisions),
+            float(self.bound_relaxation), float(dt),
+        )  # fmt: skip
 
     def compute_qp_inequalities(self, configuration: mink.Configuration, dt: float):
         """mink's form: one row per pair (its closest contact), +inf for pairs out of range."""

@@ -13,6 +13,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from beavr_sim.teleop import kernels
+
 
 class KeypointSmoother:
     """Moving average of the last ``window`` keypoint arrays (any fixed shape)."""
@@ -31,14 +33,18 @@ class KeypointSmoother:
         keypoints = np.asarray(keypoints, dtype=np.float64)
         if self._buffer is None or (self._count == 0 and self._buffer.shape[1:] != keypoints.shape):
             self._buffer = np.empty((self.window, *keypoints.shape))
+            self._rows = self._buffer.reshape(self.window, -1)  # a view
         elif self._buffer.shape[1:] != keypoints.shape:
             raise ValueError(
                 f"keypoints shape changed from {self._buffer.shape[1:]} to {keypoints.shape}"
             )
-        self._buffer[self._count % self.window] = keypoints
+        slot = self._count % self.window
         self._count += 1
-        n = min(self._count, self.window)
-        return self._buffer[:n].sum(axis=0) / n
+        out = np.empty(keypoints.shape)
+        kernels.ring_average(
+            self._rows, slot, min(self._count, self.window), keypoints.ravel(), out.reshape(-1)
+        )
+        return out
 
 
 class PoseSmoother:
@@ -56,8 +62,6 @@ class PoseSmoother:
         self.alpha_rotation = float(alpha_rotation)
         self._T: np.ndarray | None = None
         self._q = np.empty(4)  # filtered rotation
-        self._q_measured, self._q_inv, self._q_rel = np.empty(4), np.empty(4), np.empty(4)
-        self._w, self._R = np.empty(3), np.empty(9)
 
     def reset(self, T: np.ndarray | None = None) -> None:
         self._T = None
@@ -73,17 +77,10 @@ class PoseSmoother:
         T_measured = np.asarray(T_measured, dtype=np.float64)
         if self._T is None:
             return self._start(T_measured)
-        T = self._T
-        T[:3, 3] += self.alpha_position * (T_measured[:3, 3] - T[:3, 3])
-        # SLERP: q <- q * exp(alpha * log(q^-1 q_measured)), the shorter way round.
-        mujoco.mju_mat2Quat(self._q_measured, np.ascontiguousarray(T_measured[:3, :3]).ravel())
-        mujoco.mju_negQuat(self._q_inv, self._q)
-        mujoco.mju_mulQuat(self._q_rel, self._q_inv, self._q_measured)
-        mujoco.mju_quat2Vel(self._w, self._q_rel, 1.0)
-        mujoco.mju_quatIntegrate(self._q, self._w, self.alpha_rotation)
-        mujoco.mju_quat2Mat(self._R, self._q)
-        T[:3, :3] = self._R.reshape(3, 3)
-        return T.copy()
+        # LERP on the position; SLERP: q <- q * exp(alpha * log(q^-1 q_measured)), the
+        # shorter way round.
+        kernels.pose_slerp(self._T, self._q, T_measured, self.alpha_position, self.alpha_rotation)
+        return self._T.copy()
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:

@@ -16,8 +16,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-#: Index orders for cross products written over arrays: (a x b) = a[YZX] b[ZXY] - a[ZXY] b[YZX].
-_YZX, _ZXY = np.array([1, 2, 0]), np.array([2, 0, 1])
+from beavr_sim.teleop import kernels
 
 
 class PointJacobians:
@@ -34,22 +33,16 @@ class PointJacobians:
                 chain[b, start : start + int(model.body_dofnum[a])] = 1.0
                 a = int(model.body_parentid[a])
         self.chain = chain
-        self.root = np.asarray(model.body_rootid)
-
-    def _offsets(self, data: mujoco.MjData, bodies: np.ndarray, points: np.ndarray):
-        return points - data.subtree_com[self.root[bodies]]
+        self.root = np.asarray(model.body_rootid, dtype=np.int64)
 
     def points(self, data: mujoco.MjData, bodies: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(k, 3, nv) Jacobians of ``points`` (k x 3, world) fixed to ``bodies`` (k)."""
-        bodies = np.asarray(bodies, dtype=int)
-        ang_t, lin_t = data.cdof[:, :3].T, data.cdof[:, 3:].T
-        o = self._offsets(data, bodies, points)[:, :, None]
-        # Column k: lin_k + ang_k x o, the cross product written over arrays.
-        J = ang_t[_YZX] * o[:, _ZXY]
-        J -= ang_t[_ZXY] * o[:, _YZX]
-        J += lin_t
-        J *= self.chain[bodies][:, None, :]
-        return J
+        bodies = np.asarray(bodies, dtype=np.int64)
+        points = np.asarray(points, dtype=np.float64)
+        out = np.empty((bodies.size, 3, self.model.nv))
+        return kernels.point_jacobians(
+            data.cdof, data.subtree_com, self.root, self.chain, bodies, points, out
+        )
 
     def normal_rows(
         self,
@@ -62,16 +55,15 @@ class PointJacobians:
     ) -> np.ndarray:
         """(k, nv) rows ``n^T (J(p1) - J(p2))``: the rate at which each contact's separation
         along ``normals`` (geom 1 -> geom 2) shrinks per unit joint velocity."""
-        ang, lin = data.cdof[:, :3], data.cdof[:, 3:]
-        k = len(normals)
-        bodies = np.concatenate([bodies1, bodies2])
-        o = np.concatenate([points1, points2]) - data.subtree_com[self.root[bodies]]
-        n = np.concatenate([normals, normals])
-        # n . (ang_k x o) = ang_k . (o x n); both points' terms in one product.
-        x = o[:, _YZX] * n[:, _ZXY] - o[:, _ZXY] * n[:, _YZX]
-        terms = x @ ang.T
-        lin_n = normals @ lin.T
-        terms[:k] += lin_n
-        terms[k:] += lin_n
-        terms *= self.chain[bodies]
-        return terms[:k] - terms[k:]
+        f64, i64 = np.float64, np.int64
+        return kernels.normal_rows(
+            data.cdof,
+            data.subtree_com,
+            self.root,
+            self.chain,
+            np.ascontiguousarray(normals, dtype=f64),
+            np.asarray(bodies1, dtype=i64),
+            np.ascontiguousarray(points1, dtype=f64),
+            np.asarray(bodies2, dtype=i64),
+            np.ascontiguousarray(points2, dtype=f64),
+        )

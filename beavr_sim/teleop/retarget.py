@@ -33,6 +33,7 @@ import numpy as np
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
 from beavr_sim.robots.parts import LEAP_HAND
+from beavr_sim.teleop import kernels
 from beavr_sim.teleop.collision import CollisionLimit
 from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, SIDES
 from beavr_sim.teleop.jacobians import PointJacobians
@@ -269,7 +270,8 @@ class _PointsTask(mink.Task):
             [
                 model.site_bodyid[i] if site else i
                 for site, i in zip(self.is_site, self.ids, strict=True)
-            ]
+            ],
+            dtype=np.int64,
         )
         self._jacobians = PointJacobians(model)
         self._site_rows, self._body_rows = (
@@ -384,7 +386,9 @@ class LeapRetargeter:
         )
         self._held = np.zeros(model.nv, dtype=bool)
         self._any_held = False
-        self._H_diagonal = (self.config.damping + self.config.posture_weight**2) * np.eye(model.nv)
+        self._posture_weight2 = float(self.config.posture_weight**2)
+        self._diagonal = float(self.config.damping) + self._posture_weight2
+        self._limit_gain = float(self.joint_limit.gain)
         # Degrees of freedom (qvel addresses) and target points of each finger.
         self._finger_dofs = {
             f: np.array([model.joint(LEAP_HAND.joints[m]).dofadr[0] for m in FINGER_MOTORS[f]])
@@ -473,24 +477,18 @@ class LeapRetargeter:
         are stacked, joint limits become simple bounds, and only active collision rows are kept.
         """
         cfg = self.configuration
-        # The quantities of mink's task residuals (weights enter squared; no LM term).
-        points, w_post = self.points, self.config.posture_weight**2
-        error, J = points.error_and_jacobian(cfg)
-        WJ = points.cost[:, None] * J
-        H = WJ.T @ WJ
-        H += self._H_diagonal  # damping + posture weight on the diagonal
-        q = cfg.data.qpos  # read only here (mink's cfg.q is a copy)
-        c = (points.cost * error) @ WJ + w_post * (q - self._posture)
-        gain = self.joint_limit.gain
-        upper = np.minimum(gain * (self._upper_qpos - q), self.config.max_step)
-        lower = np.maximum(gain * (self._lower_qpos - q), -self.config.max_step)
-        if self._any_held:
-            upper[self._held] = 0.0
-            lower[self._held] = 0.0
+        data, points, jac = cfg.data, self.points, self.points._jacobians
+        q = data.qpos  # read only here (mink's cfg.q is a copy)
+        # mink's task residuals (weights enter squared), damping and posture on the diagonal.
+        H, c, lower, upper = kernels.points_qp(
+            data.cdof, data.subtree_com, jac.root, jac.chain,
+            points._bodies, points._update_positions(data), points.targets, points.cost,
+            q, self._posture, self._posture_weight2, self._diagonal,
+            self._lower_qpos, self._upper_qpos, self._limit_gain, self.config.max_step,
+            self._held,
+        )  # fmt: skip
         _, A, h = self.collision_limit.active_rows(cfg, 1.0)
-        bupper = np.concatenate([upper, h])
-        blower = np.concatenate([lower, np.full(h.size, -1e30)])
-        sense = np.zeros(bupper.size, dtype=np.int32)
+        bupper, blower, sense = kernels.stack_bounds(lower, upper, h)
         dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
         if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
             if self._any_held:

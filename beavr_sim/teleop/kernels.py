@@ -1,0 +1,383 @@
+"""Compiled per-tick kernels of the operator's QPs (numba).
+
+The operator's control tick assembles two small QPs (arm IK, LEAP retargeting) from MuJoCo's
+kinematics: point Jacobians, collision rows, Hessian, gradient and bounds. Written as numpy
+expressions this is a hundred or so calls on arrays of 3 to 50 numbers, each costing a few
+microseconds of interpreter and dispatch overhead: most of the tick. Here the same
+arithmetic is written as plain loops and compiled once by numba (cached on disk next to
+this module, so later processes load it in milliseconds), one call per piece.
+
+The formulas are those of :mod:`beavr_sim.teleop.jacobians` (point Jacobians from the dofs'
+motion subspaces ``cdof``) and of mink's tasks and limits; the callers document them, and
+the tests check the kernels against ``mj_jac``, finite differences and the numpy forms.
+
+Inputs are float64 / int64 arrays in MuJoCo's layouts (``cdof``: nv x 6, angular then
+linear; contact frames: ncon x 9 with the normal first).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True)
+
+
+@_jit
+def point_jacobians(cdof, subtree_com, root, chain, bodies, points, out):
+    """Fill ``out`` (k, 3, nv) with the translational Jacobians of ``points`` (k, 3; world)
+    fixed to ``bodies`` (k): column j is ``chain[b, j] (lin_j + ang_j x (p - c_root(b)))``."""
+    nv = cdof.shape[0]
+    for i in range(bodies.shape[0]):
+        b = bodies[i]
+        r = root[b]
+        ox = points[i, 0] - subtree_com[r, 0]
+        oy = points[i, 1] - subtree_com[r, 1]
+        oz = points[i, 2] - subtree_com[r, 2]
+        for j in range(nv):
+            m = chain[b, j]
+            if m == 0.0:
+                out[i, 0, j] = 0.0
+                out[i, 1, j] = 0.0
+                out[i, 2, j] = 0.0
+                continue
+            ax, ay, az = cdof[j, 0], cdof[j, 1], cdof[j, 2]
+            out[i, 0, j] = m * (cdof[j, 3] + ay * oz - az * oy)
+            out[i, 1, j] = m * (cdof[j, 4] + az * ox - ax * oz)
+            out[i, 2, j] = m * (cdof[j, 5] + ax * oy - ay * ox)
+    return out
+
+
+@_jit
+def _normal_term(cdof, subtree_com, root, chain, b, px, py, pz, nx, ny, nz, sign, row):
+    """``row += sign * n^T J(p)`` for point p fixed to body b (n . (ang x o) = ang . (o x n))."""
+    r = root[b]
+    ox = px - subtree_com[r, 0]
+    oy = py - subtree_com[r, 1]
+    oz = pz - subtree_com[r, 2]
+    cx = oy * nz - oz * ny
+    cy = oz * nx - ox * nz
+    cz = ox * ny - oy * nx
+    for j in range(cdof.shape[0]):
+        m = chain[b, j]
+        if m != 0.0:
+            row[j] += (
+                sign
+                * m
+                * (
+                    cdof[j, 0] * cx
+                    + cdof[j, 1] * cy
+                    + cdof[j, 2] * cz
+                    + cdof[j, 3] * nx
+                    + cdof[j, 4] * ny
+                    + cdof[j, 5] * nz
+                )
+            )
+
+
+@_jit
+def normal_rows(cdof, subtree_com, root, chain, normals, bodies1, points1, bodies2, points2):
+    """(k, nv) rows ``n^T (J(p1) - J(p2))`` (see ``PointJacobians.normal_rows``)."""
+    k = normals.shape[0]
+    rows = np.zeros((k, cdof.shape[0]))
+    for i in range(k):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        _normal_term(
+            cdof, subtree_com, root, chain, bodies1[i],
+            points1[i, 0], points1[i, 1], points1[i, 2], nx, ny, nz, 1.0, rows[i],
+        )  # fmt: skip
+        _normal_term(
+            cdof, subtree_com, root, chain, bodies2[i],
+            points2[i, 0], points2[i, 1], points2[i, 2], nx, ny, nz, -1.0, rows[i],
+        )  # fmt: skip
+    return rows
+
+
+@_jit
+def select_contacts(geom, dist, lookup, npairs, closest_only):
+    """Indices of the contacts to keep and their pair indices (``lookup[g1, g2]``).
+
+    ``closest_only``: each pair's closest contact (the first of equally close ones), in pair
+    order; otherwise every contact, in MuJoCo's order."""
+    n = geom.shape[0]
+    if not closest_only or n <= 1:
+        pairs = np.empty(n, dtype=np.int64)
+        for i in range(n):
+            pairs[i] = lookup[geom[i, 0], geom[i, 1]]
+        return np.arange(n), pairs
+    best = np.full(npairs, -1, dtype=np.int64)
+    for i in range(n):
+        p = lookup[geom[i, 0], geom[i, 1]]
+        if best[p] < 0 or dist[i] < dist[best[p]]:
+            best[p] = i
+    k = 0
+    for p in range(npairs):
+        if best[p] >= 0:
+            k += 1
+    keep = np.empty(k, dtype=np.int64)
+    pairs = np.empty(k, dtype=np.int64)
+    k = 0
+    for p in range(npairs):
+        if best[p] >= 0:
+            keep[k] = best[p]
+            pairs[k] = p
+            k += 1
+    return keep, pairs
+
+
+@_jit
+def contact_rows(
+    geom, dist, frame, pos, lookup, geom_body, npairs, closest_only,
+    cdof, subtree_com, root, chain, gain, min_distance, relaxation, dt,
+):  # fmt: skip
+    """mink's collision-avoidance rows from MuJoCo's contacts, ``G dq <= h``: per kept contact
+    (distance d, normal n from geom 1 to geom 2, midpoint p; witness points ``p -/+ d n / 2``)
+    the row ``n^T (J(p1) - J(p2))`` and ``h = gain (d - min_distance) / dt`` (0 once within
+    ``min_distance``) ``+ relaxation``. Returns (pair indices, distances, rows, h)."""
+    keep, pairs = select_contacts(geom, dist, lookup, npairs, closest_only)
+    k = keep.shape[0]
+    nv = cdof.shape[0]
+    rows = np.zeros((k, nv))
+    h = np.empty(k)
+    d_kept = np.empty(k)
+    for r in range(k):
+        i = keep[r]
+        d = dist[i]
+        nx, ny, nz = frame[i, 0], frame[i, 1], frame[i, 2]
+        hx, hy, hz = 0.5 * d * nx, 0.5 * d * ny, 0.5 * d * nz
+        px, py, pz = pos[i, 0], pos[i, 1], pos[i, 2]
+        b1, b2 = geom_body[geom[i, 0]], geom_body[geom[i, 1]]
+        _normal_term(
+            cdof, subtree_com, root, chain, b1, px - hx, py - hy, pz - hz, nx, ny, nz, 1.0, rows[r]
+        )
+        _normal_term(
+            cdof, subtree_com, root, chain, b2, px + hx, py + hy, pz + hz, nx, ny, nz, -1.0, rows[r]
+        )
+        h[r] = (gain * (d - min_distance) / dt if d > min_distance else 0.0) + relaxation
+        d_kept[r] = d
+    return pairs, d_kept, rows, h
+
+
+@_jit
+def points_qp(
+    cdof, subtree_com, root, chain, bodies, positions, targets, cost,
+    qpos, posture, posture_weight, diagonal, lower_q, upper_q, limit_gain, max_step, held,
+):  # fmt: skip
+    """The retargeting step's QP in the step ``dq``: minimise ``1/2 dq^T H dq + c^T dq``
+    under ``lower <= dq <= upper``, for the weighted point residuals ``cost * (p - target)``
+    (3 rows per point), ``posture_weight * (q - posture)`` and ``diagonal`` on H's diagonal.
+    Bounds: ``limit_gain`` of the way to each joint limit, at most ``max_step``; 0 for
+    ``held`` dofs. Returns (H, c, lower, upper)."""
+    nv = cdof.shape[0]
+    k = bodies.shape[0]
+    J = np.empty((k, 3, nv))
+    point_jacobians(cdof, subtree_com, root, chain, bodies, positions, J)
+    H = np.zeros((nv, nv))
+    c = np.zeros(nv)
+    for i in range(k):
+        for a in range(3):
+            w = cost[3 * i + a]
+            if w == 0.0:
+                continue
+            w2 = w * w
+            e = positions[i, a] - targets[i, a]
+            for j in range(nv):
+                Jj = J[i, a, j]
+                if Jj == 0.0:
+                    continue
+                c[j] += w2 * e * Jj
+                for m in range(j, nv):
+                    H[j, m] += w2 * Jj * J[i, a, m]
+    lower = np.empty(nv)
+    upper = np.empty(nv)
+    for j in range(nv):
+        H[j, j] += diagonal
+        for m in range(j + 1, nv):
+            H[m, j] = H[j, m]
+        c[j] += posture_weight * (qpos[j] - posture[j])
+        if held[j]:
+            lower[j] = 0.0
+            upper[j] = 0.0
+        else:
+            upper[j] = min(limit_gain * (upper_q[j] - qpos[j]), max_step)
+            lower[j] = max(limit_gain * (lower_q[j] - qpos[j]), -max_step)
+    return H, c, lower, upper
+
+
+@_jit
+def stack_bounds(lower, upper, h):
+    """DAQP's bounds for simple bounds ``lower <= x <= upper`` then rows ``A x <= h``:
+    (upper bounds, lower bounds (-1e30: none), senses)."""
+    n, k = lower.shape[0], h.shape[0]
+    bupper = np.empty(n + k)
+    blower = np.empty(n + k)
+    bupper[:n] = upper
+    blower[:n] = lower
+    bupper[n:] = h
+    blower[n:] = -1e30
+    return bupper, blower, np.zeros(n + k, dtype=np.int32)
+
+
+@_jit
+def quat_from_matrix(R):
+    """Unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` (3 x 3), by
+    Shepperd's method (the largest of w, x, y, z computed first, for accuracy)."""
+    t = R[0, 0] + R[1, 1] + R[2, 2]
+    if t >= max(R[0, 0], R[1, 1], R[2, 2]):
+        s = 2.0 * np.sqrt(1.0 + t)
+        w = 0.25 * s
+        x = (R[2, 1] - R[1, 2]) / s
+        y = (R[0, 2] - R[2, 0]) / s
+        z = (R[1, 0] - R[0, 1]) / s
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        w = (R[2, 1] - R[1, 2]) / s
+        x = 0.25 * s
+        y = (R[0, 1] + R[1, 0]) / s
+        z = (R[0, 2] + R[2, 0]) / s
+    elif R[1, 1] >= R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        w = (R[0, 2] - R[2, 0]) / s
+        x = (R[0, 1] + R[1, 0]) / s
+        y = 0.25 * s
+        z = (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        w = (R[1, 0] - R[0, 1]) / s
+        x = (R[0, 2] + R[2, 0]) / s
+        y = (R[1, 2] + R[2, 1]) / s
+        z = 0.25 * s
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    n = np.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+@_jit
+def _log_quat(w, x, y, z):
+    """Rotation vector of the unit quaternion (w, x, y, z), the shorter way round."""
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    sin_half = np.sqrt(x * x + y * y + z * z)
+    if sin_half < 1e-12:
+        return 2.0 * x, 2.0 * y, 2.0 * z
+    scale = 2.0 * np.arctan2(sin_half, w) / sin_half
+    return scale * x, scale * y, scale * z
+
+
+@_jit
+def rotation_vector(R):
+    """Rotation vector (axis * angle, angle in [0, pi]) of the rotation matrix ``R``."""
+    w, x, y, z = quat_from_matrix(R)
+    out = np.empty(3)
+    out[0], out[1], out[2] = _log_quat(w, x, y, z)
+    return out
+
+
+@_jit
+def _quat_mul(aw, ax, ay, az, bw, bx, by, bz):
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+@_jit
+def pose_slerp(T, q, T_measured, alpha_position, alpha_rotation):
+    """One step of the complementary pose filter, in place: ``T``'s position moves
+    ``alpha_position`` of the way to ``T_measured``'s (LERP), its rotation ``q`` (unit
+    quaternion, w first) ``alpha_rotation`` of the geodesic to the measured one (SLERP, the
+    shorter way round): ``q <- q exp(alpha log(q^-1 q_measured))``; ``T``'s rotation block
+    is set from the new ``q``."""
+    for a in range(3):
+        T[a, 3] += alpha_position * (T_measured[a, 3] - T[a, 3])
+    mw, mx, my, mz = quat_from_matrix(T_measured[:3, :3])
+    rw, rx, ry, rz = _quat_mul(q[0], -q[1], -q[2], -q[3], mw, mx, my, mz)
+    vx, vy, vz = _log_quat(rw, rx, ry, rz)
+    angle = alpha_rotation * np.sqrt(vx * vx + vy * vy + vz * vz)
+    if angle > 0.0:
+        s = np.sin(0.5 * angle) / np.sqrt(vx * vx + vy * vy + vz * vz)
+        w, x, y, z = _quat_mul(q[0], q[1], q[2], q[3], np.cos(0.5 * angle), s * vx, s * vy, s * vz)
+        n = np.sqrt(w * w + x * x + y * y + z * z)
+        q[0], q[1], q[2], q[3] = w / n, x / n, y / n, z / n
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    T[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    T[0, 1] = 2.0 * (x * y - w * z)
+    T[0, 2] = 2.0 * (x * z + w * y)
+    T[1, 0] = 2.0 * (x * y + w * z)
+    T[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    T[1, 2] = 2.0 * (y * z - w * x)
+    T[2, 0] = 2.0 * (x * z - w * y)
+    T[2, 1] = 2.0 * (y * z + w * x)
+    T[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@_jit
+def ring_average(buffer, slot, n, x, out):
+    """Write ``x`` (flat) into row ``slot`` of the ring ``buffer`` (window x size) and put
+    the mean of its first ``n`` rows into ``out``."""
+    size = x.shape[0]
+    for j in range(size):
+        buffer[slot, j] = x[j]
+    for j in range(size):
+        total = 0.0
+        for i in range(n):
+            total += buffer[i, j]
+        out[j] = total / n
+
+
+@_jit
+def arm_qp(
+    jac, dofs, weights, T_world_target, p_world_hand, R_world_hand, qpos, qpos_adr,
+    posture, posture_weight, damping, lm_damping, max_step, lower_q, upper_q, limit_gain,
+):  # fmt: skip
+    """The arm IK step's QP in the arm joints' step ``dq`` (``ArmIK._step`` documents it):
+    weighted hand pose error ``e = weights * (p_target - p_hand, log(R_target R_hand^T))``,
+    ``J = weights * jac[:, dofs]``, ``H = J^T J + (posture_weight + damping + lm_damping
+    |e|^2) I``, ``c = -J^T e + posture_weight (q - posture)``; bounds ``limit_gain`` of the
+    way to each joint limit and at most ``max_step``, but never forcing a joint that is past
+    a limit further in (0 stays allowed). Returns (H, c, lower, upper)."""
+    n = dofs.shape[0]
+    e = np.empty(6)
+    for a in range(3):
+        e[a] = weights[a] * (T_world_target[a, 3] - p_world_hand[a])
+    R = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            R[a, b] = (
+                T_world_target[a, 0] * R_world_hand[b, 0]
+                + T_world_target[a, 1] * R_world_hand[b, 1]
+                + T_world_target[a, 2] * R_world_hand[b, 2]
+            )
+    w = rotation_vector(R)
+    for a in range(3):
+        e[3 + a] = weights[3 + a] * w[a]
+    J = np.empty((6, n))
+    for a in range(6):
+        for j in range(n):
+            J[a, j] = weights[a] * jac[a, dofs[j]]
+    ee = 0.0
+    for a in range(6):
+        ee += e[a] * e[a]
+    diagonal = posture_weight + damping + lm_damping * ee
+    H = np.zeros((n, n))
+    c = np.zeros(n)
+    for a in range(6):
+        for j in range(n):
+            c[j] -= e[a] * J[a, j]
+            for m in range(j, n):
+                H[j, m] += J[a, j] * J[a, m]
+    for j in range(n):
+        for m in range(j + 1, n):
+            H[m, j] = H[j, m]
+    lower = np.empty(n)
+    upper = np.empty(n)
+    for j in range(n):
+        H[j, j] += diagonal
+        q = qpos[qpos_adr[j]]
+        c[j] += posture_weight * (q - posture[j])
+        upper[j] = max(min(limit_gain * (upper_q[j] - q), max_step), 0.0)
+        lower[j] = min(max(limit_gain * (lower_q[j] - q), -max_step), 0.0)
+    return H, c, lower, upper
