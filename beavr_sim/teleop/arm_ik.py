@@ -107,6 +107,7 @@ class ArmIK:
         self._hand_body = self.model.body(f"{self.effector.name}/hand").id
         self._arm_qpos = self.joints.qpos_adr[: self.n_arm].astype(np.int64)
         self._arm_dofs = self.joints.qvel_adr[: self.n_arm].astype(np.int64)
+        self._hand_qpos = self.joints.qpos_adr[self.n_arm :]
         self._arm_lower = self.joints.lower[: self.n_arm]
         self._arm_upper = self.joints.upper[: self.n_arm]
         self._jac = np.zeros((6, self.model.nv))  # translation rows, then rotation rows
@@ -141,9 +142,8 @@ class ArmIK:
 
     def set_fingers(self, q_hand: np.ndarray) -> None:
         """Put the finger joints where the hand command puts them (collision geometry)."""
-        q = self.configuration.q  # a copy
-        q[self.joints.qpos_adr[self.n_arm :]] = q_hand
-        self.configuration.update(q)
+        self.configuration.data.qpos[self._hand_qpos] = q_hand
+        self.configuration.update()
 
     @property
     def q(self) -> np.ndarray:
@@ -188,6 +188,5 @@ class ArmIK:
         dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
         if exitflag <= 0:  # infeasible (e.g. already in collision): hold this tick
             return
-        q = cfg.q  # a copy
-        q[self._arm_qpos] += dq
-        cfg.update(q)
+        data.qpos[self._arm_qpos] += dq
+        cfg.update()

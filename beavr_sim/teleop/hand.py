@@ -23,12 +23,12 @@ little proximal (knuckle) joints and Gram-Schmidt orthonormalised.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from beavr_sim.naming import check_name
+from beavr_sim.teleop import kernels
 
 SIDES = ("right", "left")
 FINGERS = ("thumb", "index", "middle", "ring", "little")
@@ -115,45 +115,31 @@ _INDEX_KNUCKLE, _LITTLE_KNUCKLE = JOINT_INDEX["index_proximal"], JOINT_INDEX["li
 
 def R_world_palm(joints: np.ndarray, side: str) -> np.ndarray:
     """Rotation of the palm frame from the 26 canonical joints (see the module docstring)."""
-    if side not in PALMAR_NORMAL_SIGN:
-        check_name("side", side, SIDES)
-    # Plain floats: on single 3-vectors they are several times faster than numpy calls.
-    wx, wy, wz = joints[_WRIST].tolist()
-    mx, my, mz = joints[_MIDDLE_KNUCKLE].tolist()
-    ix, iy, iz = joints[_INDEX_KNUCKLE].tolist()
-    lx, ly, lz = joints[_LITTLE_KNUCKLE].tolist()
-    zx, zy, zz = mx - wx, my - wy, mz - wz
-    z_norm = math.sqrt(zx * zx + zy * zy + zz * zz)
-    if z_norm < 1e-6:
-        raise ValueError("degenerate hand: wrist and middle knuckle coincide")
-    zx, zy, zz = zx / z_norm, zy / z_norm, zz / z_norm
-    ax, ay, az = ix - lx, iy - ly, iz - lz  # across the knuckles
-    sign = PALMAR_NORMAL_SIGN[side]
-    xx, xy, xz = (
-        sign * (ay * zz - az * zy),
-        sign * (az * zx - ax * zz),
-        sign * (ax * zy - ay * zx),
-    )
-    dot = xx * zx + xy * zy + xz * zz  # Gram-Schmidt against z
-    xx, xy, xz = xx - dot * zx, xy - dot * zy, xz - dot * zz
-    x_norm = math.sqrt(xx * xx + xy * xy + xz * xz)
-    if x_norm < 1e-6:
-        raise ValueError("degenerate hand: knuckles in line with the fingers")
-    xx, xy, xz = xx / x_norm, xy / x_norm, xz / x_norm
-    yx, yy, yz = zy * xz - zz * xy, zz * xx - zx * xz, zx * xy - zy * xx
-    return np.array([[xx, yx, zx], [xy, yy, zy], [xz, yz, zz]])
+    return T_world_palm(joints, side)[:3, :3].copy()
+
+
+_PALM_ERRORS = {
+    1: "degenerate hand: wrist and middle knuckle coincide",
+    2: "degenerate hand: knuckles in line with the fingers",
+}
 
 
 def T_world_palm(joints: np.ndarray, side: str) -> np.ndarray:
     """4x4 pose of the palm frame (origin at the wrist) in the frame of ``joints``."""
+    sign = PALMAR_NORMAL_SIGN.get(side)
+    if sign is None:
+        check_name("side", side, SIDES)
     joints = np.asarray(joints, dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = R_world_palm(joints, side)
-    T[:3, 3] = joints[_WRIST]
+    T = np.empty((4, 4))
+    status = kernels.palm_pose(
+        joints, _WRIST, _MIDDLE_KNUCKLE, _INDEX_KNUCKLE, _LITTLE_KNUCKLE, sign, T
+    )
+    if status:
+        raise ValueError(_PALM_ERRORS[status])
     return T
 
 
 def keypoints_in_palm(joints: np.ndarray, side: str) -> np.ndarray:
     """The 26 joints expressed in the palm frame (26 x 3)."""
-    T = T_world_palm(joints, side)
-    return (np.asarray(joints, dtype=np.float64) - T[:3, 3]) @ T[:3, :3]
+    joints = np.asarray(joints, dtype=np.float64)
+    return kernels.in_frame(joints, T_world_palm(joints, side))

@@ -381,3 +381,87 @@ def arm_qp(
         upper[j] = max(min(limit_gain * (upper_q[j] - q), max_step), 0.0)
         lower[j] = min(max(limit_gain * (lower_q[j] - q), -max_step), 0.0)
     return H, c, lower, upper
+
+
+@_jit
+def palm_pose(joints, wrist, middle, index, little, sign, T):
+    """Fill ``T`` (4 x 4) with the palm frame of hand joints ``joints`` (n x 3): origin at
+    joint ``wrist``; z from the wrist to the middle knuckle; x ``sign`` (index - little
+    knuckle) x z, Gram-Schmidt orthonormalised against z; y = z x x. Returns 0, or 1 when
+    wrist and middle knuckle coincide, 2 when the knuckles lie in line with the fingers
+    (``T`` is then not set)."""
+    zx = joints[middle, 0] - joints[wrist, 0]
+    zy = joints[middle, 1] - joints[wrist, 1]
+    zz = joints[middle, 2] - joints[wrist, 2]
+    z_norm = np.sqrt(zx * zx + zy * zy + zz * zz)
+    if z_norm < 1e-6:
+        return 1
+    zx, zy, zz = zx / z_norm, zy / z_norm, zz / z_norm
+    ax = joints[index, 0] - joints[little, 0]
+    ay = joints[index, 1] - joints[little, 1]
+    az = joints[index, 2] - joints[little, 2]
+    xx = sign * (ay * zz - az * zy)
+    xy = sign * (az * zx - ax * zz)
+    xz = sign * (ax * zy - ay * zx)
+    dot = xx * zx + xy * zy + xz * zz
+    xx, xy, xz = xx - dot * zx, xy - dot * zy, xz - dot * zz
+    x_norm = np.sqrt(xx * xx + xy * xy + xz * xz)
+    if x_norm < 1e-6:
+        return 2
+    xx, xy, xz = xx / x_norm, xy / x_norm, xz / x_norm
+    T[0, 0], T[1, 0], T[2, 0] = xx, xy, xz
+    T[0, 1], T[1, 1], T[2, 1] = zy * xz - zz * xy, zz * xx - zx * xz, zx * xy - zy * xx
+    T[0, 2], T[1, 2], T[2, 2] = zx, zy, zz
+    T[0, 3], T[1, 3], T[2, 3] = joints[wrist, 0], joints[wrist, 1], joints[wrist, 2]
+    T[3, 0], T[3, 1], T[3, 2], T[3, 3] = 0.0, 0.0, 0.0, 1.0
+    return 0
+
+
+@_jit
+def in_frame(points, T):
+    """``points`` (n x 3) expressed in the frame of pose ``T``: ``(p - t) R``."""
+    n = points.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        dx = points[i, 0] - T[0, 3]
+        dy = points[i, 1] - T[1, 3]
+        dz = points[i, 2] - T[2, 3]
+        for a in range(3):
+            out[i, a] = dx * T[0, a] + dy * T[1, a] + dz * T[2, a]
+    return out
+
+
+@_jit
+def point_targets(keypoints, tracked, human_ids, scales, offset, targets, cost, base_cost):
+    """The retargeting's point targets from palm-frame keypoints, in place: for point i
+    (human joint ``human_ids[i]``), if tracked, ``targets[i] = offset + scales[i] *
+    keypoints[human_ids[i]]`` (untracked points keep theirs); ``cost`` reset to
+    ``base_cost``. Returns -1 (nothing changed) when a tracked point is NaN/inf, else 1 when
+    every point is tracked, 0 when some are not."""
+    k = human_ids.shape[0]
+    for i in range(k):
+        h = human_ids[i]
+        if tracked[h]:
+            for a in range(3):
+                if not np.isfinite(keypoints[h, a]):
+                    return -1
+    all_tracked = 1
+    for i in range(k):
+        h = human_ids[i]
+        if tracked[h]:
+            for a in range(3):
+                targets[i, a] = offset[a] + scales[i] * keypoints[h, a]
+        else:
+            all_tracked = 0
+    for j in range(cost.shape[0]):
+        cost[j] = base_cost[j]
+    return all_tracked
+
+
+@_jit
+def gather_clip(values, index, lower, upper):
+    """``min(max(values[index], lower), upper)``."""
+    out = np.empty(index.shape[0])
+    for i in range(index.shape[0]):
+        out[i] = min(max(values[index[i]], lower[i]), upper[i])
+    return out

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from beavr_sim.robots import Embodiment
+from beavr_sim.teleop import kernels
 from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.teleop.arm_mapping import RelativeMotionMapping, axis_map
 from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother
@@ -145,7 +146,8 @@ class EffectorOperator:
         self.pose_filter.reset()
         self._q_hand = q_effector[self.n_arm :].copy()
         self._T_palm: np.ndarray | None = None  # filtered palm pose
-        self._palm_keypoints: np.ndarray | None = None
+        self._smoothed: tuple[np.ndarray, np.ndarray] | None = None  # joints, palm pose
+        self._keypoints_palm: np.ndarray | None = None
         self._tracked: np.ndarray | None = None
         self._p_accepted: np.ndarray | None = None  # raw palm position last accepted
         self._t_accepted = -np.inf
@@ -181,7 +183,9 @@ class EffectorOperator:
         joints = self.keypoints(frame.joints)
         T_smooth = T_world_palm(joints, self.side)
         self._T_palm = self.pose_filter(T_smooth)
-        self._palm_keypoints = (joints - T_smooth[:3, 3]) @ T_smooth[:3, :3]
+        # Keypoints in the palm frame: computed when a tick uses them (the last frame's).
+        self._smoothed = joints, T_smooth
+        self._keypoints_palm = None
         self._tracked = frame.tracked
         self._t_source, self._t_receive = frame.t_source, frame.t_receive
         if frame.resolution != self._resolution and self.mapping.anchored:
@@ -190,6 +194,13 @@ class EffectorOperator:
         self._resolution = frame.resolution
         self._fresh = True
         return True
+
+    @property
+    def _palm_keypoints(self) -> np.ndarray | None:
+        """The smoothed keypoints of the last used frame in its (unfiltered) palm frame."""
+        if self._keypoints_palm is None and self._smoothed is not None:
+            self._keypoints_palm = kernels.in_frame(*self._smoothed)
+        return self._keypoints_palm
 
     def _is_jump(self, p: np.ndarray, t: float) -> bool:
         if self._p_accepted is None:

@@ -359,8 +359,9 @@ class LeapRetargeter:
                 human = HUMAN_SUFFIX.get((finger, name), human)
                 self._human_ids.append(JOINT_INDEX[f"{finger}_{human}"])
                 self._finger_of_point.append(finger)
-        self._human_ids = np.array(self._human_ids)
+        self._human_ids = np.array(self._human_ids, dtype=np.int64)
         self._scales = np.array([self.config.scale(f) for f in self._finger_of_point])[:, None]
+        self._point_scales = self._scales.ravel()
         self.points = _PointsTask(model, frames, np.array(costs))
         self._posture = np.zeros(model.nq)
         if self.config.posture is not None:
@@ -385,7 +386,8 @@ class LeapRetargeter:
             gain=self.config.collision_gain,
         )
         self._held = np.zeros(model.nv, dtype=bool)
-        self._any_held = False
+        self._any_held = self._held_any_before = False
+        self._all_tracked = np.ones(N_JOINTS, dtype=bool)
         self._posture_weight2 = float(self.config.posture_weight**2)
         self._diagonal = float(self.config.damping) + self._posture_weight2
         self._limit_gain = float(self.joint_limit.gain)
@@ -441,34 +443,37 @@ class LeapRetargeter:
                 f"got {keypoints.shape}"
             )
         if tracked is None:
-            used = np.ones(len(self._human_ids), dtype=bool)
+            tracked = self._all_tracked
         else:
             tracked = np.asarray(tracked, dtype=bool)
             if tracked.shape != (N_JOINTS,):
                 raise ValueError(f"tracked flags need shape ({N_JOINTS},), got {tracked.shape}")
-            used = tracked[self._human_ids]
-        points = keypoints[self._human_ids[used]]
-        if not np.isfinite(points).all():
+        points = self.points
+        status = kernels.point_targets(
+            keypoints, tracked, self._human_ids, self._point_scales, self.map.origin_offset,
+            points.targets, points.cost, points.base_cost,
+        )  # fmt: skip
+        if status < 0:
             raise ValueError(
                 "retarget got NaN/inf in tracked keypoints (tips / distal joints); flag them "
                 "untracked to hold those fingers"
             )
-        self.points.targets[used] = self.targets(keypoints)[used]
-        self.points.cost[:] = self.points.base_cost
-        self._held[:] = False
-        self._any_held = not used.all()
+        self._any_held = status == 0
         if self._any_held:
+            self._held[:] = False
+            used = tracked[self._human_ids]
             for finger in LEAP_FINGERS:
                 if not used[self._finger_points[finger]].all():
-                    self.points.cost.reshape(-1, 3)[self._finger_points[finger]] = 0.0
+                    points.cost.reshape(-1, 3)[self._finger_points[finger]] = 0.0
                     self._held[self._finger_dofs[finger]] = True
+        elif self._held_any_before:
+            self._held[:] = False
+        self._held_any_before = self._any_held
         for _ in range(self.config.iterations):
             self._step()
-        # np.minimum/np.maximum: several times cheaper than np.clip on 16 values.
-        q = np.minimum(
-            np.maximum(self.configuration.data.qpos[self.map.qpos_adr], self._lower), self._upper
+        return kernels.gather_clip(
+            self.configuration.data.qpos, self.map.qpos_adr, self._lower, self._upper
         )
-        return q
 
     def _step(self) -> None:
         """One QP step (Gauss-Newton with damping) under joint limits and collision avoidance.
@@ -493,7 +498,8 @@ class LeapRetargeter:
         if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
             if self._any_held:
                 dq[self._held] = 0.0
-            cfg.update(q + dq)  # hinges only: integrating is adding
+            q += dq  # in place (data.qpos); hinges only: integrating is adding
+            cfg.update()
 
     def retarget_converged(
         self, keypoints_palm: np.ndarray, iterations: int = 300, tolerance: float = 1e-7
