@@ -147,6 +147,25 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         self._geom_body = self.distance_model.geom_bodyid.astype(np.int64)
         self._npairs = len(pairs)
         self._jacobians = PointJacobians(model)
+        self._compile()
+
+    def _compile(self) -> None:
+        """Compile (or load) the rows kernel for both array layouts MuJoCo's contact fields
+        come in: contiguous for 0 or 1 contacts, strided views into the contact structs for
+        more. Otherwise the first tick that sees the other layout would stall to compile."""
+        data = mujoco.MjData(self.model)
+        mujoco.mj_kinematics(self.model, data)
+        mujoco.mj_comPos(self.model, data)
+        g1, g2 = self.distance_model.pair_geom1[0], self.distance_model.pair_geom2[0]
+        for n in (0, 2):  # strided like the contact fields: every other element
+            geom = np.zeros((n, 4), dtype=np.int32)[:, :2]
+            geom[:] = g1, g2
+            jac = self._jacobians
+            kernels.contact_rows(
+                geom, np.zeros(2 * n)[::2], np.ones((n, 18))[:, :9], np.zeros((n, 6))[:, :3],
+                self._lookup, self._geom_body, self._npairs, self.closest_only,
+                data.cdof, data.subtree_com, jac.root, jac.chain, 1.0, 0.0, 0.0, 1.0,
+            )  # fmt: skip
 
     def distances(self, configuration: mink.Configuration):
         """Contacts of the pairs within their detection distance at ``configuration``:

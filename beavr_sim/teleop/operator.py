@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,7 +40,7 @@ from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.teleop.arm_mapping import RelativeMotionMapping, axis_map
 from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother
 from beavr_sim.teleop.hand import JOINT_INDEX, SIDES, HandFrame, T_world_palm
-from beavr_sim.teleop.retarget import LeapRetargeter, RetargetConfig
+from beavr_sim.teleop.retarget import LeapRetargeter, RetargetConfig, human_template
 
 log = logging.getLogger("beavr_sim.teleop.operator")
 
@@ -134,7 +135,26 @@ class EffectorOperator:
         self.pose_filter = PoseSmoother(config.alpha_position, config.alpha_rotation)
         self.stats = OperatorStats()
         self.n_arm = len(self.effector.arm_joints)
+        self._warm_up(dt)
+
+    def _warm_up(self, dt: float) -> None:
+        """Run the per-frame and per-tick code once on the template hand, then re-home.
+
+        The per-tick arithmetic is in numba kernels (:mod:`beavr_sim.teleop.kernels`),
+        compiled on their first call (about 10 s on a small machine, once after install;
+        later processes load them from the on-disk cache in a fraction of a second). This
+        does it here, before any frame arrives, rather than in the first control tick."""
+        t0 = time.perf_counter()
         self.reset(self.ik.joints.home)
+        joints = human_template(self.side)
+        for i in range(2):
+            self.observe(HandFrame(self.side, i * dt, i * dt, joints))
+        self.command(dt, paused=False)
+        self.stats = OperatorStats()
+        self.reset(self.ik.joints.home)
+        elapsed = time.perf_counter() - t0
+        if elapsed > 1.0:
+            log.info("compiled the operator's kernels in %.1f s (cached for later runs)", elapsed)
 
     def reset(self, q_effector: np.ndarray) -> None:
         """Re-home: IK from these joints (arm then hand), mapping released, filters cleared."""

@@ -119,8 +119,9 @@ HUMAN_TEMPLATE_RIGHT: dict[str, tuple[float, float, float]] = {
 }
 
 
-def _template(side: str) -> np.ndarray:
-    """The 26 template joints for ``side`` (metacarpals a quarter of the way to the knuckles)."""
+def human_template(side: str) -> np.ndarray:
+    """The 26 joints of :data:`HUMAN_TEMPLATE_RIGHT` for ``side`` in its palm frame
+    (metacarpals a quarter of the way to the knuckles)."""
     joints = np.zeros((N_JOINTS, 3))
     for name, p in HUMAN_TEMPLATE_RIGHT.items():
         joints[JOINT_INDEX[name]] = p
@@ -237,7 +238,7 @@ class HandMap:
             mujoco.mj_kinematics(self.model, self.data)
             knuckle = self.data.body(LEAP_KNUCKLE_BODY).xpos
             self.origin_offset = (
-                knuckle - config.finger_scale * _template(side)[JOINT_INDEX["middle_proximal"]]
+                knuckle - config.finger_scale * human_template(side)[JOINT_INDEX["middle_proximal"]]
             )
         else:
             self.origin_offset = np.asarray(config.origin_offset, dtype=float)
@@ -556,7 +557,7 @@ def human_keypoints_for(
             f"human_keypoints_for needs {len(LEAP_HAND.joints)} finite joint values "
             f"(motor-id order), got shape {q.shape}"
         )
-    joints = _template(hand.side)
+    joints = human_template(hand.side)
     for finger, links in _leap_points(hand, q).items():
         for link, p_hand in links.items():
             human = "proximal" if finger == "thumb" and link == "intermediate" else link
