@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from beavr_sim.naming import check_name
+from beavr_sim.teleop import kernels
 
 RESOLUTION_SCALE = {"high": 1.0, "low": 0.6}
 
@@ -67,9 +68,6 @@ def axis_map(embodiment: str, side: str) -> AxisMap:
     return AXIS_MAPS[key]
 
 
-_BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
-
-
 def _inv(T: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = T[:3, :3].T
@@ -99,6 +97,8 @@ class RelativeMotionMapping:
         self._R_left = R_ar @ self.axes.A_rot @ R_ah_T
         self._R_right = np.ascontiguousarray(self.axes.A_rot.T)
         self._P = R_ar @ self.axes.A_trans @ R_ah_T
+        self._p_anchor_robot = self.T_anchor_robot[:3, 3].copy()
+        self._p_anchor_hand = self.T_anchor_hand[:3, 3].copy()
 
     def release(self) -> None:
         self.T_anchor_hand = self.T_anchor_robot = None
@@ -113,14 +113,10 @@ class RelativeMotionMapping:
         s = self._scale(resolution)
         # T_anchor_robot @ conj(inv(T_anchor_hand) @ T_world_hand), with the anchor's part
         # of the products precomputed in anchor().
-        T_world_hand = np.asarray(T_world_hand, dtype=np.float64)
-        out = np.empty((4, 4))
-        out[3] = _BOTTOM_ROW
-        out[:3, :3] = self._R_left @ T_world_hand[:3, :3] @ self._R_right
-        out[:3, 3] = self.T_anchor_robot[:3, 3] + s * (
-            self._P @ (T_world_hand[:3, 3] - self.T_anchor_hand[:3, 3])
-        )
-        return out
+        return kernels.mapped_pose(
+            self._R_left, self._R_right, self._P, self._p_anchor_robot, self._p_anchor_hand,
+            s, np.asarray(T_world_hand, dtype=np.float64),
+        )  # fmt: skip
 
     def hand_for(self, T_world_robot: np.ndarray, resolution: str = "high") -> np.ndarray:
         """The inverse: the palm pose that maps to ``T_world_robot`` (synthetic traces)."""

@@ -465,3 +465,29 @@ def gather_clip(values, index, lower, upper):
     for i in range(index.shape[0]):
         out[i] = min(max(values[index[i]], lower[i]), upper[i])
     return out
+
+
+@_jit
+def mapped_pose(R_left, R_right, P, p_anchor_robot, p_anchor_hand, scale, T_world_hand):
+    """The relative motion map's target (``RelativeMotionMapping.robot_target``): rotation
+    ``R_left R R_right``, position ``p_anchor_robot + scale P (p - p_anchor_hand)``, for
+    hand pose ``T_world_hand`` = (R, p). Returns a new 4 x 4 pose."""
+    M = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = (
+                R_left[a, 0] * T_world_hand[0, b]
+                + R_left[a, 1] * T_world_hand[1, b]
+                + R_left[a, 2] * T_world_hand[2, b]
+            )
+    out = np.zeros((4, 4))
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = M[a, 0] * R_right[0, b] + M[a, 1] * R_right[1, b] + M[a, 2] * R_right[2, b]
+    dx = T_world_hand[0, 3] - p_anchor_hand[0]
+    dy = T_world_hand[1, 3] - p_anchor_hand[1]
+    dz = T_world_hand[2, 3] - p_anchor_hand[2]
+    for a in range(3):
+        out[a, 3] = p_anchor_robot[a] + scale * (P[a, 0] * dx + P[a, 1] * dy + P[a, 2] * dz)
+    out[3, 3] = 1.0
+    return out
