@@ -13,9 +13,9 @@ margin, while the general convex collider (the one ``mj_geomDistance`` uses) get
 
 The rows are mink's: for a pair at distance ``d`` with normal ``n`` (geom 1 -> geom 2) and
 witness points ``p1``, ``p2``, ``-n^T (J(p2) - J(p1)) dq <= gain (d - margin) / dt`` (0 once
-within the margin), kept only for pairs within their detection distance. ``J(p)`` comes from
-one ``mj_jacBody`` per body involved, shifted to the witness point:
-``n^T J(p) = n^T Jp_body - (n x (p - x_body))^T Jr_body``.
+within the margin), kept only for pairs within their detection distance. ``J(p)`` is the
+point Jacobian from the dofs' motion subspaces (:mod:`beavr_sim.teleop.jacobians`); selection
+and rows are one compiled call (:func:`beavr_sim.teleop.kernels.contact_rows`).
 """
 
 from __future__ import annotations

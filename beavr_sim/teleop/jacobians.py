@@ -3,9 +3,10 @@
 ``mj_jac`` computes one point's Jacobian per call: for every degree of freedom k that moves
 the point's body, ``jacp[:, k] = lin_k + ang_k x (p - c)``, where ``(ang_k, lin_k)`` is the
 dof's motion in the com-based frame (``data.cdof``) and ``c`` the centre of mass of the body's
-kinematic tree (``data.subtree_com[body_rootid]``). The same formula written over arrays gives
-the Jacobians of all points (and their projections on contact normals) in a handful of numpy
-operations, which matters when a QP step needs dozens of them within a millisecond.
+kinematic tree (``data.subtree_com[body_rootid]``). The same formula, compiled
+(:mod:`beavr_sim.teleop.kernels`), gives the Jacobians of all points (and their projections on
+contact normals) in one call, which matters when a QP step needs dozens of them within a
+millisecond.
 
 ``data`` must have been through ``mj_kinematics`` and ``mj_comPos`` (``mink.Configuration``
 does both on ``update``).
