@@ -286,13 +286,6 @@ class _PointsTask(mink.Task):
         self._positions[self._body_rows] = data.xpos[self._body_ids]
         return self._positions
 
-    def error_and_jacobian(self, configuration: mink.Configuration):
-        """``compute_error`` and ``compute_jacobian`` sharing one position update."""
-        data = configuration.data
-        positions = self._update_positions(data)
-        J = self._jacobians.points(data, self._bodies, positions)
-        return (positions - self.targets).ravel(), J.reshape(-1, self.model.nv)
-
     def compute_error(self, configuration: mink.Configuration) -> np.ndarray:
         return (self._update_positions(configuration.data) - self.targets).ravel()
 
