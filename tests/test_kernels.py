@@ -42,9 +42,11 @@ def test_arm_qp_is_the_documented_problem():
     qpos, qpos_adr = rng.normal(size=nv), np.array([5, 4, 3, 2, 1, 0, 6])
     posture, lower_q, upper_q = rng.normal(size=7), -np.ones(7), np.ones(7)
     qpos[qpos_adr[0]] = 1.5  # past its upper limit: may only move back
-    H, c, lower, upper = kernels.arm_qp(
+    # Outputs start as garbage: the kernel must overwrite every entry.
+    H, c, lower, upper = np.full((7, 7), 9.0), np.full(7, 9.0), np.full(7, 9.0), np.full(7, 9.0)
+    kernels.arm_qp(
         jac, dofs, weights, T, p_hand, R_hand, qpos, qpos_adr,
-        posture, 1e-4, 1e-4, 1e-3, 0.07, lower_q, upper_q, 0.95,
+        posture, 1e-4, 1e-4, 1e-3, 0.07, lower_q, upper_q, 0.95, H, c, lower, upper,
     )  # fmt: skip
     e = weights * np.concatenate([T[:3, 3] - p_hand, so3_log(T[:3, :3] @ R_hand.T)])
     J = weights[:, None] * jac[:, dofs]
@@ -70,10 +72,13 @@ def test_points_qp_is_the_weighted_least_squares_step():
     held[[1, 5]] = True
     posture = rng.normal(size=model.nv)
     jac = PointJacobians(model)
-    H, c, lower, upper = kernels.points_qp(
+    nv = model.nv
+    H, c = np.full((nv, nv), 9.0), np.full(nv, 9.0)
+    lower, upper = np.full(nv, 9.0), np.full(nv, 9.0)
+    kernels.points_qp(
         data.cdof, data.subtree_com, jac.root, jac.chain, points._bodies, positions,
         targets, cost, data.qpos, posture, 1e-4, 2e-4, retargeter._lower_qpos,
-        retargeter._upper_qpos, 0.95, 0.1, held,
+        retargeter._upper_qpos, 0.95, 0.1, held, H, c, lower, upper,
     )  # fmt: skip
     J = np.concatenate(
         [_mj_jac(model, data, b, p) for b, p in zip(points._bodies, positions, strict=True)]
@@ -173,20 +178,23 @@ def test_small_helpers_match_numpy():
         np.testing.assert_allclose(out, rows[max(0, count - 4) : count].mean(axis=0))
     values, index = rng.normal(size=10), np.array([7, 2, 2, 9])
     lower, upper = -0.5 * np.ones(4), 0.5 * np.ones(4)
-    np.testing.assert_array_equal(
-        kernels.gather_clip(values, index, lower, upper), np.clip(values[index], -0.5, 0.5)
-    )
+    clipped = np.full(4, 9.0)
+    kernels.gather_clip(values, index, lower, upper, clipped)
+    np.testing.assert_array_equal(clipped, np.clip(values[index], -0.5, 0.5))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = _random_rotation(rng), rng.normal(size=3)
-    points = rng.normal(size=(26, 3))
-    np.testing.assert_allclose(
-        kernels.in_frame(points, T), (points - T[:3, 3]) @ T[:3, :3], atol=1e-12
-    )
+    points, in_palm = rng.normal(size=(26, 3)), np.full((26, 3), 9.0)
+    kernels.in_frame(points, T, in_palm)
+    np.testing.assert_allclose(in_palm, (points - T[:3, 3]) @ T[:3, :3], atol=1e-12)
     lower_b, upper_b, h = -np.ones(3), np.ones(3), np.array([0.5, 0.2])
-    bupper, blower, sense = kernels.stack_bounds(lower_b, upper_b, h)
-    np.testing.assert_array_equal(bupper, [1, 1, 1, 0.5, 0.2])
-    np.testing.assert_array_equal(blower, [-1, -1, -1, -1e30, -1e30])
-    assert sense.dtype == np.int32 and not sense.any()
+    bupper, blower, sense = np.full(6, 9.0), np.full(6, 9.0), np.full(6, 7, dtype=np.int32)
+    assert kernels.stack_bounds(lower_b, upper_b, h, bupper, blower, sense) == 5
+    np.testing.assert_array_equal(bupper[:5], [1, 1, 1, 0.5, 0.2])
+    np.testing.assert_array_equal(blower[:5], [-1, -1, -1, -1e30, -1e30])
+    assert not sense[:5].any() and sense[5] == 7  # only the first m entries are written
+    # Too short: nothing written, -1.
+    assert kernels.stack_bounds(lower_b, upper_b, h, bupper[:4], blower, sense) == -1
+    assert bupper[0] == 1 and sense[5] == 7
 
 
 @pytest.mark.parametrize("bad", ["nan", "inf"])

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import daqp
 import mink
 import mujoco
 import numpy as np
@@ -32,6 +31,7 @@ from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
 from beavr_sim.teleop import kernels
 from beavr_sim.teleop.collision import CollisionLimit
+from beavr_sim.teleop.qp import StepQP
 
 #: Arm links checked against the table, and arm links the hand must not hit.
 FOREARM_LINKS = ("link5", "link6", "link7")
@@ -103,7 +103,8 @@ class ArmIK:
             raise ValueError("ArmIK expects a robot-only model (hinge and slide joints)")
         self.joints = self.single.bind(self.model)
         self.n_arm = len(self.effector.arm_joints)
-        self.configuration = mink.Configuration(self.model)
+        self._configuration = mink.Configuration(self.model)
+        self._stale = False  # qpos changed since the last kinematics update
         self._hand_body = self.model.body(f"{self.effector.name}/hand").id
         self._arm_qpos = self.joints.qpos_adr[: self.n_arm].astype(np.int64)
         self._arm_dofs = self.joints.qvel_adr[: self.n_arm].astype(np.int64)
@@ -113,7 +114,8 @@ class ArmIK:
         self._jac = np.zeros((6, self.model.nv))  # translation rows, then rotation rows
         self._weights = np.repeat([self.config.position_cost, self.config.orientation_cost], 3)
         self._no_rows = (np.zeros((0, self.n_arm)), np.zeros(0))
-        self._posture = self.configuration.q[self._arm_qpos].copy()
+        self._qp = StepQP(self.n_arm)
+        self._posture = self._configuration.q[self._arm_qpos].copy()
         self.collision: CollisionLimit | None = None
         if self.config.collision_avoidance:
             p = self.effector.name + "/"
@@ -134,21 +136,35 @@ class ArmIK:
 
     def reset(self, q_effector: np.ndarray, posture: np.ndarray | None = None) -> None:
         """Start from this effector's joint positions (arm then hand, action order)."""
-        q = self.configuration.q.copy()
+        q = self._configuration.q.copy()
         q[self.joints.qpos_adr] = q_effector
-        self.configuration.update(q)
+        self._configuration.update(q)
+        self._stale = False
         target = q_effector if posture is None else posture
         self._posture = np.asarray(target, dtype=np.float64)[: self.n_arm].copy()
 
     def set_fingers(self, q_hand: np.ndarray) -> None:
         """Put the finger joints where the hand command puts them (collision geometry)."""
-        self.configuration.data.qpos[self._hand_qpos] = q_hand
-        self.configuration.update()
+        self._configuration.data.qpos[self._hand_qpos] = q_hand
+        self._stale = True  # kinematics updated when next needed (the step's start)
+
+    @property
+    def configuration(self) -> mink.Configuration:
+        """The IK configuration, its kinematics up to date with its joints."""
+        self._forward()
+        return self._configuration
+
+    def _forward(self) -> None:
+        """Kinematics for the current joints, if they changed since the last update: one
+        update per tick (fingers set, then the step) rather than one per change."""
+        if self._stale:
+            self._configuration.update()
+            self._stale = False
 
     @property
     def q(self) -> np.ndarray:
         """This effector's joint positions (arm then hand) in the IK configuration."""
-        return self.configuration.q[self.joints.qpos_adr].copy()
+        return self._configuration.data.qpos[self.joints.qpos_adr]  # fancy index: a copy
 
     def T_world_hand(self) -> np.ndarray:
         data = self.configuration.data
@@ -164,7 +180,7 @@ class ArmIK:
             raise ValueError(f"step needs a finite 4x4 pose, got shape {T_world_target.shape}")
         for _ in range(self.config.iterations):
             self._step(T_world_target, self.dt / self.config.iterations)
-        return self.configuration.data.qpos[self._arm_qpos]  # fancy index: a copy
+        return self._configuration.data.qpos[self._arm_qpos]  # fancy index: a copy
 
     def _step(self, T_world_target: np.ndarray, dt: float) -> None:
         cfg, model = self.configuration, self.model
@@ -173,20 +189,21 @@ class ArmIK:
         # current orientation to the target's), weighted; Jacobian of the hand body.
         mujoco.mj_jacBody(model, data, self._jac[:3], self._jac[3:], body)
         config = self.config
-        H, c, lower, upper = kernels.arm_qp(
+        qp = self._qp
+        kernels.arm_qp(
             self._jac, self._arm_dofs, self._weights, T_world_target,
             data.xpos[body], data.xmat[body].reshape(3, 3), data.qpos, self._arm_qpos,
             self._posture, config.posture_cost**2, config.damping, config.lm_damping,
             config.max_joint_speed * dt, self._arm_lower, self._arm_upper, JOINT_LIMIT_GAIN,
+            qp.H, qp.c, qp.lower, qp.upper,
         )  # fmt: skip
         A, h = self._no_rows
         if self.collision is not None:
             # dt = 1: the bound is on the step itself (a velocity damper per tick).
             _, rows, h = self.collision.active_rows(cfg, 1.0)
             A = rows[:, self._arm_dofs]  # fancy index: a C-contiguous copy
-        bupper, blower, sense = kernels.stack_bounds(lower, upper, h)
-        dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
-        if exitflag <= 0:  # infeasible (e.g. already in collision): hold this tick
+        dq = qp.solve(A, h)
+        if dq is None:  # infeasible (e.g. already in collision): hold this tick
             return
         data.qpos[self._arm_qpos] += dq
-        cfg.update()
+        self._stale = True

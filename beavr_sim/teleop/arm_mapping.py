@@ -113,10 +113,12 @@ class RelativeMotionMapping:
         s = self._scale(resolution)
         # T_anchor_robot @ conj(inv(T_anchor_hand) @ T_world_hand), with the anchor's part
         # of the products precomputed in anchor().
-        return kernels.mapped_pose(
+        T_world_robot = np.empty((4, 4))
+        kernels.mapped_pose(
             self._R_left, self._R_right, self._P, self._p_anchor_robot, self._p_anchor_hand,
-            s, np.asarray(T_world_hand, dtype=np.float64),
+            s, np.asarray(T_world_hand, dtype=np.float64), T_world_robot,
         )  # fmt: skip
+        return T_world_robot
 
     def hand_for(self, T_world_robot: np.ndarray, resolution: str = "high") -> np.ndarray:
         """The inverse: the palm pose that maps to ``T_world_robot`` (synthetic traces)."""

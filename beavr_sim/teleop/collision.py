@@ -143,11 +143,23 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
             ]
         )
         self.distance_model, self._lookup = distance_model(spec, model, pairs, self._distmax)
+        if self.closest_only:
+            # One contact per pair is all that is kept: skip MuJoCo's extra contacts on
+            # flat convex faces (multi-CCD), which cost narrowphase time for nothing.
+            self.distance_model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_MULTICCD
         self._ddata = mujoco.MjData(self.distance_model)
         self._geom_body = self.distance_model.geom_bodyid.astype(np.int64)
         self._npairs = len(pairs)
         self._jacobians = PointJacobians(model)
+        self._allocate(max(self._npairs, 16))
         self._compile()
+
+    def _allocate(self, capacity: int) -> None:
+        """Row arrays for up to ``capacity`` contacts (they grow when a tick has more)."""
+        self._pairs_out = np.zeros(capacity, dtype=np.int64)
+        self._dists_out = np.zeros(capacity)
+        self._rows_out = np.zeros((capacity, self.model.nv))
+        self._h_out = np.zeros(capacity)
 
     def _compile(self) -> None:
         """Compile (or load) the rows kernel for both array layouts MuJoCo's contact fields
@@ -165,6 +177,7 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
                 geom, np.zeros(2 * n)[::2], np.ones((n, 18))[:, :9], np.zeros((n, 6))[:, :3],
                 self._lookup, self._geom_body, self._npairs, self.closest_only,
                 data.cdof, data.subtree_com, jac.root, jac.chain, 1.0, 0.0, 0.0, 1.0,
+                self._pairs_out, self._dists_out, self._rows_out, self._h_out,
             )  # fmt: skip
 
     def distances(self, configuration: mink.Configuration):
@@ -196,21 +209,27 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         self, configuration: mink.Configuration, dt: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One row per contact of the pairs within their detection distance: ``(pair
-        indices, G rows, h)``, so that ``G @ dq <= h``."""
+        indices, G rows, h)``, so that ``G @ dq <= h``. The arrays are views of this limit's
+        buffers, valid until its next query (copy them to keep them)."""
         hits, _, rows, h = self._rows(configuration, dt)
         return hits, rows, h
 
     def _rows(self, configuration: mink.Configuration, dt: float):
         data = configuration.data  # kinematics and comPos done
-        contact = self._query(configuration).contact
+        ddata = self._query(configuration)
+        if ddata.ncon > self._h_out.shape[0]:
+            self._allocate(2 * ddata.ncon)
+        contact = ddata.contact
         jac = self._jacobians
-        return kernels.contact_rows(
+        k = kernels.contact_rows(
             contact.geom, contact.dist, contact.frame, contact.pos,
             self._lookup, self._geom_body, self._npairs, self.closest_only,
             data.cdof, data.subtree_com, jac.root, jac.chain,
             float(self.gain), float(self.minimum_distance_from_collisions),
             float(self.bound_relaxation), float(dt),
+            self._pairs_out, self._dists_out, self._rows_out, self._h_out,
         )  # fmt: skip
+        return self._pairs_out[:k], self._dists_out[:k], self._rows_out[:k], self._h_out[:k]
 
     def compute_qp_inequalities(self, configuration: mink.Configuration, dt: float):
         """mink's form: one row per pair (its closest contact), +inf for pairs out of range."""

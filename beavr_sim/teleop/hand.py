@@ -142,4 +142,6 @@ def T_world_palm(joints: np.ndarray, side: str) -> np.ndarray:
 def keypoints_in_palm(joints: np.ndarray, side: str) -> np.ndarray:
     """The 26 joints expressed in the palm frame (26 x 3)."""
     joints = np.asarray(joints, dtype=np.float64)
-    return kernels.in_frame(joints, T_world_palm(joints, side))
+    out = np.empty(joints.shape)
+    kernels.in_frame(joints, T_world_palm(joints, side), out)
+    return out

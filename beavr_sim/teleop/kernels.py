@@ -128,18 +128,19 @@ def select_contacts(geom, dist, lookup, npairs, closest_only):
 @_jit
 def contact_rows(
     geom, dist, frame, pos, lookup, geom_body, npairs, closest_only,
-    cdof, subtree_com, root, chain, gain, min_distance, relaxation, dt,
+    cdof, subtree_com, root, chain, gain, min_distance, relaxation, dt, pairs, dists, rows, h,
 ):  # fmt: skip
     """mink's collision-avoidance rows from MuJoCo's contacts, ``G dq <= h``: per kept contact
     (distance d, normal n from geom 1 to geom 2, midpoint p; witness points ``p -/+ d n / 2``)
     the row ``n^T (J(p1) - J(p2))`` and ``h = gain (d - min_distance) / dt`` (0 once within
-    ``min_distance``) ``+ relaxation``. Returns (pair indices, distances, rows, h)."""
-    keep, pairs = select_contacts(geom, dist, lookup, npairs, closest_only)
+    ``min_distance``) ``+ relaxation``. Writes the first k entries of ``pairs`` (pair
+    indices), ``dists``, ``rows`` and ``h`` (capacity: at least one per contact) and returns
+    k, or -1 (nothing written) when they are too short."""
+    keep, kept_pairs = select_contacts(geom, dist, lookup, npairs, closest_only)
     k = keep.shape[0]
-    nv = cdof.shape[0]
-    rows = np.zeros((k, nv))
-    h = np.empty(k)
-    d_kept = np.empty(k)
+    if k > rows.shape[0] or k > h.shape[0] or k > pairs.shape[0] or k > dists.shape[0]:
+        return -1
+    rows[:k] = 0.0
     for r in range(k):
         i = keep[r]
         d = dist[i]
@@ -154,26 +155,28 @@ def contact_rows(
             cdof, subtree_com, root, chain, b2, px + hx, py + hy, pz + hz, nx, ny, nz, -1.0, rows[r]
         )
         h[r] = (gain * (d - min_distance) / dt if d > min_distance else 0.0) + relaxation
-        d_kept[r] = d
-    return pairs, d_kept, rows, h
+        dists[r] = d
+        pairs[r] = kept_pairs[r]
+    return k
 
 
 @_jit
 def points_qp(
     cdof, subtree_com, root, chain, bodies, positions, targets, cost,
     qpos, posture, posture_weight, diagonal, lower_q, upper_q, limit_gain, max_step, held,
+    H, c, lower, upper,
 ):  # fmt: skip
     """The retargeting step's QP in the step ``dq``: minimise ``1/2 dq^T H dq + c^T dq``
     under ``lower <= dq <= upper``, for the weighted point residuals ``cost * (p - target)``
     (3 rows per point), ``posture_weight * (q - posture)`` and ``diagonal`` on H's diagonal.
     Bounds: ``limit_gain`` of the way to each joint limit, at most ``max_step``; 0 for
-    ``held`` dofs. Returns (H, c, lower, upper)."""
+    ``held`` dofs. Writes H (nv x nv), c, lower and upper (nv)."""
     nv = cdof.shape[0]
     k = bodies.shape[0]
     J = np.empty((k, 3, nv))
     point_jacobians(cdof, subtree_com, root, chain, bodies, positions, J)
-    H = np.zeros((nv, nv))
-    c = np.zeros(nv)
+    H[:] = 0.0
+    c[:] = 0.0
     for i in range(k):
         for a in range(3):
             w = cost[3 * i + a]
@@ -188,8 +191,6 @@ def points_qp(
                 c[j] += w2 * e * Jj
                 for m in range(j, nv):
                     H[j, m] += w2 * Jj * J[i, a, m]
-    lower = np.empty(nv)
-    upper = np.empty(nv)
     for j in range(nv):
         H[j, j] += diagonal
         for m in range(j + 1, nv):
@@ -201,21 +202,26 @@ def points_qp(
         else:
             upper[j] = min(limit_gain * (upper_q[j] - qpos[j]), max_step)
             lower[j] = max(limit_gain * (lower_q[j] - qpos[j]), -max_step)
-    return H, c, lower, upper
 
 
 @_jit
-def stack_bounds(lower, upper, h):
-    """DAQP's bounds for simple bounds ``lower <= x <= upper`` then rows ``A x <= h``:
-    (upper bounds, lower bounds (-1e30: none), senses)."""
+def stack_bounds(lower, upper, h, bupper, blower, sense):
+    """DAQP's bounds for simple bounds ``lower <= x <= upper`` then rows ``A x <= h``, in the
+    first ``m = n + k`` entries of ``bupper``, ``blower`` (-1e30: none) and ``sense`` (0:
+    inequality). Returns m, or -1 (nothing written) when they are too short."""
     n, k = lower.shape[0], h.shape[0]
-    bupper = np.empty(n + k)
-    blower = np.empty(n + k)
-    bupper[:n] = upper
-    blower[:n] = lower
-    bupper[n:] = h
-    blower[n:] = -1e30
-    return bupper, blower, np.zeros(n + k, dtype=np.int32)
+    m = n + k
+    if m > bupper.shape[0] or m > blower.shape[0] or m > sense.shape[0]:
+        return -1
+    for j in range(n):
+        bupper[j] = upper[j]
+        blower[j] = lower[j]
+        sense[j] = 0
+    for j in range(k):
+        bupper[n + j] = h[j]
+        blower[n + j] = -1e30
+        sense[n + j] = 0
+    return m
 
 
 @_jit
@@ -332,13 +338,14 @@ def ring_average(buffer, slot, n, x, out):
 def arm_qp(
     jac, dofs, weights, T_world_target, p_world_hand, R_world_hand, qpos, qpos_adr,
     posture, posture_weight, damping, lm_damping, max_step, lower_q, upper_q, limit_gain,
+    H, c, lower, upper,
 ):  # fmt: skip
     """The arm IK step's QP in the arm joints' step ``dq`` (``ArmIK._step`` documents it):
     weighted hand pose error ``e = weights * (p_target - p_hand, log(R_target R_hand^T))``,
     ``J = weights * jac[:, dofs]``, ``H = J^T J + (posture_weight + damping + lm_damping
     |e|^2) I``, ``c = -J^T e + posture_weight (q - posture)``; bounds ``limit_gain`` of the
     way to each joint limit and at most ``max_step``, but never forcing a joint that is past
-    a limit further in (0 stays allowed). Returns (H, c, lower, upper)."""
+    a limit further in (0 stays allowed). Writes H (n x n), c, lower and upper (n)."""
     n = dofs.shape[0]
     e = np.empty(6)
     for a in range(3):
@@ -362,8 +369,8 @@ def arm_qp(
     for a in range(6):
         ee += e[a] * e[a]
     diagonal = posture_weight + damping + lm_damping * ee
-    H = np.zeros((n, n))
-    c = np.zeros(n)
+    H[:] = 0.0
+    c[:] = 0.0
     for a in range(6):
         for j in range(n):
             c[j] -= e[a] * J[a, j]
@@ -372,15 +379,12 @@ def arm_qp(
     for j in range(n):
         for m in range(j + 1, n):
             H[m, j] = H[j, m]
-    lower = np.empty(n)
-    upper = np.empty(n)
     for j in range(n):
         H[j, j] += diagonal
         q = qpos[qpos_adr[j]]
         c[j] += posture_weight * (q - posture[j])
         upper[j] = max(min(limit_gain * (upper_q[j] - q), max_step), 0.0)
         lower[j] = min(max(limit_gain * (lower_q[j] - q), -max_step), 0.0)
-    return H, c, lower, upper
 
 
 @_jit
@@ -418,17 +422,15 @@ def palm_pose(joints, wrist, middle, index, little, sign, T):
 
 
 @_jit
-def in_frame(points, T):
-    """``points`` (n x 3) expressed in the frame of pose ``T``: ``(p - t) R``."""
+def in_frame(points, T, out):
+    """``points`` (n x 3) expressed in the frame of pose ``T``: ``(p - t) R``, into ``out``."""
     n = points.shape[0]
-    out = np.empty((n, 3))
     for i in range(n):
         dx = points[i, 0] - T[0, 3]
         dy = points[i, 1] - T[1, 3]
         dz = points[i, 2] - T[2, 3]
         for a in range(3):
             out[i, a] = dx * T[0, a] + dy * T[1, a] + dz * T[2, a]
-    return out
 
 
 @_jit
@@ -459,19 +461,27 @@ def point_targets(keypoints, tracked, human_ids, scales, offset, targets, cost, 
 
 
 @_jit
-def gather_clip(values, index, lower, upper):
-    """``min(max(values[index], lower), upper)``."""
-    out = np.empty(index.shape[0])
-    for i in range(index.shape[0]):
-        out[i] = min(max(values[index[i]], lower[i]), upper[i])
-    return out
+def gather_points(site_xpos, xpos, is_site, ids, out):
+    """``out[i] = site_xpos[ids[i]]`` where ``is_site[i]``, else ``xpos[ids[i]]``: the world
+    positions of a mix of sites and body origins."""
+    for i in range(ids.shape[0]):
+        src = site_xpos if is_site[i] else xpos
+        for a in range(3):
+            out[i, a] = src[ids[i], a]
 
 
 @_jit
-def mapped_pose(R_left, R_right, P, p_anchor_robot, p_anchor_hand, scale, T_world_hand):
+def gather_clip(values, index, lower, upper, out):
+    """``out = min(max(values[index], lower), upper)``."""
+    for i in range(index.shape[0]):
+        out[i] = min(max(values[index[i]], lower[i]), upper[i])
+
+
+@_jit
+def mapped_pose(R_left, R_right, P, p_anchor_robot, p_anchor_hand, scale, T_world_hand, out):
     """The relative motion map's target (``RelativeMotionMapping.robot_target``): rotation
     ``R_left R R_right``, position ``p_anchor_robot + scale P (p - p_anchor_hand)``, for
-    hand pose ``T_world_hand`` = (R, p). Returns a new 4 x 4 pose."""
+    hand pose ``T_world_hand`` = (R, p), into the 4 x 4 pose ``out``."""
     M = np.empty((3, 3))
     for a in range(3):
         for b in range(3):
@@ -480,7 +490,6 @@ def mapped_pose(R_left, R_right, P, p_anchor_robot, p_anchor_hand, scale, T_worl
                 + R_left[a, 1] * T_world_hand[1, b]
                 + R_left[a, 2] * T_world_hand[2, b]
             )
-    out = np.zeros((4, 4))
     for a in range(3):
         for b in range(3):
             out[a, b] = M[a, 0] * R_right[0, b] + M[a, 1] * R_right[1, b] + M[a, 2] * R_right[2, b]
@@ -489,5 +498,4 @@ def mapped_pose(R_left, R_right, P, p_anchor_robot, p_anchor_hand, scale, T_worl
     dz = T_world_hand[2, 3] - p_anchor_hand[2]
     for a in range(3):
         out[a, 3] = p_anchor_robot[a] + scale * (P[a, 0] * dx + P[a, 1] * dy + P[a, 2] * dz)
-    out[3, 3] = 1.0
-    return out
+    out[3, 0], out[3, 1], out[3, 2], out[3, 3] = 0.0, 0.0, 0.0, 1.0

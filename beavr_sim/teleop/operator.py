@@ -219,7 +219,9 @@ class EffectorOperator:
     def _palm_keypoints(self) -> np.ndarray | None:
         """The smoothed keypoints of the last used frame in its (unfiltered) palm frame."""
         if self._keypoints_palm is None and self._smoothed is not None:
-            self._keypoints_palm = kernels.in_frame(*self._smoothed)
+            joints, T_palm = self._smoothed
+            self._keypoints_palm = np.empty(joints.shape)
+            kernels.in_frame(joints, T_palm, self._keypoints_palm)
         return self._keypoints_palm
 
     def _is_jump(self, p: np.ndarray, t: float) -> bool:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import daqp
 import mink
 import mujoco
 import numpy as np
@@ -37,6 +36,7 @@ from beavr_sim.teleop import kernels
 from beavr_sim.teleop.collision import CollisionLimit
 from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, SIDES
 from beavr_sim.teleop.jacobians import PointJacobians
+from beavr_sim.teleop.qp import StepQP
 
 #: LEAP fingers, in the order of their motor ids' blocks below.
 LEAP_FINGERS = ("thumb", "index", "middle", "ring")
@@ -275,15 +275,10 @@ class _PointsTask(mink.Task):
             dtype=np.int64,
         )
         self._jacobians = PointJacobians(model)
-        self._site_rows, self._body_rows = (
-            np.flatnonzero(self.is_site),
-            np.flatnonzero(~self.is_site),
-        )
-        self._site_ids, self._body_ids = self.ids[self._site_rows], self.ids[self._body_rows]
+        self._ids = self.ids.astype(np.int64)
 
     def _update_positions(self, data: mujoco.MjData) -> np.ndarray:
-        self._positions[self._site_rows] = data.site_xpos[self._site_ids]
-        self._positions[self._body_rows] = data.xpos[self._body_ids]
+        kernels.gather_points(data.site_xpos, data.xpos, self.is_site, self._ids, self._positions)
         return self._positions
 
     def compute_error(self, configuration: mink.Configuration) -> np.ndarray:
@@ -384,6 +379,7 @@ class LeapRetargeter:
         self._all_tracked = np.ones(N_JOINTS, dtype=bool)
         self._posture_weight2 = float(self.config.posture_weight**2)
         self._diagonal = float(self.config.damping) + self._posture_weight2
+        self._qp = StepQP(model.nv)
         self._limit_gain = float(self.joint_limit.gain)
         # Degrees of freedom (qvel addresses) and target points of each finger.
         self._finger_dofs = {
@@ -465,9 +461,11 @@ class LeapRetargeter:
         self._held_any_before = self._any_held
         for _ in range(self.config.iterations):
             self._step()
-        return kernels.gather_clip(
-            self.configuration.data.qpos, self.map.qpos_adr, self._lower, self._upper
+        q16 = np.empty(self.map.qpos_adr.shape[0])
+        kernels.gather_clip(
+            self.configuration.data.qpos, self.map.qpos_adr, self._lower, self._upper, q16
         )
+        return q16
 
     def _step(self) -> None:
         """One QP step (Gauss-Newton with damping) under joint limits and collision avoidance.
@@ -479,17 +477,17 @@ class LeapRetargeter:
         data, points, jac = cfg.data, self.points, self.points._jacobians
         q = data.qpos  # read only here (mink's cfg.q is a copy)
         # mink's task residuals (weights enter squared), damping and posture on the diagonal.
-        H, c, lower, upper = kernels.points_qp(
+        qp = self._qp
+        kernels.points_qp(
             data.cdof, data.subtree_com, jac.root, jac.chain,
             points._bodies, points._update_positions(data), points.targets, points.cost,
             q, self._posture, self._posture_weight2, self._diagonal,
             self._lower_qpos, self._upper_qpos, self._limit_gain, self.config.max_step,
-            self._held,
+            self._held, qp.H, qp.c, qp.lower, qp.upper,
         )  # fmt: skip
         _, A, h = self.collision_limit.active_rows(cfg, 1.0)
-        bupper, blower, sense = kernels.stack_bounds(lower, upper, h)
-        dq, _, exitflag, _ = daqp.solve(H, c, A, bupper, blower, sense)
-        if exitflag > 0:  # dq = 0 is always feasible; on a solver failure, hold
+        dq = qp.solve(A, h)
+        if dq is not None:  # dq = 0 is always feasible; on a solver failure, hold
             if self._any_held:
                 dq[self._held] = 0.0
             q += dq  # in place (data.qpos); hinges only: integrating is adding
