@@ -201,7 +201,7 @@ class ArmIK:
         if self.collision is not None:
             # dt = 1: the bound is on the step itself (a velocity damper per tick).
             _, rows, h = self.collision.active_rows(cfg, 1.0)
-            A = rows[:, self._arm_dofs]  # fancy index: a C-contiguous copy
+            A = rows.take(self._arm_dofs, axis=1)  # a C-contiguous copy
         dq = qp.solve(A, h)
         if dq is None:  # infeasible (e.g. already in collision): hold this tick
             return

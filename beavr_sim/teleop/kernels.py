@@ -225,6 +225,46 @@ def stack_bounds(lower, upper, h, bupper, blower, sense):
 
 
 @_jit
+def daqp_problem(H, c, A, lower, upper, h, bupper, blower, sense, x, lam, problem, result):
+    """Fill DAQP's ``DAQPProblem`` (``problem``: 10 int64 words) and ``DAQPResult``
+    (``result``: 8 words) for ``min 1/2 x^T H x + c^T x`` s.t. ``lower <= x <= upper``,
+    ``A x <= h`` (k rows), the bounds stacked into ``bupper``, ``blower`` and ``sense``
+    (:func:`stack_bounds`), the solution into ``x`` and the multipliers into ``lam``.
+    Layouts (DAQP 0.11, little-endian): problem ``{int n, m, ms; double *H, *f, *A,
+    *bupper, *blower; int *sense, *break_points; int nh, problem_type}``, result ``{double
+    *x, *lam; double fval, soft_slack; int exitflag, iter, nodes; double solve_time,
+    setup_time}``. Returns m, or -1 (nothing written) when ``A`` is not a C-contiguous
+    k x n array or the buffers are too short."""
+    n, k = lower.shape[0], h.shape[0]
+    if k > 0 and (A.shape[0] != k or A.shape[1] != n or A.strides[1] != 8 or A.strides[0] != 8 * n):
+        return -1
+    m = stack_bounds(lower, upper, h, bupper, blower, sense)
+    if m < 0 or lam.shape[0] < m or x.shape[0] < n:
+        return -1
+    problem[0] = n + (m << 32)
+    problem[1] = n  # ms: the first n constraints are simple bounds
+    problem[2] = H.ctypes.data
+    problem[3] = c.ctypes.data
+    problem[4] = A.ctypes.data if k > 0 else 0
+    problem[5] = bupper.ctypes.data
+    problem[6] = blower.ctypes.data
+    problem[7] = sense.ctypes.data
+    problem[8] = 0  # no break points (hierarchical QPs)
+    problem[9] = 0  # nh = 0, problem_type = 0 (QP)
+    result[:] = 0
+    result[0] = x.ctypes.data
+    result[1] = lam.ctypes.data
+    return m
+
+
+@_jit
+def daqp_exitflag(result):
+    """``DAQPResult.exitflag`` (the int at byte 32) of a result buffer of int64 words."""
+    flag = result[4] & 0xFFFFFFFF
+    return flag - (1 << 32) if flag >= (1 << 31) else flag
+
+
+@_jit
 def quat_from_matrix(R):
     """Unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` (3 x 3), by
     Shepperd's method (the largest of w, x, y, z computed first, for accuracy)."""
