@@ -9,10 +9,10 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks import lantern, pour, tape
 from beavr_sim.tasks.checks import REST_SECONDS, in_contact
 from beavr_sim.tasks.objects import yaw_quat
+from beavr_sim.workcell import TABLE_TOP_Z
 
 TASKS = ("Lantern", "Tape", "Pour")
 #: An arm pose (joint2, joint4, joint6 in degrees; others at home) with the fingertips pointing

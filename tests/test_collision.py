@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from beavr_sim.assets import mjcf_path
+from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
+from beavr_sim.operator.collision import CollisionLimit
+from beavr_sim.operator.retarget import LeapRetargeter, finger_geoms
 from beavr_sim.robots import make_embodiment
 from beavr_sim.robots.parts import LEAP_HAND
-from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
-from beavr_sim.teleop.collision import CollisionLimit
-from beavr_sim.teleop.retarget import LeapRetargeter, finger_geoms
 
 
 def _compare(limit, configuration, q_samples):

@@ -53,7 +53,7 @@ def test_recording_config_rejects_bad_values():
 
 
 def _generate(out: Path, episodes: int, config: RecordingConfig, **kwargs):
-    from beavr_sim.datasets.generate import generate
+    from beavr_sim.synthetic.generate import generate
 
     return generate(
         "PickupBox", episodes, 0, out, repo_id=REPO_ID, config=config, progress=False, **kwargs

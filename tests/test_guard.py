@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.teleop.guard import CollisionGuard, GuardConfig
-from beavr_sim.teleop.operator import JointCommand
-from beavr_sim.teleop.twin import TwinInterface
+from beavr_sim.twin.guard import CollisionGuard, GuardConfig
+from beavr_sim.twin.twin import TwinInterface
+from beavr_sim.wire.records import JointCommand
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ import pytest
 
 from beavr_sim.assets import mjcf_path
 from beavr_sim.envs.scene import build_scene_spec
+from beavr_sim.operator.jacobians import PointJacobians
 from beavr_sim.robots import LEAP_HAND, make_embodiment
-from beavr_sim.teleop.jacobians import PointJacobians
 
 
 def _models():

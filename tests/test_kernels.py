@@ -9,10 +9,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from beavr_sim.teleop import kernels
-from beavr_sim.teleop.filters import so3_exp, so3_log
-from beavr_sim.teleop.jacobians import PointJacobians
-from beavr_sim.teleop.retarget import LeapRetargeter, human_template
+from beavr_sim.operator import kernels
+from beavr_sim.operator.filters import so3_exp, so3_log
+from beavr_sim.operator.jacobians import PointJacobians
+from beavr_sim.operator.retarget import LeapRetargeter, human_template
 
 
 def _random_rotation(rng):

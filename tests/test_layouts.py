@@ -3,15 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from beavr_sim.naming import UnknownNameError
-from beavr_sim.teleop.hand import (
-    JOINT_INDEX,
-    JOINT_NAMES,
-    N_JOINTS,
-    R_world_palm,
-    keypoints_in_palm,
-)
-from beavr_sim.teleop.layouts import (
+from beavr_sim.headset.layouts import (
     LAYOUTS,
     METACARPAL_BASE_FRACTION,
     R_ZUP_UNITY,
@@ -24,6 +16,9 @@ from beavr_sim.teleop.layouts import (
     zup_to_unity,
     zup_to_webxr,
 )
+from beavr_sim.naming import UnknownNameError
+from beavr_sim.operator.palm import R_world_palm, keypoints_in_palm
+from beavr_sim.wire.hand import JOINT_INDEX, JOINT_NAMES, N_JOINTS
 
 J = JOINT_INDEX
 FOUR = ("index", "middle", "ring", "little")

@@ -16,9 +16,8 @@ import pytest
 import zmq
 
 from beavr_sim.naming import UnknownNameError
-from beavr_sim.teleop.config import PortConfig, TransportConfig, free_tcp_ports
-from beavr_sim.teleop.hand import N_JOINTS, HandFrame
-from beavr_sim.teleop.messages import (
+from beavr_sim.wire.hand import N_JOINTS, HandFrame
+from beavr_sim.wire.messages import (
     HandFrameMsg,
     JointCommandMsg,
     MessageError,
@@ -27,7 +26,8 @@ from beavr_sim.teleop.messages import (
     decode,
     encode,
 )
-from beavr_sim.teleop.transport import Heartbeat, Liveness, Publisher, Subscriber
+from beavr_sim.wire.ports import PortConfig, TransportConfig, free_tcp_ports
+from beavr_sim.wire.transport import Heartbeat, Liveness, Publisher, Subscriber
 
 
 @pytest.fixture
@@ -367,8 +367,8 @@ def test_closed_publisher_is_reported_dead_within_the_timeout(context):
 _PUBLISHER_SCRIPT = textwrap.dedent(
     """
     import sys, zmq
-    from beavr_sim.teleop.messages import RobotStateMsg
-    from beavr_sim.teleop.transport import Heartbeat, Publisher
+    from beavr_sim.wire.messages import RobotStateMsg
+    from beavr_sim.wire.transport import Heartbeat, Publisher
     context = zmq.Context()
     pub = Publisher(context, sys.argv[1])
     beat = Heartbeat(100.0)

@@ -7,12 +7,13 @@ import logging
 import numpy as np
 import pytest
 
+from beavr_sim.operator.arm_mapping import AxisMap, RelativeMotionMapping, axis_map
+from beavr_sim.operator.filters import KeypointSmoother, PoseSmoother, slerp, so3_exp, so3_log
+from beavr_sim.operator.operator import Operator, OperatorConfig
+from beavr_sim.operator.palm import R_world_palm, T_world_palm, keypoints_in_palm
+from beavr_sim.operator.retarget import human_keypoints_for
 from beavr_sim.robots import make_embodiment
-from beavr_sim.teleop.arm_mapping import AxisMap, RelativeMotionMapping, axis_map
-from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother, slerp, so3_exp, so3_log
-from beavr_sim.teleop.hand import HandFrame, R_world_palm, T_world_palm, keypoints_in_palm
-from beavr_sim.teleop.operator import Operator, OperatorConfig
-from beavr_sim.teleop.retarget import human_keypoints_for
+from beavr_sim.wire.hand import HandFrame
 
 rng = np.random.default_rng(0)
 
@@ -212,7 +213,7 @@ def test_tracking_loss_holds_after_the_timeout(operator, caplog):
     H0 = palm_down([0.3, -0.2, 1.0])
     operator.observe(frame(H0, 0.0))
     operator.command(0.0)
-    with caplog.at_level(logging.WARNING, "beavr_sim.teleop.operator"):
+    with caplog.at_level(logging.WARNING, "beavr_sim.operator.operator"):
         cmd = operator.command(0.5)["right"]
     assert cmd.hold and cmd.reason == "tracking_lost"
     assert "lost" in caplog.text

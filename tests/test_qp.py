@@ -6,7 +6,7 @@ import daqp
 import numpy as np
 import pytest
 
-from beavr_sim.teleop.qp import DAQP_LAYOUT_VERSIONS, StepQP
+from beavr_sim.operator.qp import DAQP_LAYOUT_VERSIONS, StepQP
 
 
 def _random_problem(rng, n, k):

@@ -11,11 +11,11 @@ import pytest
 import zmq
 from PIL import Image
 
-from beavr_sim.teleop.config import PortConfig, TransportConfig
-from beavr_sim.teleop.hand import N_JOINTS, HandFrame
-from beavr_sim.teleop.quest_io import HeadsetImagePublisher, QuestReceiver, encode_jpeg
-from beavr_sim.teleop.quest_protocol import format_keypoints
-from beavr_sim.teleop.validation import StreamValidator
+from beavr_sim.headset.quest_io import HeadsetImagePublisher, QuestReceiver, encode_jpeg
+from beavr_sim.headset.quest_protocol import format_keypoints
+from beavr_sim.headset.validation import StreamValidator
+from beavr_sim.wire.hand import N_JOINTS, HandFrame
+from beavr_sim.wire.ports import PortConfig, TransportConfig
 
 
 @pytest.fixture

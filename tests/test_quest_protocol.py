@@ -5,9 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from beavr_sim.naming import UnknownNameError
-from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, HandFrame
-from beavr_sim.teleop.quest_protocol import (
+from beavr_sim.headset.quest_protocol import (
     MAX_PAYLOAD_BYTES,
     REASONS,
     KeypointParseError,
@@ -17,6 +15,8 @@ from beavr_sim.teleop.quest_protocol import (
     parse_pause,
     parse_resolution,
 )
+from beavr_sim.naming import UnknownNameError
+from beavr_sim.wire.hand import JOINT_INDEX, N_JOINTS, HandFrame
 
 
 def random_frame(seed: int = 0, untracked=(3, 17)) -> HandFrame:

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 
 from beavr_sim.bench.retarget import HandScorer, load_trace
-from beavr_sim.robots.parts import LEAP_HAND
-from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, R_world_palm, keypoints_in_palm
-from beavr_sim.teleop.retarget import (
+from beavr_sim.operator.palm import R_world_palm, keypoints_in_palm
+from beavr_sim.operator.retarget import (
     FINGER_MOTORS,
     LEAP_FINGERS,
     NEVER_CLOSE_LINKS,
@@ -18,6 +17,8 @@ from beavr_sim.teleop.retarget import (
     finger_geoms,
     human_keypoints_for,
 )
+from beavr_sim.robots.parts import LEAP_HAND
+from beavr_sim.wire.hand import JOINT_INDEX, N_JOINTS
 
 SIDES = ("right", "left")
 FIST = np.array([0.0, 1.4, 1.2, 0.9] * 3 + [0.5, 0.2, 0.0, 0.3])
@@ -49,7 +50,7 @@ def _shapes(side: str) -> dict[str, np.ndarray]:
 def _gap(scorer: HandScorer, q: np.ndarray) -> float:
     import mujoco
 
-    from beavr_sim.teleop.retarget import finger_geoms
+    from beavr_sim.operator.retarget import finger_geoms
 
     scorer.min_finger_distance(q)
     geoms = list(finger_geoms(scorer.model).values())

@@ -11,11 +11,11 @@ import pytest
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.experts.registry import EXPERTS
 from beavr_sim.experts.run import run_episode
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks import flip_cube, pick_place, pickup_box, stack_blocks
 from beavr_sim.tasks.checks import REST_SECONDS, face_up
 from beavr_sim.tasks.objects import mat_to_quat, yaw_quat
 from beavr_sim.tasks.registry import TASKS, canonical_task_name, task_class
+from beavr_sim.workcell import TABLE_TOP_Z
 
 BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
 

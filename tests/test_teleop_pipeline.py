@@ -13,9 +13,9 @@ import zmq
 
 from beavr_sim.assets import bundled_trace
 from beavr_sim.tasks.registry import TASKS
-from beavr_sim.teleop.config import PortConfig, TransportConfig
 from beavr_sim.teleop.session import SessionOptions, build_loop
 from beavr_sim.traces.format import TraceReader
+from beavr_sim.wire.ports import PortConfig, TransportConfig
 
 BENCHMARK_TASKS = [t for t in TASKS if t != "Playground"]
 
@@ -104,7 +104,7 @@ def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
 def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
     """The Quest source end to end: a PUSH socket per stream like the app, real keypoint
     strings (from a bundled trace) and malformed ones, in real time."""
-    from beavr_sim.teleop.quest_protocol import format_keypoints
+    from beavr_sim.headset.quest_protocol import format_keypoints
 
     transport = TransportConfig(ports=PortConfig.free())
     context = zmq.Context()

@@ -17,10 +17,10 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from beavr_sim.naming import UnknownNameError
-from beavr_sim.teleop.config import PortConfig, TransportConfig
-from beavr_sim.teleop.hand import N_JOINTS, HandFrame
 from beavr_sim.traces import TraceError, TraceMetadata, TraceReader, TraceWriter
 from beavr_sim.traces.__main__ import main, record_trace
+from beavr_sim.wire.hand import N_JOINTS, HandFrame
+from beavr_sim.wire.ports import PortConfig, TransportConfig
 
 RATE_HZ = 90.0
 N_FRAMES = 60
@@ -218,15 +218,15 @@ def test_info_cli(trace_path, capsys, tmp_path):
 def test_synth_subcommand_delegates(monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)  # were the real synth reached, it would write x.mcap here
     seen = []
-    fake = types.ModuleType("beavr_sim.traces.synth")
+    fake = types.ModuleType("beavr_sim.synthetic.trace")
     fake.main = lambda argv: seen.append(argv) or 0
-    monkeypatch.setitem(sys.modules, "beavr_sim.traces.synth", fake)
+    monkeypatch.setitem(sys.modules, "beavr_sim.synthetic.trace", fake)
     assert main(["synth", "--task", "pour", "--out", "x.mcap"]) == 0
     assert seen == [["--task", "pour", "--out", "x.mcap"]]
 
 
 def test_record_from_a_fake_headset(tmp_path):
-    from beavr_sim.teleop.quest_protocol import format_keypoints
+    from beavr_sim.headset.quest_protocol import format_keypoints
 
     config = TransportConfig(ports=PortConfig.free())
     payload = format_keypoints(make_frames()[0])

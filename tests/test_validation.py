@@ -5,9 +5,9 @@ import logging
 import numpy as np
 import pytest
 
+from beavr_sim.headset.validation import LOGGER_NAME, StreamValidator
 from beavr_sim.naming import UnknownNameError
-from beavr_sim.teleop.hand import N_JOINTS, HandFrame
-from beavr_sim.teleop.validation import LOGGER_NAME, StreamValidator
+from beavr_sim.wire.hand import N_JOINTS, HandFrame
 
 
 def frame(t_source: float, side: str = "right") -> HandFrame:

@@ -9,7 +9,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from beavr_sim.teleop.hand import JOINT_INDEX, JOINT_NAMES
 from beavr_sim.viz.twin_view import (
     BONES,
     WARNING_RGB,
@@ -20,6 +19,7 @@ from beavr_sim.viz.twin_view import (
     skeleton_bones,
     skeleton_segments,
 )
+from beavr_sim.wire.hand import JOINT_INDEX, JOINT_NAMES
 
 
 def test_skeleton_bones_follow_the_joint_names():

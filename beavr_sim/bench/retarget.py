@@ -17,14 +17,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from beavr_sim.reference import find_reference_dir
-from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, keypoints_in_palm
-from beavr_sim.teleop.retarget import (
+from beavr_sim.operator.palm import keypoints_in_palm
+from beavr_sim.operator.retarget import (
     LEAP_FINGERS,
     LeapRetargeter,
     RetargetConfig,
     finger_geoms,
 )
+from beavr_sim.reference import find_reference_dir
+from beavr_sim.wire.hand import JOINT_INDEX, N_JOINTS
 
 TRACE = "human_hand_trace/human_joint_right_mediapipe21.npz"
 #: Rotation from the trace's frame to the canonical (right-handed) frame of HandFrame.

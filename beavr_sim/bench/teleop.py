@@ -91,7 +91,7 @@ def _build_loop(path: Path, clock: str):
 def run_real_time(path: Path, seconds: float) -> tuple[dict, dict]:
     """Replay ``path`` in real time at the control rate for ``seconds`` (the trace again
     from its start on a fresh episode if it ends first). Returns (stats, samples in ms)."""
-    from beavr_sim.teleop.sources import TraceSource
+    from beavr_sim.headset.sources import TraceSource
 
     if not seconds > 0:
         raise ValueError(f"seconds must be positive, got {seconds}")

@@ -30,8 +30,8 @@ def _free_port() -> int:
 
 
 def _measure(seconds: float, view_rate_hz: float | None) -> dict:
+    from beavr_sim.headset.sources import TraceSource
     from beavr_sim.teleop.session import SessionOptions, build_loop
-    from beavr_sim.teleop.sources import TraceSource
     from beavr_sim.teleop.view import attach_view
 
     trace = bundled_trace(TASK)

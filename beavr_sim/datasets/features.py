@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from beavr_sim.envs.scene import CAMERA_NAMES
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment
-from beavr_sim.teleop.hand import JOINT_NAMES, N_JOINTS
+from beavr_sim.wire.hand import JOINT_NAMES, N_JOINTS
 
 STATE = "observation.state"
 ENV_STATE = "observation.environment_state"

@@ -32,8 +32,8 @@ from beavr_sim.datasets.features import (
 )
 from beavr_sim.datasets.writer import EpisodeWriter
 from beavr_sim.envs.cameras import OffscreenCameras
-from beavr_sim.teleop.hand import N_JOINTS
-from beavr_sim.teleop.pipeline import Tick
+from beavr_sim.wire.hand import N_JOINTS
+from beavr_sim.wire.records import Tick
 
 
 class CameraSet:

@@ -8,12 +8,8 @@ import mujoco
 import numpy as np
 
 from beavr_sim.robots import Embodiment
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
+from beavr_sim.workcell import TABLE_HALF_Y, TABLE_THICKNESS, TABLE_TOP_Z, TABLE_X
 
-#: Table top, in the world frame: x from TABLE_X[0] to TABLE_X[1], y within +-TABLE_HALF_Y.
-TABLE_X = (-0.25, 0.85)
-TABLE_HALF_Y = 0.75
-TABLE_THICKNESS = 0.04
 CAMERA_NAMES = ("front", "overhead")
 
 

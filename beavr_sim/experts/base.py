@@ -19,7 +19,7 @@ import numpy as np
 
 from beavr_sim.experts import grasps
 from beavr_sim.experts.ik import TwinIK
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
+from beavr_sim.workcell import TABLE_TOP_Z
 
 #: Hand speed limits of every expert: a calm human reaching speed.
 MAX_LINEAR_SPEED = 0.3  # m/s

@@ -16,7 +16,7 @@ import numpy as np
 
 from beavr_sim.experts import grasps
 from beavr_sim.experts.base import Move, ScriptedExpert
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
+from beavr_sim.workcell import TABLE_TOP_Z
 
 #: How far the lowest finger of the rolled hand hangs below the pinch centre (measured).
 LOWEST_FINGER_BELOW_PINCH = 0.065

@@ -16,8 +16,8 @@ import numpy as np
 
 from beavr_sim.experts import grasps
 from beavr_sim.experts.base import Move, ScriptedExpert
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks import lantern as lantern_task
+from beavr_sim.workcell import TABLE_TOP_Z
 
 #: Where the bar's centre sits in the hand frame when the hook closes (measured in the twin).
 BAR_IN_HAND = np.array([0.028, -0.015, 0.132])

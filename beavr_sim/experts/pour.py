@@ -34,12 +34,12 @@ from beavr_sim.experts.base import (
     ScriptedExpert,
     smoothstep,
 )
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.pour import (
     SOURCE_HEIGHT,
     SOURCE_OUTER_RADIUS,
     TARGET_HEIGHT,
 )
+from beavr_sim.workcell import TABLE_TOP_Z
 
 #: Pinch centre height above the table when grasping the cup (its body centre is at 4 cm).
 PINCH_HEIGHT = 0.045

@@ -15,8 +15,8 @@ import numpy as np
 
 from beavr_sim.experts import grasps
 from beavr_sim.experts.base import Move, ScriptedExpert
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks import tape as tape_task
+from beavr_sim.workcell import TABLE_TOP_Z
 
 #: The roll's centre in the hand frame with the two fingers in its hole, tips 6 mm above the
 #: roll's underside (measured in the twin: tips at hand x = 0.132, fingers at y -0.015, -0.06).

@@ -25,6 +25,7 @@ from beavr_sim.robots.parts import (
     HandModel,
     HandMount,
 )
+from beavr_sim.workcell import TABLE_TOP_Z
 
 
 @dataclass(frozen=True)
@@ -96,9 +97,9 @@ class EmbodimentSpec:
             )
 
 
-# Arms bolt to the table top at world z = TABLE_TOP_Z; +x points away from the robot base into
-# the workspace, +y to the robot's left. Bimanual arms stand 0.6 m apart (BEAVR's bench).
-TABLE_TOP_Z = 0.75
+# Arms bolt to the table top at world z = TABLE_TOP_Z (beavr_sim.workcell); +x points away from
+# the robot base into the workspace, +y to the robot's left. Bimanual arms stand 0.6 m apart
+# (BEAVR's bench).
 BIMANUAL_HALF_SPACING = 0.3
 
 EMBODIMENTS: dict[str, EmbodimentSpec] = {

@@ -16,11 +16,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import TaskStatus
 from beavr_sim.tasks.checks import RestTimer, face_up, in_contact
 from beavr_sim.tasks.objects import add_box_object, mat_to_quat
 from beavr_sim.tasks.tabletop import TabletopTask
+from beavr_sim.workcell import TABLE_TOP_Z
 
 CUBE_HALF = 0.03
 CUBE_MASS = 0.06

@@ -23,11 +23,11 @@ import math
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import TaskStatus
 from beavr_sim.tasks.checks import RestTimer, in_contact, inside_rectangle, up_axis_tilt
 from beavr_sim.tasks.objects import add_fixture_box, add_free_body, geom_kwargs, yaw_quat
 from beavr_sim.tasks.tabletop import TabletopTask
+from beavr_sim.workcell import TABLE_TOP_Z
 
 LANTERN_RADIUS = 0.04
 LANTERN_HALF_HEIGHT = 0.06

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
+from beavr_sim.workcell import TABLE_TOP_Z
 
 #: Sliding, torsional, rolling friction of every object (cardboard/paper/plastic on rubber tips).
 OBJECT_FRICTION = (1.0, 0.01, 0.0005)

@@ -16,11 +16,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import TaskStatus
 from beavr_sim.tasks.checks import RestTimer, in_contact, inside_rectangle, up_axis_tilt
 from beavr_sim.tasks.objects import add_free_body, add_target_area, geom_kwargs, yaw_quat
 from beavr_sim.tasks.tabletop import TabletopTask
+from beavr_sim.workcell import TABLE_TOP_Z
 
 ITEM_RADIUS = 0.03
 ITEM_HALF_HEIGHT = 0.04

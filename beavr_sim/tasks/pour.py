@@ -29,7 +29,6 @@ import mujoco
 import numpy as np
 
 from beavr_sim.robots import Embodiment
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import TaskStatus
 from beavr_sim.tasks.objects import (
     FreeObject,
@@ -39,6 +38,7 @@ from beavr_sim.tasks.objects import (
 )
 from beavr_sim.tasks.shapes import add_cup, circumradius
 from beavr_sim.tasks.tabletop import TabletopTask
+from beavr_sim.workcell import TABLE_TOP_Z
 
 CUP_SEGMENTS = 16
 CUP_WALL = 0.003

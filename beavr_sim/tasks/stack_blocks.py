@@ -17,11 +17,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import TaskStatus
 from beavr_sim.tasks.checks import RestTimer, in_contact, inside_rectangle
 from beavr_sim.tasks.objects import add_box_object, add_target_area, yaw_quat
 from beavr_sim.tasks.tabletop import TabletopTask
+from beavr_sim.workcell import TABLE_TOP_Z
 
 LARGE_HALF = 0.0325
 SMALL_HALF = 0.0225

@@ -14,12 +14,11 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from beavr_sim.envs.scene import TABLE_HALF_Y, TABLE_X
 from beavr_sim.robots import Embodiment
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import Task, TaskStatus
 from beavr_sim.tasks.checks import RestTimer, in_contact, robot_geom_ids
 from beavr_sim.tasks.objects import FreeObject, MocapThing, body_geom_ids
+from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
 #: An object whose origin drops this far below the table top has fallen off (failure).
 FALLEN_BELOW_TABLE = 0.05

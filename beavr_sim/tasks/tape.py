@@ -19,12 +19,12 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import TABLE_TOP_Z
 from beavr_sim.tasks.base import TaskStatus
 from beavr_sim.tasks.checks import RestTimer, in_contact, inside_rectangle
 from beavr_sim.tasks.objects import add_fixture_box, add_free_body, yaw_quat
 from beavr_sim.tasks.shapes import add_ring, circumradius
 from beavr_sim.tasks.tabletop import TabletopTask
+from beavr_sim.workcell import TABLE_TOP_Z
 
 TAPE_INNER_RADIUS = 0.038
 TAPE_OUTER_RADIUS = 0.055

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.datasets.__main__ import add_recording_args
+from beavr_sim.datasets.cli import add_recording_args
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 

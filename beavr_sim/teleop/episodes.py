@@ -6,7 +6,7 @@
   ``d`` discards the episode in progress, ``q`` saves it and quits;
 - browser view: the Record / Discard buttons (:mod:`beavr_sim.viz.twin_view`);
 - headset: the operator's record gesture, a left-hand pinch held for a second
-  (:meth:`beavr_sim.teleop.operator.Operator.take_gestures`).
+  (:meth:`beavr_sim.operator.operator.Operator.take_gestures`).
 
 The recording session (:func:`beavr_sim.teleop.session.record_episodes`) takes the requests
 once per control tick, so all of them act at tick boundaries, in one thread.

@@ -19,10 +19,11 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from beavr_sim.teleop.operator import JointCommand, Operator
-from beavr_sim.teleop.sources import HandSource
-from beavr_sim.teleop.twin import TwinInterface, TwinState
-from beavr_sim.teleop.validation import StreamValidator
+from beavr_sim.headset.sources import HandSource
+from beavr_sim.headset.validation import StreamValidator
+from beavr_sim.operator.operator import Operator
+from beavr_sim.twin.twin import TwinInterface
+from beavr_sim.wire.records import Tick, TickListener
 
 
 @dataclass
@@ -46,19 +47,6 @@ class TeleopSummary:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-@dataclass(frozen=True)
-class Tick:
-    """One loop iteration: the frames used, the commands made, the twin's new state."""
-
-    t: float
-    frames: tuple
-    commands: dict[str, JointCommand]
-    state: TwinState
-
-
-TickListener = Callable[[Tick], None]
 
 
 def _percentiles(values_ms: Sequence[float]) -> dict:

@@ -28,8 +28,8 @@ from dataclasses import asdict
 
 import numpy as np
 
-from beavr_sim.teleop.config import TransportConfig
 from beavr_sim.teleop.pipeline import TeleopSummary, _percentiles
+from beavr_sim.wire.ports import TransportConfig
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 
@@ -54,10 +54,10 @@ def _stop_requested(session_sub) -> str | None:
 def detector_main(options: dict, transport: TransportConfig, conn) -> None:
     import zmq
 
-    from beavr_sim.teleop.messages import HandFrameMsg, SessionMsg
-    from beavr_sim.teleop.sources import QuestSource, TraceSource
-    from beavr_sim.teleop.transport import Publisher, Subscriber
-    from beavr_sim.teleop.validation import StreamValidator
+    from beavr_sim.headset.sources import QuestSource, TraceSource
+    from beavr_sim.headset.validation import StreamValidator
+    from beavr_sim.wire.messages import HandFrameMsg, SessionMsg
+    from beavr_sim.wire.transport import Publisher, Subscriber
 
     context = zmq.Context()
     validator = StreamValidator()
@@ -116,10 +116,10 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
 def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     import zmq
 
+    from beavr_sim.operator.operator import Operator
     from beavr_sim.robots import make_embodiment
-    from beavr_sim.teleop.messages import HandFrameMsg, JointCommandMsg, RobotStateMsg, SessionMsg
-    from beavr_sim.teleop.operator import Operator
-    from beavr_sim.teleop.transport import Publisher, Subscriber
+    from beavr_sim.wire.messages import HandFrameMsg, JointCommandMsg, RobotStateMsg, SessionMsg
+    from beavr_sim.wire.transport import Publisher, Subscriber
 
     context = zmq.Context()
     embodiment = make_embodiment(options["embodiment"])
@@ -214,10 +214,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     import zmq
 
     import beavr_sim  # noqa: F401
-    from beavr_sim.teleop.messages import JointCommandMsg, RobotStateMsg, SessionMsg
-    from beavr_sim.teleop.operator import JointCommand
-    from beavr_sim.teleop.transport import Publisher, Subscriber
-    from beavr_sim.teleop.twin import TwinInterface
+    from beavr_sim.twin.twin import TwinInterface
+    from beavr_sim.wire.messages import JointCommandMsg, RobotStateMsg, SessionMsg
+    from beavr_sim.wire.records import JointCommand
+    from beavr_sim.wire.transport import Publisher, Subscriber
 
     context = zmq.Context()
     kwargs = {} if options["source"] == "trace" else {"max_episode_seconds": 1e9}
@@ -393,8 +393,8 @@ class MultiprocessSession:
     def start(self) -> None:
         import zmq
 
-        from beavr_sim.teleop.messages import RobotStateMsg, SessionMsg
-        from beavr_sim.teleop.transport import Publisher, Subscriber
+        from beavr_sim.wire.messages import RobotStateMsg, SessionMsg
+        from beavr_sim.wire.transport import Publisher, Subscriber
 
         self.context = zmq.Context()
         self.session_pub = Publisher(self.context, self.transport.endpoint("session", bind=True))

@@ -13,8 +13,9 @@ from pathlib import Path
 
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
-from beavr_sim.teleop.config import TransportConfig
-from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, Tick
+from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary
+from beavr_sim.wire.ports import TransportConfig
+from beavr_sim.wire.records import Tick
 
 SOURCES = ("quest", "trace")
 
@@ -107,7 +108,7 @@ class SessionOptions:
 
     @classmethod
     def from_args(cls, args) -> SessionOptions:
-        from beavr_sim.datasets.__main__ import recording_config
+        from beavr_sim.datasets.cli import recording_config
 
         size = str(args.headset_image_size).lower().split("x")
         if len(size) != 2 or not all(s.isdigit() and int(s) > 0 for s in size):
@@ -176,10 +177,10 @@ def build_loop(options: SessionOptions, context=None):
     """The env, source and loop for ``options`` (single process)."""
     import gymnasium as gym
 
-    from beavr_sim.teleop.operator import Operator
-    from beavr_sim.teleop.sources import QuestSource, TraceSource
-    from beavr_sim.teleop.twin import TwinInterface
-    from beavr_sim.teleop.validation import StreamValidator
+    from beavr_sim.headset.sources import QuestSource, TraceSource
+    from beavr_sim.headset.validation import StreamValidator
+    from beavr_sim.operator.operator import Operator
+    from beavr_sim.twin.twin import TwinInterface
 
     validator = StreamValidator()
     seed = options.seed
@@ -262,7 +263,7 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             closers.append(view.close)
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
         if not options.headless and options.source == "quest":
-            from beavr_sim.teleop.quest_io import HeadsetImagePublisher
+            from beavr_sim.headset.quest_io import HeadsetImagePublisher
 
             publisher = HeadsetImagePublisher(
                 context,
@@ -297,7 +298,7 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                     f"\nrun {run}: {'success' if summary.success else 'no success'}; again",
                     file=sys.stderr,
                 )
-            from beavr_sim.teleop.sources import TraceSource
+            from beavr_sim.headset.sources import TraceSource
 
             loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
             loop.reset(loop.seed)
@@ -347,8 +348,8 @@ def record_episodes(
     from beavr_sim.datasets.features import lerobot_features
     from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
     from beavr_sim.datasets.writer import EpisodeWriter
+    from beavr_sim.headset.sources import TraceSource
     from beavr_sim.teleop.episodes import EpisodeControl
-    from beavr_sim.teleop.sources import TraceSource
 
     config = options.recording
     env = loop.twin.env

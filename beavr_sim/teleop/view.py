@@ -14,8 +14,9 @@ from __future__ import annotations
 import re
 import time
 
-from beavr_sim.teleop.pipeline import TeleopLoop, Tick
+from beavr_sim.teleop.pipeline import TeleopLoop
 from beavr_sim.viz.twin_view import DEFAULT_RATE_HZ, RateMeter, TwinView, recent_p50
+from beavr_sim.wire.records import Tick
 
 _EPISODE = re.compile(r"episode (\d+)/(\d+): (REC|idle)")
 

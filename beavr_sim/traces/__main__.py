@@ -4,7 +4,8 @@
   metadata).
 - ``record --out TRACE [--headset-host H] [--seconds N]``: record the BEAVR Quest app's hand
   streams (Ctrl-C finishes the file cleanly); times are seconds from the first frame.
-- ``synth ...``: hand-motion synthesis (``beavr_sim.traces.synth``; ``synth --help``).
+- ``synth ...``: a trace from a task's scripted expert (:mod:`beavr_sim.synthetic.trace`;
+  ``synth --help``).
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from beavr_sim.teleop.config import TransportConfig
 from beavr_sim.traces.format import HAND_TOPICS, TraceError, TraceMetadata, TraceReader, TraceWriter
+from beavr_sim.wire.ports import TransportConfig
 
 
 def info(path: str | Path) -> int:
@@ -61,7 +62,7 @@ def record_trace(
     """
     import zmq
 
-    from beavr_sim.teleop.quest_io import QuestReceiver
+    from beavr_sim.headset.quest_io import QuestReceiver
 
     metadata = metadata or TraceMetadata(source="record")
     context = zmq.Context()
@@ -102,22 +103,10 @@ def record_trace(
 
 
 def _synth(argv: list[str]) -> int:
-    import importlib
+    """``synth ...``: the synthetic operator lives above the pipeline it drives."""
+    from beavr_sim.synthetic.trace import main as synth_main
 
-    try:
-        synth = importlib.import_module("beavr_sim.traces.synth")
-    except ImportError as err:
-        if err.name != "beavr_sim.traces.synth":
-            raise
-        print(
-            "error: trace synthesis is not available (beavr_sim/traces/synth.py is missing)",
-            file=sys.stderr,
-        )
-        return 2
-    if not callable(getattr(synth, "main", None)):
-        print("error: beavr_sim.traces.synth has no main(argv) entry point", file=sys.stderr)
-        return 2
-    return int(synth.main(argv) or 0)
+    return int(synth_main(argv) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 One channel per stream, JSON messages with a JSON Schema (viewable in Foxglove and other MCAP
 tools), zstd-compressed chunks; the log time of each message is its ``t_source`` in ns:
 
-- ``/hands/right``, ``/hands/left``: a :class:`~beavr_sim.teleop.hand.HandFrame`; joints in
+- ``/hands/right``, ``/hands/left``: a :class:`~beavr_sim.wire.hand.HandFrame`; joints in
   metres rounded to 0.1 mm, ``null`` for an untracked joint;
 - ``/control/resolution`` (``"high"`` / ``"low"``), ``/control/pause`` (``true`` = paused):
   the headset's buttons, written when they change.
@@ -25,7 +25,7 @@ import msgspec
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.hand import JOINT_NAMES, N_JOINTS, RESOLUTIONS, SIDES, HandFrame
+from beavr_sim.wire.hand import JOINT_NAMES, N_JOINTS, RESOLUTIONS, SIDES, HandFrame
 
 FORMAT_VERSION = "1"
 METADATA_NAME = "beavr_sim"

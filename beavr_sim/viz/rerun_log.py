@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 import rerun as rr
 
-from beavr_sim.teleop.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, SIDES
+from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, SIDES
 
 TIMELINE = "session_time"
 TICK_TIMELINE = "tick"

@@ -28,7 +28,7 @@ from itertools import pairwise
 import mujoco
 import numpy as np
 
-from beavr_sim.teleop.hand import FINGERS, JOINT_INDEX, JOINT_NAMES
+from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080

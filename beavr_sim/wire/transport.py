@@ -29,7 +29,7 @@ from typing import Any
 
 import zmq
 
-from beavr_sim.teleop.messages import Message, MessageError, decode, encode
+from beavr_sim.wire.messages import Message, MessageError, decode, encode
 
 log = logging.getLogger(__name__)
 

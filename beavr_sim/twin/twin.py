@@ -3,7 +3,7 @@
 It owns the env. Each control tick it composes the newest command of every effector into
 one action (an effector with no command yet, or whose commands stopped, holds its last
 target: the robot never goes limp and never jumps), lets the collision guard
-(:mod:`beavr_sim.teleop.guard`) refuse what would collide (that effector holds its last safe
+(:mod:`beavr_sim.twin.guard`) refuse what would collide (that effector holds its last safe
 target), and steps the env one control period.
 """
 
@@ -11,31 +11,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from beavr_sim.teleop.guard import CollisionGuard, GuardConfig, GuardVerdict
-from beavr_sim.teleop.operator import JointCommand
-
-
-@dataclass(frozen=True)
-class TwinState:
-    """What the twin publishes after a tick."""
-
-    t: float
-    positions: np.ndarray
-    velocities: np.ndarray
-    action: np.ndarray
-    success: bool
-    failure: bool
-    terminated: bool
-    truncated: bool
-    info: dict = field(default_factory=dict)
-    #: The collision guard refused a command this tick (those effectors held their last
-    #: safe target); ``guard_blocked_effectors`` names them.
-    guard_blocked: bool = False
-    guard_blocked_effectors: tuple[str, ...] = ()
+from beavr_sim.twin.guard import CollisionGuard, GuardConfig, GuardVerdict
+from beavr_sim.wire.records import JointCommand, TwinState
 
 
 class TwinInterface:

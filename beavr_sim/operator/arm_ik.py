@@ -8,7 +8,7 @@ error of the ``hand`` body, weighted by their costs, plus a small pull to the po
 
 - joint position limits (``mink.ConfigurationLimit``'s, gain 0.95) and arm joint velocity
   limits (``ArmIKConfig.max_joint_speed``), both as simple bounds on the step;
-- collision avoidance (:class:`~beavr_sim.teleop.collision.CollisionLimit`, mink's rows): hand
+- collision avoidance (:class:`~beavr_sim.operator.collision.CollisionLimit`, mink's rows): hand
   and forearm against the table, hand against the upper arm and the base (self-collision), as
   a velocity damper: one step closes at most ``collision_gain`` of the gap above the margin.
 
@@ -28,10 +28,10 @@ import mujoco
 import numpy as np
 
 from beavr_sim.envs.scene import build_scene_spec
+from beavr_sim.operator import kernels
+from beavr_sim.operator.collision import CollisionLimit
+from beavr_sim.operator.qp import StepQP
 from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
-from beavr_sim.teleop import kernels
-from beavr_sim.teleop.collision import CollisionLimit
-from beavr_sim.teleop.qp import StepQP
 
 #: Arm links checked against the table, and arm links the hand must not hit.
 FOREARM_LINKS = ("link5", "link6", "link7")

@@ -1,4 +1,4 @@
-"""The one typed hand-tracking message of beavr_sim, and the hand frame computed from it.
+"""The one typed hand-tracking record of beavr_sim: the headset stage's output, the operator's input.
 
 Canonical joint order (26 joints, the order of Unity XR Hands and of the BEAVR Quest app's
 keypoint string; see ``docs/formats.md``)::
@@ -14,10 +14,10 @@ Z-up** (x forward, y left, z up): whatever layout or handedness the source uses,
 ``tracked=False`` (their positions are meaningless, and set to NaN by converters that have
 nothing better).
 
-The *palm frame* (:func:`T_world_palm`) follows the robot hand's convention (``hand`` body of
-the LEAP MJCF): origin at the wrist, +z from the wrist towards the middle knuckle (along the
-fingers), +x the palmar normal (out of the palm), y = z x x, so that the thumb is at +y on a
-right hand and at -y on a left one. It is built from the wrist and the index, middle and
+The *palm frame* (computed in :mod:`beavr_sim.operator.palm`) follows the robot hand's
+convention (``hand`` body of the LEAP MJCF): origin at the wrist, +z from the wrist towards
+the middle knuckle (along the fingers), +x the palmar normal (out of the palm), y = z x x, so
+that the thumb is at +y on a right hand and at -y on a left one. It is built from the wrist and the index, middle and
 little proximal (knuckle) joints and Gram-Schmidt orthonormalised.
 """
 
@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop import kernels
 
 SIDES = ("right", "left")
 FINGERS = ("thumb", "index", "middle", "ring", "little")
@@ -109,39 +108,3 @@ class HandFrame:
 
 
 _PALM_FRAME_IDS = np.array([JOINT_INDEX[n] for n in PALM_FRAME_JOINTS])
-_WRIST, _MIDDLE_KNUCKLE = JOINT_INDEX["wrist"], JOINT_INDEX["middle_proximal"]
-_INDEX_KNUCKLE, _LITTLE_KNUCKLE = JOINT_INDEX["index_proximal"], JOINT_INDEX["little_proximal"]
-
-
-def R_world_palm(joints: np.ndarray, side: str) -> np.ndarray:
-    """Rotation of the palm frame from the 26 canonical joints (see the module docstring)."""
-    return T_world_palm(joints, side)[:3, :3].copy()
-
-
-_PALM_ERRORS = {
-    1: "degenerate hand: wrist and middle knuckle coincide",
-    2: "degenerate hand: knuckles in line with the fingers",
-}
-
-
-def T_world_palm(joints: np.ndarray, side: str) -> np.ndarray:
-    """4x4 pose of the palm frame (origin at the wrist) in the frame of ``joints``."""
-    sign = PALMAR_NORMAL_SIGN.get(side)
-    if sign is None:
-        check_name("side", side, SIDES)
-    joints = np.asarray(joints, dtype=np.float64)
-    T = np.empty((4, 4))
-    status = kernels.palm_pose(
-        joints, _WRIST, _MIDDLE_KNUCKLE, _INDEX_KNUCKLE, _LITTLE_KNUCKLE, sign, T
-    )
-    if status:
-        raise ValueError(_PALM_ERRORS[status])
-    return T
-
-
-def keypoints_in_palm(joints: np.ndarray, side: str) -> np.ndarray:
-    """The 26 joints expressed in the palm frame (26 x 3)."""
-    joints = np.asarray(joints, dtype=np.float64)
-    out = np.empty(joints.shape)
-    kernels.in_frame(joints, T_world_palm(joints, side), out)
-    return out

@@ -15,7 +15,7 @@ The synthetic operator:
   target (``RelativeMotionMapping.hand_for`` with the operator's own anchor, as a person
   corrects by watching the robot); before the anchor exists, a still palm in front of the
   chest (``SynthConfig.palm_start``);
-- fingers: the human hand model of ``beavr_sim.teleop.retarget.human_keypoints_for`` (an
+- fingers: the human hand model of ``beavr_sim.operator.retarget.human_keypoints_for`` (an
   adult palm template, finger points mapped back from the LEAP hand through the inverse of
   the retargeting's scale), posed at that palm;
 - tracking: frames at ``frame_hz`` (the Quest tracks at 60-90 Hz), palm poses interpolated
@@ -33,13 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from beavr_sim.teleop.filters import slerp
-from beavr_sim.teleop.hand import HandFrame
-from beavr_sim.teleop.operator import Operator, OperatorConfig
+from beavr_sim.headset.sources import FrameListSource
+from beavr_sim.operator.filters import slerp
+from beavr_sim.operator.operator import Operator, OperatorConfig
+from beavr_sim.operator.retarget import human_keypoints_for
 from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary
-from beavr_sim.teleop.retarget import human_keypoints_for
-from beavr_sim.teleop.sources import FrameListSource
-from beavr_sim.teleop.twin import TwinInterface
 from beavr_sim.traces.format import (
     TraceMetadata,
     TraceReader,
@@ -47,6 +45,8 @@ from beavr_sim.traces.format import (
     hand_from_json,
     hand_to_json,
 )
+from beavr_sim.twin.twin import TwinInterface
+from beavr_sim.wire.hand import HandFrame
 
 #: Palm down, fingers forward (+x), per side, in front of a standing operator (headset world
 #: frame, right-handed Z-up, metres).
@@ -178,7 +178,7 @@ def synthesize(
         embodiment=embodiment,
         seed=seed,
         generator={
-            "name": "beavr_sim.traces.synth",
+            "name": "beavr_sim.synthetic.trace",
             "expert": type(expert).__name__,
             **{k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()},
             "episode_success": bool(summary.success),

@@ -20,13 +20,13 @@ import numpy as np
 import zmq
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.config import TransportConfig
-from beavr_sim.teleop.hand import SIDES, HandFrame
-from beavr_sim.teleop.transport import Heartbeat, Liveness, bind_socket
+from beavr_sim.wire.hand import SIDES, HandFrame
+from beavr_sim.wire.ports import TransportConfig
+from beavr_sim.wire.transport import Heartbeat, Liveness, bind_socket
 
 log = logging.getLogger(__name__)
 
-#: Receiver streams -> port names in :class:`~beavr_sim.teleop.config.PortConfig`.
+#: Receiver streams -> port names in :class:`~beavr_sim.wire.ports.PortConfig`.
 QUEST_STREAMS = {
     "right": "quest_right",
     "left": "quest_left",
@@ -39,7 +39,7 @@ MAX_DRAIN = 256
 
 
 class FrameValidator(Protocol):
-    """What :class:`QuestReceiver` needs of ``beavr_sim.teleop.validation.StreamValidator``."""
+    """What :class:`QuestReceiver` needs of ``beavr_sim.headset.validation.StreamValidator``."""
 
     def check(self, frame: HandFrame) -> str | None: ...
 
@@ -137,7 +137,7 @@ class QuestReceiver:
         return payloads
 
     def _update_controls(self) -> None:
-        from beavr_sim.teleop.quest_protocol import parse_pause, parse_resolution
+        from beavr_sim.headset.quest_protocol import parse_pause, parse_resolution
 
         for payload in self._drain("resolution"):
             try:
@@ -155,7 +155,7 @@ class QuestReceiver:
 
     def poll(self, timeout_s: float = 0.0) -> list[HandFrame]:
         """Hand frames received within ``timeout_s`` (right then left; see ``latest_only``)."""
-        from beavr_sim.teleop.quest_protocol import parse_keypoints
+        from beavr_sim.headset.quest_protocol import parse_keypoints
 
         if self._poller is None:
             raise RuntimeError("QuestReceiver is closed")

@@ -6,7 +6,7 @@ Two groups of sockets:
   binds PULL for the app's keypoint, resolution and pause streams and binds PUB for the images
   the headset shows. They bind on :attr:`TransportConfig.headset_host` (loopback by default;
   a LAN address such as ``"0.0.0.0"`` only when the user asks for it).
-- **pipeline** streams carry typed messages (:mod:`beavr_sim.teleop.messages`) between the
+- **pipeline** streams carry typed messages (:mod:`beavr_sim.wire.messages`) between the
   detector, operator and twin processes on :attr:`TransportConfig.host`.
 """
 

@@ -6,7 +6,7 @@ control tick,
 
     minimise 1/2 dq^T H dq + c^T dq   s.t.   lower <= dq <= upper,   A dq <= h
 
-with H, c and the bounds from their tasks (:mod:`beavr_sim.teleop.kernels` fills them in
+with H, c and the bounds from their tasks (:mod:`beavr_sim.operator.kernels` fills them in
 place) and the rows from collision avoidance (a varying number, often none). Allocating these
 arrays afresh every tick, and handing new arrays back from compiled code, cost more than the
 arithmetic that fills them; :class:`StepQP` keeps them instead.
@@ -31,7 +31,7 @@ import logging
 import daqp
 import numpy as np
 
-from beavr_sim.teleop import kernels
+from beavr_sim.operator import kernels
 
 log = logging.getLogger(__name__)
 

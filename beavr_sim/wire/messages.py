@@ -16,7 +16,7 @@ import numpy as np
 from msgspec.structs import force_setattr
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.hand import N_JOINTS, RESOLUTIONS, SIDES, HandFrame
+from beavr_sim.wire.hand import N_JOINTS, RESOLUTIONS, SIDES, HandFrame
 
 SESSION_COMMANDS = ("pause", "resume", "reset", "stop", "record_start", "record_stop")
 
@@ -57,7 +57,7 @@ def _check_length(name: str, values: list, expected: int) -> None:
 
 
 class HandFrameMsg(msgspec.Struct, tag="hand_frame", kw_only=True, frozen=True):
-    """A :class:`~beavr_sim.teleop.hand.HandFrame` on the wire.
+    """A :class:`~beavr_sim.wire.hand.HandFrame` on the wire.
 
     ``joints``: 26 x 3 positions flattened row-major (metres, right-handed Z-up); untracked
     joints are sent as 0.0 so every number on the wire is finite.

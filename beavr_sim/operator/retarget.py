@@ -1,7 +1,7 @@
 """LEAP hand retargeting: human hand keypoints (palm frame) -> 16 LEAP joint targets, and back.
 
 The human hand arrives as the 26 canonical joints in the palm frame
-(:func:`beavr_sim.teleop.hand.keypoints_in_palm`: origin at the wrist, +z along the fingers,
+(:func:`beavr_sim.operator.palm.keypoints_in_palm`: origin at the wrist, +z along the fingers,
 +x out of the palm), whose axes are those of the LEAP ``hand`` frame. A human point maps to
 the LEAP hand frame by
 
@@ -31,12 +31,12 @@ import numpy as np
 
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
+from beavr_sim.operator import kernels
+from beavr_sim.operator.collision import CollisionLimit
+from beavr_sim.operator.jacobians import PointJacobians
+from beavr_sim.operator.qp import StepQP
 from beavr_sim.robots.parts import LEAP_HAND
-from beavr_sim.teleop import kernels
-from beavr_sim.teleop.collision import CollisionLimit
-from beavr_sim.teleop.hand import JOINT_INDEX, N_JOINTS, SIDES
-from beavr_sim.teleop.jacobians import PointJacobians
-from beavr_sim.teleop.qp import StepQP
+from beavr_sim.wire.hand import JOINT_INDEX, N_JOINTS, SIDES
 
 #: LEAP fingers, in the order of their motor ids' blocks below.
 LEAP_FINGERS = ("thumb", "index", "middle", "ring")
@@ -422,7 +422,7 @@ class LeapRetargeter:
         """Joint targets (16, motor-id order, within the joint limits) for one hand frame.
 
         ``keypoints_palm``: the 26 canonical joints in the palm frame (wrist at the origin),
-        as :func:`~beavr_sim.teleop.hand.keypoints_in_palm` gives them. ``tracked``: per-joint
+        as :func:`~beavr_sim.operator.palm.keypoints_in_palm` gives them. ``tracked``: per-joint
         flags (None: all tracked); a finger whose tip or distal joint is untracked holds its
         previous value.
         """

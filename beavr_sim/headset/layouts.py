@@ -30,7 +30,7 @@ from types import MappingProxyType
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, N_JOINTS, HandFrame
+from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, N_JOINTS, HandFrame
 
 #: Unity (left-handed: x right, y up, z forward) -> ours: x = z_u, y = -x_u, z = y_u. det -1.
 R_ZUP_UNITY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

@@ -10,7 +10,7 @@ At an anchor instant (teleop start, every resume, every reset) the operator's pa
 with ``s`` the resolution scale (1.0 high, 0.6 low) and the axis matrices ``A_rot``,
 ``A_trans`` (the paper's ``H_RV^-1`` and ``H_TV^-1``) mapping palm-frame axes to robot-hand
 axes. They are data, one :class:`AxisMap` per (embodiment, side). Our palm frame is defined
-with the robot hand's axis convention (``beavr_sim.teleop.hand``: +z along the fingers, +x the
+with the robot hand's axis convention (``beavr_sim.wire.hand``: +z along the fingers, +x the
 palmar normal), so for the xArm7 + LEAP rigs both matrices are the identity; the Quest app's
 raw Unity frame would need the paper's matrices instead.
 
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop import kernels
+from beavr_sim.operator import kernels
 
 RESOLUTION_SCALE = {"high": 1.0, "low": 0.6}
 

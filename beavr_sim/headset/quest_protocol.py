@@ -18,9 +18,9 @@ import re
 
 import numpy as np
 
+from beavr_sim.headset.layouts import unity_to_zup, zup_to_unity
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.hand import JOINT_NAMES, N_JOINTS, HandFrame
-from beavr_sim.teleop.layouts import unity_to_zup, zup_to_unity
+from beavr_sim.wire.hand import JOINT_NAMES, N_JOINTS, HandFrame
 
 MARKERS = ("relative", "absolute")
 #: Longest keypoint payload accepted (26 triples of long floats fit in about 2 KiB).

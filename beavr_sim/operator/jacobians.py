@@ -4,7 +4,7 @@
 the point's body, ``jacp[:, k] = lin_k + ang_k x (p - c)``, where ``(ang_k, lin_k)`` is the
 dof's motion in the com-based frame (``data.cdof``) and ``c`` the centre of mass of the body's
 kinematic tree (``data.subtree_com[body_rootid]``). The same formula, compiled
-(:mod:`beavr_sim.teleop.kernels`), gives the Jacobians of all points (and their projections on
+(:mod:`beavr_sim.operator.kernels`), gives the Jacobians of all points (and their projections on
 contact normals) in one call, which matters when a QP step needs dozens of them within a
 millisecond.
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.teleop import kernels
+from beavr_sim.operator import kernels
 
 
 class PointJacobians:

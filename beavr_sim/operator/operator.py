@@ -34,15 +34,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from beavr_sim.operator import kernels
+from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
+from beavr_sim.operator.arm_mapping import RelativeMotionMapping, axis_map
+from beavr_sim.operator.filters import KeypointSmoother, PoseSmoother
+from beavr_sim.operator.palm import T_world_palm
+from beavr_sim.operator.retarget import LeapRetargeter, RetargetConfig, human_template
 from beavr_sim.robots import Embodiment
-from beavr_sim.teleop import kernels
-from beavr_sim.teleop.arm_ik import ArmIK, ArmIKConfig
-from beavr_sim.teleop.arm_mapping import RelativeMotionMapping, axis_map
-from beavr_sim.teleop.filters import KeypointSmoother, PoseSmoother
-from beavr_sim.teleop.hand import JOINT_INDEX, SIDES, HandFrame, T_world_palm
-from beavr_sim.teleop.retarget import LeapRetargeter, RetargetConfig, human_template
+from beavr_sim.wire.hand import JOINT_INDEX, SIDES, HandFrame
+from beavr_sim.wire.records import JointCommand
 
-log = logging.getLogger("beavr_sim.teleop.operator")
+log = logging.getLogger("beavr_sim.operator.operator")
 
 WRIST = JOINT_INDEX["wrist"]
 
@@ -73,22 +75,6 @@ class OperatorConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
         if self.reanchor_after < 1:
             raise ValueError(f"reanchor_after must be >= 1, got {self.reanchor_after}")
-
-
-@dataclass(frozen=True)
-class JointCommand:
-    """Joint targets of one effector (arm then hand, action order) and where they came from.
-
-    ``t_source`` / ``t_receive``: stamps of the newest hand frame that shaped the command;
-    ``hold``: the effector is holding (``reason`` says why), not tracking the hand.
-    """
-
-    effector: str
-    positions: np.ndarray
-    t_source: float
-    t_receive: float
-    hold: bool = False
-    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -140,7 +126,7 @@ class EffectorOperator:
     def _warm_up(self, dt: float) -> None:
         """Run the per-frame and per-tick code once on the template hand, then re-home.
 
-        The per-tick arithmetic is in numba kernels (:mod:`beavr_sim.teleop.kernels`),
+        The per-tick arithmetic is in numba kernels (:mod:`beavr_sim.operator.kernels`),
         compiled on their first call (about 10 s on a small machine, once after install;
         later processes load them from the on-disk cache in a fraction of a second). This
         does it here, before any frame arrives, rather than in the first control tick."""

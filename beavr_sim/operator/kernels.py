@@ -7,7 +7,7 @@ microseconds of interpreter and dispatch overhead: most of the tick. Here the sa
 arithmetic is written as plain loops and compiled once by numba (cached on disk next to
 this module, so later processes load it in milliseconds), one call per piece.
 
-The formulas are those of :mod:`beavr_sim.teleop.jacobians` (point Jacobians from the dofs'
+The formulas are those of :mod:`beavr_sim.operator.jacobians` (point Jacobians from the dofs'
 motion subspaces ``cdof``) and of mink's tasks and limits; the callers document them, and
 the tests check the kernels against ``mj_jac``, finite differences and the numpy forms.
 

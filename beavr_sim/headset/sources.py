@@ -7,7 +7,7 @@ headset sends malformed are rejected inside the source and counted by its valida
 - :class:`FrameListSource`: frames in memory, released when the clock reaches their time.
 - :class:`TraceSource`: a recorded VR trace (MCAP), on the virtual clock (deterministic:
   frame ``t_source`` is trace time) or in real time (trace time offset to ``time.monotonic``).
-- :class:`QuestSource`: the BEAVR Quest app over ZeroMQ (``beavr_sim.teleop.quest_io``).
+- :class:`QuestSource`: the BEAVR Quest app over ZeroMQ (``beavr_sim.headset.quest_io``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from beavr_sim.teleop.hand import HandFrame
+from beavr_sim.wire.hand import HandFrame
 
 #: Tolerance when comparing frame times with the clock (float trace times).
 _EPS = 1e-9
@@ -120,7 +120,7 @@ class QuestSource(HandSource):
 
     def __init__(self, context, config, validator=None):
         self.validates = validator is not None
-        from beavr_sim.teleop.quest_io import QuestReceiver
+        from beavr_sim.headset.quest_io import QuestReceiver
 
         self.receiver = QuestReceiver(context, config, validator=validator)
 

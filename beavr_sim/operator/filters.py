@@ -13,7 +13,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.teleop import kernels
+from beavr_sim.operator import kernels
 
 
 class KeypointSmoother:

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.hand import SIDES, HandFrame
+from beavr_sim.wire.hand import SIDES, HandFrame
 
 LOGGER_NAME = "beavr_sim.teleop.detector"
 OUT_OF_ORDER = "out_of_order"

@@ -2,7 +2,7 @@
 
 Per episode: the task's scripted expert drives a synthetic operator's hands (the inverse of the
 operator mapping and a human hand model, with tracking noise and dropouts; see
-:mod:`beavr_sim.traces.synth`), the frames are saved as a VR trace, and the trace is replayed
+:mod:`beavr_sim.synthetic.trace`), the frames are saved as a VR trace, and the trace is replayed
 through the full teleop pipeline (validator, operator, twin) while the recorder writes LeRobot
 frames. The data is therefore what a VR operator's session produces, not expert actions. The
 traces are kept in ``<out>/beavr_traces/`` so every episode can be replayed or re-recorded.
@@ -51,9 +51,9 @@ def generate(
 ) -> GenerateSummary:
     import gymnasium as gym
 
+    from beavr_sim.synthetic.trace import quantize, synthesize, write_trace
     from beavr_sim.tasks.registry import canonical_task_name
     from beavr_sim.teleop.session import SessionOptions, build_loop
-    from beavr_sim.traces.synth import quantize, synthesize, write_trace
 
     task = canonical_task_name(task)
     if episodes < 1:

@@ -14,8 +14,8 @@ margin, while the general convex collider (the one ``mj_geomDistance`` uses) get
 The rows are mink's: for a pair at distance ``d`` with normal ``n`` (geom 1 -> geom 2) and
 witness points ``p1``, ``p2``, ``-n^T (J(p2) - J(p1)) dq <= gain (d - margin) / dt`` (0 once
 within the margin), kept only for pairs within their detection distance. ``J(p)`` is the
-point Jacobian from the dofs' motion subspaces (:mod:`beavr_sim.teleop.jacobians`); selection
-and rows are one compiled call (:func:`beavr_sim.teleop.kernels.contact_rows`).
+point Jacobian from the dofs' motion subspaces (:mod:`beavr_sim.operator.jacobians`); selection
+and rows are one compiled call (:func:`beavr_sim.operator.kernels.contact_rows`).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import mink
 import mujoco
 import numpy as np
 
-from beavr_sim.teleop import kernels
-from beavr_sim.teleop.jacobians import PointJacobians
+from beavr_sim.operator import kernels
+from beavr_sim.operator.jacobians import PointJacobians
 
 _BOX = mujoco.mjtGeom.mjGEOM_BOX
 

@@ -1,0 +1,57 @@
+"""Command-line options of recording, shared by ``python -m beavr_sim.datasets generate`` and
+``python -m beavr_sim.teleop --record`` (library code: entry points import it, never each other).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from beavr_sim.datasets.features import RecordingConfig
+
+
+def parse_cameras(text: str) -> tuple[str, ...]:
+    text = text.strip().lower()
+    return () if text in ("", "none", "off") else tuple(c.strip() for c in text.split(","))
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``HxW`` (e.g. 480x640) -> (height, width)."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise ValueError(f"image size must be HxW, e.g. 480x640, got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
+def add_recording_args(p: argparse.ArgumentParser) -> None:
+    """The recording options shared with ``python -m beavr_sim.teleop --record``."""
+    p.add_argument("--repo-id", default=None, help="dataset repo id (default beavr_sim/<task>)")
+    p.add_argument("--fps", type=int, default=30, help="frame rate = the env's control rate")
+    p.add_argument(
+        "--cameras", default="front,overhead", help="cameras to record, comma-separated, or none"
+    )
+    p.add_argument("--image-size", default="480x640", help="HxW of recorded images")
+    p.add_argument("--no-videos", action="store_true", help="store PNG frames, not video")
+    p.add_argument("--no-keypoints", action="store_true", help="leave out the raw hand keypoints")
+    p.add_argument(
+        "--environment-state",
+        action="store_true",
+        help="also record object and target poses (observation.environment_state)",
+    )
+    p.add_argument(
+        "--episode-seconds", type=float, default=None, help="episode time limit (default: env's)"
+    )
+
+
+def recording_config(args: argparse.Namespace) -> RecordingConfig:
+    """The :class:`RecordingConfig` of options added by :func:`add_recording_args`."""
+    height, width = parse_size(args.image_size)
+    return RecordingConfig(
+        fps=args.fps,
+        cameras=parse_cameras(args.cameras),
+        image_height=height,
+        image_width=width,
+        hand_keypoints=not args.no_keypoints,
+        episode_seconds=args.episode_seconds,
+        use_videos=not args.no_videos,
+        environment_state=args.environment_state,
+    )
