@@ -1,15 +1,21 @@
-"""The collision guard: commands into the table are refused, objects never block."""
+"""The safety guard: commands into the table, past a limit, too fast or non-finite are
+refused (the effector holds); objects never block."""
 
 from __future__ import annotations
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.twin.guard import CollisionGuard, GuardConfig
+from beavr_sim.naming import UnknownNameError
+from beavr_sim.twin.guard import CollisionGuard, GuardConfig, Workspace
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
+from beavr_sim.workcell import TABLE_TOP_Z
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +64,12 @@ def test_command_through_the_table_is_refused_and_robot_holds(twin):
     np.testing.assert_array_equal(state.action, before)  # the refused target never applied
     assert twin.commands_applied == applied  # a refused command is not counted as applied
     assert twin.guard_blocks["right"] >= 1
-    assert any("table" in a or "table" in b for a, b, _ in twin.last_refusal.contacts)
+    # A jump from home is refused before any geometry: too fast. As a configuration alone,
+    # it is in the table.
+    assert twin.last_refusal.reasons["right"].startswith("velocity")
+    alone = twin.guard.check(q_bad, twin.env.data.qpos)
+    assert any("table" in a or "table" in b for a, b, _ in alone.contacts)
+    assert alone.reasons["right"].startswith(("workspace", "contact"))
     # A safe command afterwards goes through again.
     ok = JointCommand("right", before[sl], t_source=0.0, t_receive=0.0)
     assert not twin.apply({"right": ok}).guard_blocked
@@ -71,7 +82,12 @@ def test_tolerance_is_respected(twin):
         twin.env.model,
         twin.env.embodiment,
         twin.env.joints,
-        GuardConfig(tolerance=depth + 0.01, finger_tolerance=depth + 0.01),
+        GuardConfig(
+            tolerance=depth + 0.01,
+            finger_tolerance=depth + 0.01,
+            workspace_tolerance=1.0,
+            finger_workspace_tolerance=1.0,
+        ),
     )
     assert lenient.check(q_bad, twin.env.data.qpos).ok
     with pytest.raises(ValueError, match="tolerance"):
@@ -129,3 +145,149 @@ def test_arms_driven_into_each_other_are_refused():
         np.testing.assert_array_equal(state.action, q0)
     finally:
         env.close()
+
+
+# --------------------------------------------------------------------------- the rules
+def _stream(guard, rows, start, qpos):
+    """Rows as successive commands from ``start``; returns the accepted flags and verdicts."""
+    guard.reset()
+    previous, out = start.copy(), []
+    for q in rows:
+        safe, verdict = guard.filter(q, previous, qpos)
+        out.append(verdict)
+        previous = safe
+    return out
+
+
+def _fingertip_depth_mm(env, q) -> float:
+    """How far (mm) the lowest fingertip site of ``q`` is below the table top."""
+    model, data = env.model, mujoco.MjData(env.model)
+    data.qpos[:] = env.data.qpos
+    data.qpos[env.joints.qpos_adr] = q
+    mujoco.mj_kinematics(model, data)
+    tips = [model.site(f"right/{f}_tip").id for f in ("thumb", "index", "middle", "ring")]
+    return float((TABLE_TOP_Z - data.site_xpos[tips, 2].min()) * 1e3)
+
+
+def test_descent_into_the_thin_table_is_stopped_above_it(twin):
+    """The descent of issue 18: arm joint 1 at 0.5 rad, joints 2 and 4 from home towards 1.45
+    and 1.2 rad, at a slow, legal speed. A contacts-only check accepts configurations with the
+    fingertips 13-15 mm below the 4 cm table top (a capsule past the box's middle reports a
+    shallow penetration or none); the guard stops the hand on the table and holds."""
+    env = twin.env
+    home = env.joints.home.astype(np.float64)
+    goal = home.copy()
+    goal[0], goal[1], goal[3] = 0.5, 1.45, 1.2
+    rows = [home + (goal - home) * k / 300 for k in range(1, 301)]
+    contacts_only = CollisionGuard(
+        env.model,
+        env.embodiment,
+        env.joints,
+        GuardConfig(workspace_tolerance=10.0, finger_workspace_tolerance=10.0, max_path_samples=1),
+    )
+    hole = [
+        _fingertip_depth_mm(env, q)
+        for q in rows
+        if contacts_only.check(q, env.data.qpos).ok and _fingertip_depth_mm(env, q) > 12.0
+    ]
+    assert hole, "the contacts-only check no longer shows the thin-table hole"
+    verdicts = _stream(twin.guard, rows, home, env.data.qpos)
+    accepted = [q for q, v in zip(rows, verdicts, strict=True) if v.ok]
+    refused = [v for v in verdicts if not v.ok]
+    assert refused and accepted
+    # Every accepted row keeps the fingertips above 12 mm into the table; once refused, the
+    # hand holds there (every later row is refused).
+    assert max(_fingertip_depth_mm(env, q) for q in accepted) < 12.0
+    first = next(i for i, v in enumerate(verdicts) if not v.ok)
+    assert all(not v.ok for v in verdicts[first:])
+    assert verdicts[first].reasons["right"].startswith(("workspace", "contact"))
+
+
+def test_each_rule_names_itself(twin):
+    env, guard = twin.env, twin.guard
+    home = env.joints.home.astype(np.float64)
+    qpos = env.data.qpos
+    sl = twin.slices["right"]
+    q = home.copy()
+    q[sl.start + 2] = np.nan
+    verdict = guard.check(q, qpos)
+    assert verdict.blocked == ("right",) and verdict.reasons["right"].startswith("non-finite")
+    assert "right/joint3" in verdict.reasons["right"]
+    q = home.copy()
+    q[sl.start + 3] = env.joints.upper[sl.start + 3] + 0.01
+    assert guard.check(q, qpos).reasons["right"].startswith("joint limit: right/joint4")
+    # Speed: a step of 0.2 rad in one 1/30 s tick is 6 rad/s on an arm joint (cap pi).
+    guard.reset()
+    q = home.copy()
+    q[sl.start] += 0.2
+    assert guard.check(q, qpos, previous=home).reasons["right"].startswith("velocity: right/joint1")
+    q[sl.start] = home[sl.start] + 0.09  # 2.7 rad/s: under the cap
+    assert guard.check(q, qpos, previous=home).ok
+    # Acceleration: full speed one way, then the other, in consecutive ticks.
+    guard.reset()
+    step = home.copy()
+    step[sl.start] += 0.09
+    safe, verdict = guard.filter(step, home, qpos)
+    assert verdict.ok
+    verdict = guard.check(home, qpos, previous=safe)  # -2.7 rad/s: 162 rad/s^2
+    assert verdict.reasons["right"].startswith("acceleration: right/joint1")
+    guard.reset()
+
+
+def test_workspace_box_is_checked_along_the_path(twin):
+    """Both ends inside the box, the swing between them leaves it: refused, naming the path."""
+    env = twin.env
+    sl = twin.slices["right"]
+    home = env.joints.home.astype(np.float64)
+    left, right = home.copy(), home.copy()
+    left[sl.start], right[sl.start] = 1.2, -1.2  # the hand swings through straight ahead
+    box = Workspace(lower=(-0.6, -0.8, 0.7), upper=(0.3, 0.8, 2.0))
+    guard = CollisionGuard(
+        env.model, env.embodiment, env.joints, GuardConfig(workspaces={"right": box})
+    )
+    qpos = env.data.qpos
+    assert guard.check(left, qpos).ok and guard.check(right, qpos).ok
+    straight = home.copy()
+    straight[sl.start] = 0.0
+    assert not guard.check(straight, qpos).ok
+    verdict = guard.check(right, qpos, previous=left)  # no dt: no speed rule, path only
+    assert verdict.blocked == ("right",)
+    assert "% of the path" in verdict.reasons["right"] and "workspace" in verdict.reasons["right"]
+    with pytest.raises(UnknownNameError, match="Valid"):
+        CollisionGuard(env.model, env.embodiment, env.joints, GuardConfig(workspaces={"up": box}))
+    with pytest.raises(ValueError, match="lower < upper"):
+        Workspace(lower=(0, 0, 1), upper=(1, 1, 0))
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    steps=st.lists(
+        st.lists(st.floats(-0.4, 0.4), min_size=23, max_size=23), min_size=1, max_size=6
+    ),
+    nan_at=st.integers(-1, 5),
+)
+def test_every_accepted_command_keeps_every_rule(twin, steps, nan_at):
+    """Random command streams: whatever is accepted is finite, within the limits, within the
+    speed caps of the last accepted command, and checks clean as a configuration."""
+    env, guard = twin.env, twin.guard
+    qpos = env.data.qpos
+    home = env.joints.home.astype(np.float64)
+    guard.reset()
+    previous = home.copy()
+    for k, delta in enumerate(steps):
+        q = previous + np.asarray(delta)
+        if k == nan_at:
+            q[k] = np.nan
+        safe, verdict = guard.filter(q, previous, qpos)
+        assert np.isfinite(safe).all()
+        assert (safe >= env.joints.lower - 1e-12).all() and (safe <= env.joints.upper + 1e-12).all()
+        assert (np.abs(safe - previous) <= guard._vmax * guard.dt * (1 + 1e-9)).all()
+        if verdict.ok:
+            np.testing.assert_array_equal(safe, q)
+            assert guard.check(safe, qpos).ok
+        else:
+            np.testing.assert_array_equal(safe, previous)
+        previous = safe
+    guard.reset()

@@ -143,6 +143,11 @@ class ArmIK:
         target = q_effector if posture is None else posture
         self._posture = np.asarray(target, dtype=np.float64)[: self.n_arm].copy()
 
+    @property
+    def posture(self) -> np.ndarray:
+        """The arm posture the IK regularises towards."""
+        return self._posture.copy()
+
     def set_fingers(self, q_hand: np.ndarray) -> None:
         """Put the finger joints where the hand command puts them (collision geometry)."""
         self._configuration.data.qpos[self._hand_qpos] = q_hand

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from beavr_sim.naming import check_name
 from beavr_sim.operator import kernels
 from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.operator.arm_mapping import RelativeMotionMapping, axis_map
@@ -165,6 +166,16 @@ class EffectorOperator:
         self._fresh = False
         self._T_target: np.ndarray | None = None
         self._last_reason = "waiting"
+
+    def resync(self, q_effector: np.ndarray) -> None:
+        """Continue from these joints (arm then hand): the guard held the effector there, so the
+        next command steps from what the robot was given, not from the refused target. The
+        mapping's anchor, the filters and the IK's posture are kept."""
+        q_effector = np.asarray(q_effector, dtype=np.float64)
+        self.ik.reset(q_effector, posture=self.ik.posture)
+        self._q_hand = q_effector[self.n_arm :].copy()
+        self.retargeter.reset(self._q_hand)
+        self.ik.set_fingers(self._q_hand)
 
     def release(self) -> None:
         """Forget the anchor: the next tracked frame anchors again (resume)."""
@@ -341,6 +352,11 @@ class Operator:
         for name, op in self.effectors.items():
             op.reset(np.asarray(q_measured)[joint_slices[name]])
         self._pinch_paused = False
+
+    def resync(self, effector: str, q_effector: np.ndarray) -> None:
+        """Continue ``effector`` from the joints the guard held it at (see
+        :meth:`EffectorOperator.resync`)."""
+        self.effectors[check_name("effector", effector, self.effectors)].resync(q_effector)
 
     def observe(self, frame: HandFrame) -> None:
         """Take one hand frame (any side)."""

@@ -123,6 +123,8 @@ class TeleopLoop:
             if cmd.hold:
                 self.holds[cmd.reason] = self.holds.get(cmd.reason, 0) + 1
         state = self.twin.apply(commands)
+        for name in state.guard_blocked_effectors:  # continue from where the robot was held
+            self.operator.resync(name, state.action[self.twin.slices[name]])
         if used:
             for cmd in commands.values():
                 if cmd.hold or cmd.effector in state.guard_blocked_effectors:

@@ -173,6 +173,11 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                     latest = state.recv_latest(1.0)
                     if latest is not None:
                         operator.reset(np.asarray(latest.positions), slices)
+            held = state.recv(0.0)
+            if held is not None and held.guard_blocked_effectors:  # continue where held
+                for name in held.guard_blocked_effectors:
+                    if name in slices:
+                        operator.resync(name, np.asarray(held.action)[slices[name]])
             t0 = time.perf_counter()
             for sub in hands.values():
                 while (frame_msg := sub.recv(0.0)) is not None:
@@ -317,6 +322,8 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     velocities=st.velocities.tolist(),
                     success=success,
                     guard_blocked=st.guard_blocked,
+                    guard_blocked_effectors=list(st.guard_blocked_effectors),
+                    action=st.action.tolist() if st.guard_blocked_effectors else [],
                 ),
             )
             if view is not None:

@@ -1,65 +1,161 @@
-"""The twin as collision guard: a command that would put the robot into itself or the table
-is refused before it is applied (and, when mirroring, before it reaches any hardware).
+"""The twin as safety guard: a command that is unsafe on the twin's model is refused before it
+is applied (and, when mirroring, before it reaches any hardware); that effector holds its last
+safe command.
 
-The check is kinematic: the commanded joint positions are put into a private copy of the
-twin's model (objects where the twin has them now), and MuJoCo's collision detection lists
-the contacts. A command is refused when one of its effector's geoms would penetrate the
-static scene (table, fixtures on the world body) or another robot geom (another link of the
-same robot, or the other arm) by more than ``tolerance``. Contacts with the task's objects are
-the point of manipulation and never block.
+Rules, per effector, cheapest first (a command fails on the first rule it breaks):
 
-The operator's IK already keeps the arm off the table and the fingers apart with velocity
-limits, so in normal operation the guard never fires; it is the last line against what the
-IK cannot see (a stale command, a bad retarget, the other arm).
+1. ``non-finite``: a NaN or inf target.
+2. ``joint limit``: a target outside the model's range shrunk by ``limit_margin``.
+3. ``velocity`` / ``acceleration``: against the last accepted command, one control period
+   ago (only when the guard knows it: streaming, not a configuration checked alone).
+4. ``workspace``: a moving robot geom leaves its effector's box (default: the volume over the
+   table). The table top is the box's floor, checked on each geom's exact world bounding box:
+   unlike a contact depth, it does not depend on how far a link has passed into a thin table.
+5. ``contact``: a robot geom penetrates the static scene (table, fixtures on the world body)
+   or another robot geom (another link, the other arm) by more than its tolerance. Contacts
+   with the task's objects are the point of manipulation and never block.
+
+Rules 4 and 5 hold along the whole path from the last accepted command, not only at its end:
+the path is sampled so that no robot geom moves more than ``path_resolution`` between two
+samples, so a link cannot step over the table top or through another link between ticks.
+
+The check is kinematic, on a private copy of the twin's model in which only robot-static and
+robot-robot pairs can collide (objects as the twin has them now). The operator's IK already
+keeps within these limits, so in normal operation the guard never fires; it is the last line
+against what the IK cannot see (a stale command, a bad retarget, the other arm, a corrupted
+message).
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 
+from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
+from beavr_sim.twin.extents import GeomExtents
+from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
 _ROBOT, _STATIC = 1, 2  # contype / conaffinity bits of the guard's private model
+RULES = ("non-finite", "joint limit", "velocity", "acceleration", "workspace", "contact")
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """An axis-aligned box in the world frame (m) that an effector's links stay inside."""
+
+    lower: tuple[float, float, float]
+    upper: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        lo, hi = np.asarray(self.lower, float), np.asarray(self.upper, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and (lo < hi).all()):
+            raise ValueError(
+                f"workspace needs finite lower < upper, 3 values each, got {self.lower}, {self.upper}"
+            )
+
+
+#: The volume over the table, up to 1.2 m above it (the xArm7's links reach ~0.65 m up).
+TABLE_WORKSPACE = Workspace(
+    lower=(TABLE_X[0], -TABLE_HALF_Y, TABLE_TOP_Z),
+    upper=(TABLE_X[1], TABLE_HALF_Y, TABLE_TOP_Z + 1.2),
+)
 
 
 @dataclass(frozen=True)
 class GuardConfig:
-    #: Penetration (m) a commanded configuration may have before it is refused. Position
-    #: targets of a grasp sit slightly inside what they grasp; against the table or the robot
-    #: itself a few millimetres are allowed for the difference between target and reached pose.
+    #: Penetration (m) a commanded configuration may have against the table or the robot
+    #: itself: a few millimetres for the difference between target and reached pose.
     tolerance: float = 0.005
     #: The same for finger links: a grasp near the table commands the fingertips a little into
-    #: it (the bundled traces go to ~8 mm) and the hand's position control then presses with a
-    #: small force; that is wanted, a finger driven centimetres into the table is not.
+    #: it and the hand's position control presses with a small force; that is wanted, a finger
+    #: driven centimetres into the table is not.
     finger_tolerance: float = 0.02
+    #: How far (m) a link may leave its workspace box (below the table top, for the floor).
+    workspace_tolerance: float = 0.005
+    #: The same for finger links: the bundled demonstrations press fingertips up to 9.2 mm
+    #: below the table top (exact geom boxes); 12 mm keeps them and refuses a hand driven
+    #: into the table.
+    finger_workspace_tolerance: float = 0.012
+    #: Targets must lie this far (rad) inside the model's joint range.
+    limit_margin: float = 0.0
+    #: Joint speed caps (rad/s): the xArm7's own cap (pi; the operator's IK uses 2) and the
+    #: LEAP hand's (its retargeting steps at most 3).
+    arm_max_velocity: float = math.pi
+    hand_max_velocity: float = 8.0
+    #: Joint acceleration caps (rad/s^2), between consecutive accepted commands. The operator
+    #: starts and stops a joint within one tick (up to 109 arm / 128 hand measured on the
+    #: bundled traces), so these sit above that and below what the speed caps allow.
+    arm_max_acceleration: float = 150.0
+    hand_max_acceleration: float = 250.0
+    #: Workspace box per effector name; effectors not listed get :data:`TABLE_WORKSPACE`.
+    workspaces: Mapping[str, Workspace] = field(default_factory=dict)
+    #: Path sampling: no robot geom moves more than this (m) between two checked samples ...
+    path_resolution: float = 0.01
+    #: ... with at most this many samples per command (a larger step is refused by the
+    #: velocity rule first).
+    max_path_samples: int = 12
 
     def __post_init__(self) -> None:
-        for name in ("tolerance", "finger_tolerance"):
+        for name in (
+            "tolerance",
+            "finger_tolerance",
+            "workspace_tolerance",
+            "finger_workspace_tolerance",
+            "limit_margin",
+        ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        for name in (
+            "arm_max_velocity",
+            "hand_max_velocity",
+            "arm_max_acceleration",
+            "hand_max_acceleration",
+            "path_resolution",
+        ):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not (isinstance(self.max_path_samples, int) and self.max_path_samples >= 1):
+            raise ValueError(
+                f"max_path_samples must be an integer >= 1, got {self.max_path_samples!r}"
+            )
+        for name, box in self.workspaces.items():
+            if not isinstance(box, Workspace):
+                raise ValueError(f"workspaces[{name!r}] must be a Workspace, got {box!r}")
 
 
 @dataclass(frozen=True)
 class GuardVerdict:
-    """Which effectors' commands are refused, and the contacts that refused them."""
+    """Which effectors' commands are refused, why, and the contacts that refused them."""
 
     blocked: tuple[str, ...]
     #: (geom 1, geom 2, penetration depth in m) per offending contact; an unnamed geom is
     #: called ``{body}/geom{id}``.
     contacts: tuple[tuple[str, str, float], ...] = ()
+    #: Per blocked effector: the rule it broke and the joints or geoms, e.g.
+    #: ``"workspace: right/index_distal 13.0 mm below the box (z)"``.
+    reasons: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return not self.blocked
 
+    def reason(self) -> str:
+        return "; ".join(f"{e}: {r}" for e, r in sorted(self.reasons.items()))
+
 
 class CollisionGuard:
-    """Checks full commanded actions (action order) against the twin's model."""
+    """Checks full commanded actions (action order) against the twin's model.
+
+    ``dt``: the control period (s) the velocity and acceleration rules use; ``None`` turns them
+    off (each command is then only checked as a configuration and along its path).
+    """
 
     def __init__(
         self,
@@ -67,13 +163,30 @@ class CollisionGuard:
         embodiment: Embodiment,
         joints: JointIndex,
         config: GuardConfig | None = None,
+        dt: float | None = None,
     ):
-        self.config = config or GuardConfig()
+        self.config = config = config or GuardConfig()
         self.joints = joints
+        self.dt = dt
+        names = [e.name for e in embodiment.effectors]
+        for name in config.workspaces:
+            check_name("effector", name, names)
+        self.slices = dict(joints.slices)
+        # Per action index: effector, joint name, limits, speed and acceleration caps.
+        self._effector_of = np.empty(joints.size, dtype=object)
+        hand = np.zeros(joints.size, dtype=bool)
+        for e in embodiment.effectors:
+            sl = self.slices[e.name]
+            self._effector_of[sl] = e.name
+            hand[sl.start + len(e.arm_joints) : sl.stop] = True
+        self._lower = joints.lower + config.limit_margin
+        self._upper = joints.upper - config.limit_margin
+        self._vmax = np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
+        self._amax = np.where(hand, config.hand_max_acceleration, config.arm_max_acceleration)
+
         # Owner of each geom: the effector whose subtree it is in; "static" for bodies welded
         # to the world (table, fixtures); None for objects (bodies that move freely, never
         # guarded).
-        names = [e.name for e in embodiment.effectors]
         self._owner: list[str | None] = []
         self._geom_names: list[str] = []
         finger_bodies = {
@@ -82,10 +195,10 @@ class CollisionGuard:
             for j in e.hand_joints
         }
         for b in range(model.nbody):  # bodies below a finger joint are finger links too
-            parent = int(model.body_parentid[b])
-            if parent in finger_bodies:
+            if int(model.body_parentid[b]) in finger_bodies:
                 finger_bodies.add(b)
-        self._tolerance = np.full(model.ngeom, self.config.tolerance)
+        self._tolerance = np.full(model.ngeom, config.tolerance)
+        moving, finger_moving = [], []
         for g in range(model.ngeom):
             body = int(model.geom_bodyid[g])
             body_name = model.body(body).name
@@ -94,10 +207,25 @@ class CollisionGuard:
                 owner = "static"
             self._owner.append(owner)
             if body in finger_bodies:
-                self._tolerance[g] = self.config.finger_tolerance
+                self._tolerance[g] = config.finger_tolerance
             elif owner == "static":
                 self._tolerance[g] = np.inf  # the robot geom's tolerance decides
             self._geom_names.append(model.geom(g).name or f"{body_name or 'world'}/geom{g}")
+            collides = model.geom_contype[g] != 0 or model.geom_conaffinity[g] != 0
+            if owner not in (None, "static") and collides and int(model.body_weldid[body]) != 0:
+                moving.append(g)
+                finger_moving.append(body in finger_bodies)
+        # Workspace rule: the moving robot geoms, their effector's box and tolerance.
+        self._moving = np.array(moving, dtype=int)
+        self._extents = GeomExtents(model, self._moving)
+        owners = [self._owner[g] for g in moving]
+        boxes = [config.workspaces.get(o, TABLE_WORKSPACE) for o in owners]
+        slack = np.where(
+            finger_moving, config.finger_workspace_tolerance, config.workspace_tolerance
+        )[:, None]
+        self._box_lower = np.array([b.lower for b in boxes]).reshape(-1, 3) - slack
+        self._box_upper = np.array([b.upper for b in boxes]).reshape(-1, 3) + slack
+        self._moving_owner = np.array(owners, dtype=object)
         # A private copy of the model in which only robot-static and robot-robot pairs can
         # collide (contype / conaffinity bits): objects, and the scene with itself, are never
         # checked, so the cost does not grow with the task's objects (e.g. pour's particles).
@@ -117,48 +245,158 @@ class CollisionGuard:
         self.data = mujoco.MjData(self.model)
         self.checks = 0
         self.refusals = 0
+        #: Refusals per rule (every rule listed, zeros included).
+        self.refusals_by_rule = dict.fromkeys(RULES, 0)
+        self._velocity = np.zeros(joints.size)  # of the last accepted command
+        self._centres_at: np.ndarray | None = None  # action the cached geom centres belong to
+        self._centres: np.ndarray | None = None
 
-    def check(self, action: np.ndarray, qpos_now: np.ndarray) -> GuardVerdict:
-        """Would ``action`` (joint targets, action order) collide, objects as in ``qpos_now``?"""
-        m, d = self.model, self.data
+    # ------------------------------------------------------------------ rules
+    def reset(self) -> None:
+        """Forget the motion history (after an env reset: the robot stands still)."""
+        self._velocity[:] = 0.0
+        self._centres_at = None
+
+    def still(self) -> None:
+        """No new command this tick: the robot holds (its commanded velocity is zero)."""
+        self._velocity[:] = 0.0
+
+    def _joint_rules(
+        self, action: np.ndarray, previous: np.ndarray | None, reasons: dict[str, str]
+    ) -> None:
+        names = self.joints.names
+        bad = ~np.isfinite(action)
+        for i in np.flatnonzero(bad):
+            reasons.setdefault(self._effector_of[i], f"non-finite: {names[i]} = {action[i]}")
+        with np.errstate(invalid="ignore"):
+            below, above = action < self._lower, action > self._upper
+        for i in np.flatnonzero(below | above):
+            limit = self._lower[i] if below[i] else self._upper[i]
+            reasons.setdefault(
+                self._effector_of[i],
+                f"joint limit: {names[i]} = {action[i]:.4f} {'<' if below[i] else '>'} "
+                f"{limit:.4f} rad",
+            )
+        if previous is None or self.dt is None:
+            return
+        with np.errstate(invalid="ignore"):
+            velocity = (action - previous) / self.dt
+            fast = np.abs(velocity) > self._vmax * (1 + 1e-9)
+            jerk = np.abs(velocity - self._velocity) > self._amax * self.dt * (1 + 1e-9)
+        for i in np.flatnonzero(fast):
+            reasons.setdefault(
+                self._effector_of[i],
+                f"velocity: {names[i]} {abs(velocity[i]):.3g} > {self._vmax[i]:.3g} rad/s",
+            )
+        for i in np.flatnonzero(jerk):
+            accel = abs(velocity[i] - self._velocity[i]) / self.dt
+            reasons.setdefault(
+                self._effector_of[i],
+                f"acceleration: {names[i]} {accel:.3g} > {self._amax[i]:.3g} rad/s^2",
+            )
+
+    def _pose(self, action: np.ndarray, qpos_now: np.ndarray) -> np.ndarray:
+        """Kinematics of ``action`` (objects from ``qpos_now``); the moving geoms' centres."""
+        d = self.data
         d.qpos[:] = qpos_now
         d.qpos[self.joints.qpos_adr] = action
-        mujoco.mj_kinematics(m, d)
+        mujoco.mj_kinematics(self.model, d)
+        return d.geom_xpos[self._moving]
+
+    def _geometry_rules(self, reasons: dict[str, str], offending: list, where: str) -> None:
+        """Workspace and contact rules at the pose last computed by :meth:`_pose`."""
+        m, d = self.model, self.data
+        centre, half = self._extents.compute(d)
+        low, high = centre - half, centre + half
+        out_low, out_high = low < self._box_lower, high > self._box_upper
+        for k in np.flatnonzero((out_low | out_high).any(axis=1)):
+            owner = self._moving_owner[k]
+            if owner in reasons:
+                continue
+            axis = int(np.argmax(out_low[k] | out_high[k]))
+            if out_low[k, axis]:
+                depth, side = self._box_lower[k, axis] - low[k, axis], "below"
+            else:
+                depth, side = high[k, axis] - self._box_upper[k, axis], "above"
+            reasons[owner] = (
+                f"workspace: {self._geom_names[self._moving[k]]} {1e3 * depth:.1f} mm past the "
+                f"tolerance, {side} the box ({'xyz'[axis]}){where}"
+            )
         mujoco.mj_collision(m, d)
-        self.checks += 1
-        blocked: set[str] = set()
-        offending = []
         n = d.ncon
-        if n:
-            contacts = d.contact
-            g1, g2, dist = contacts.geom1[:n], contacts.geom2[:n], contacts.dist[:n]
-            deep = dist < -np.minimum(self._tolerance[g1], self._tolerance[g2])
-            for i in np.flatnonzero(deep):
-                a, b = self._owner[g1[i]], self._owner[g2[i]]
-                blocked |= {a, b} - {"static"}
-                offending.append(
-                    (self._geom_names[g1[i]], self._geom_names[g2[i]], float(-dist[i]))
-                )
+        if not n:
+            return
+        contacts = d.contact
+        g1, g2, dist = contacts.geom1[:n], contacts.geom2[:n], contacts.dist[:n]
+        deep = dist < -np.minimum(self._tolerance[g1], self._tolerance[g2])
+        for i in np.flatnonzero(deep):
+            a, b = self._geom_names[g1[i]], self._geom_names[g2[i]]
+            offending.append((a, b, float(-dist[i])))
+            for owner in {self._owner[g1[i]], self._owner[g2[i]]} - {"static", None}:
+                reasons.setdefault(owner, f"contact: {a} - {b} {1e3 * -dist[i]:.1f} mm deep{where}")
+
+    def check(
+        self, action: np.ndarray, qpos_now: np.ndarray, previous: np.ndarray | None = None
+    ) -> GuardVerdict:
+        """Would ``action`` (joint targets, action order) be unsafe, objects as in ``qpos_now``?
+
+        With ``previous`` (the last accepted action, one control period earlier) the velocity
+        and acceleration rules apply and the geometric rules hold along the path from it.
+        Effectors that break a joint rule are checked geometrically at ``previous`` (they
+        would hold there); without ``previous`` at their (unsafe) targets, clipped to finite.
+        """
+        action = np.asarray(action, dtype=np.float64)
+        self.checks += 1
+        reasons: dict[str, str] = {}
+        self._joint_rules(action, previous, reasons)
+        target = action
+        if reasons:
+            target = action.copy()
+            for name in reasons:
+                sl = self.slices[name]
+                target[sl] = previous[sl] if previous is not None else self.joints.home[sl]
+        offending: list[tuple[str, str, float]] = []
+        end = self._pose(target, qpos_now).copy()
+        self._geometry_rules(reasons, offending, "")
+        if previous is not None:
+            start = self._start_centres(previous, qpos_now)
+            step = float(np.max(np.linalg.norm(end - start, axis=1), initial=0.0))
+            n = min(self.config.max_path_samples, math.ceil(step / self.config.path_resolution))
+            for k in range(1, n):
+                s = k / n
+                self._pose(previous + s * (target - previous), qpos_now)
+                self._geometry_rules(reasons, offending, f" at {100 * s:.0f} % of the path")
+        self._centres, self._centres_at = end, target
+        blocked = tuple(sorted(reasons))
         if blocked:
             self.refusals += 1
-        return GuardVerdict(tuple(sorted(blocked)), tuple(offending))
+            for reason in reasons.values():
+                self.refusals_by_rule[reason.split(":", 1)[0]] += 1
+        return GuardVerdict(blocked, tuple(offending), dict(sorted(reasons.items())))
+
+    def _start_centres(self, previous: np.ndarray, qpos_now: np.ndarray) -> np.ndarray:
+        if self._centres_at is not None and np.array_equal(self._centres_at, previous):
+            return self._centres
+        return self._pose(previous, qpos_now).copy()
 
     def filter(
         self,
         action: np.ndarray,
         previous: np.ndarray,
         qpos_now: np.ndarray,
-        slices: Mapping[str, slice],
+        slices: Mapping[str, slice] | None = None,
     ) -> tuple[np.ndarray, GuardVerdict]:
-        """``action`` with every refused effector's slice set back to ``previous``.
+        """``action`` with every refused effector's slice set back to ``previous`` (the last
+        accepted action, one control period ago), and the verdict.
 
-        The held action is checked again: if the robot is already in collision (e.g. placed
-        there by a reset) holding is still the safest thing, so it is returned as is.
+        The held action is not checked again: if the robot is already unsafe (e.g. placed
+        there by a reset) holding is still the safest thing.
         """
-        verdict = self.check(action, qpos_now)
-        if verdict.ok:
-            return action, verdict
+        slices = self.slices if slices is None else slices
+        verdict = self.check(action, qpos_now, previous)
         safe = np.array(action, dtype=np.float64, copy=True)
         for name in verdict.blocked:
             safe[slices[name]] = previous[slices[name]]
+        if self.dt is not None:
+            self._velocity = (safe - previous) / self.dt
         return safe, verdict

@@ -2,13 +2,15 @@
 
 It owns the env. Each control tick it composes the newest command of every effector into
 one action (an effector with no command yet, or whose commands stopped, holds its last
-target: the robot never goes limp and never jumps), lets the collision guard
-(:mod:`beavr_sim.twin.guard`) refuse what would collide (that effector holds its last safe
-target), and steps the env one control period.
+target: the robot never goes limp and never jumps), lets the safety guard
+(:mod:`beavr_sim.twin.guard`) refuse what is unsafe (that effector holds its last safe
+target), and steps the env one control period. A malformed command (unknown effector, wrong
+shape) is logged and counted, never raised: that effector holds.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Mapping
 
@@ -16,6 +18,8 @@ import numpy as np
 
 from beavr_sim.twin.guard import CollisionGuard, GuardConfig, GuardVerdict
 from beavr_sim.wire.records import JointCommand, TwinState
+
+log = logging.getLogger(__name__)
 
 
 class TwinInterface:
@@ -27,30 +31,47 @@ class TwinInterface:
         self.guard: CollisionGuard | None = None
         if use_guard:
             self.guard = CollisionGuard(
-                self.env.model, self.env.embodiment, self.env.joints, guard or GuardConfig()
+                self.env.model,
+                self.env.embodiment,
+                self.env.joints,
+                guard or GuardConfig(),
+                dt=1.0 / self.env.control_hz,
             )
         #: The guard's last refusal (None until one happens).
         self.last_refusal: GuardVerdict | None = None
         self.guard_blocks: dict[str, int] = {}
+        #: Commands dropped as malformed (unknown effector or wrong shape), per effector name.
+        self.malformed: dict[str, int] = {}
         self.applied_perf = self.applied_monotonic = float("nan")
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset the env; returns the measured joint positions (action order)."""
         self.env.reset(seed=seed)
         self.action = self.env.agent_pos.astype(np.float64).copy()
+        if self.guard is not None:
+            self.guard.reset()
         return self.action.copy()
+
+    def _well_formed(self, name: str, cmd: JointCommand) -> bool:
+        sl = self.slices.get(name)
+        shape = getattr(cmd.positions, "shape", None)
+        if sl is not None and shape == (sl.stop - sl.start,):
+            return True
+        self.malformed[name] = self.malformed.get(name, 0) + 1
+        if self.malformed[name] in (1, 10, 100) or self.malformed[name] % 1000 == 0:
+            expected = f"shape ({sl.stop - sl.start},)" if sl else f"one of {list(self.slices)}"
+            log.warning(
+                "dropped malformed command for %r (shape %s; expected %s), %d so far",
+                name,
+                shape,
+                expected,
+                self.malformed[name],
+            )
+        return False
 
     def apply(self, commands: Mapping[str, JointCommand]) -> TwinState:
         """Write the commands into the action, step one control period."""
-        for name, cmd in commands.items():
-            if name not in self.slices:
-                raise ValueError(f"command for unknown effector {name!r}; have {list(self.slices)}")
-            sl = self.slices[name]
-            if cmd.positions.shape != (sl.stop - sl.start,):
-                raise ValueError(
-                    f"command for {name} has shape {cmd.positions.shape}, "
-                    f"expected ({sl.stop - sl.start},)"
-                )
+        commands = {n: c for n, c in commands.items() if self._well_formed(n, c)}
         previous = self.action.copy()
         for name, cmd in commands.items():
             self.action[self.slices[name]] = cmd.positions
@@ -64,6 +85,8 @@ class TwinInterface:
                 self.last_refusal = verdict
                 for name in blocked:
                     self.guard_blocks[name] = self.guard_blocks.get(name, 0) + 1
+        elif self.guard is not None:
+            self.guard.still()
         self.commands_applied += sum(
             1 for name, cmd in commands.items() if not cmd.hold and name not in blocked
         )

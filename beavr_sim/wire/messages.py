@@ -149,13 +149,22 @@ class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True
     velocities: list[float]
     success: bool = False
     guard_blocked: bool = False
+    #: The effectors the guard held this tick, and the action they hold (the operator
+    #: continues from it); ``action`` may be empty when nothing was held.
+    guard_blocked_effectors: list[str] = []
+    action: list[float] = []
 
     def __post_init__(self) -> None:
-        _coerce(self, ("t",), ("positions", "velocities"))
+        _coerce(self, ("t",), ("positions", "velocities", "action"))
         _check_finite("t", self.t)
         _check_length("velocities", self.velocities, len(self.positions))
+        if self.action:
+            _check_length("action", self.action, len(self.positions))
+        elif self.guard_blocked_effectors:
+            raise ValueError("guard_blocked_effectors needs the held action")
         _check_finite("positions", self.positions)
         _check_finite("velocities", self.velocities)
+        _check_finite("action", self.action)
 
 
 class SessionMsg(msgspec.Struct, tag="session", kw_only=True, frozen=True):
