@@ -223,6 +223,7 @@ class CollisionGuard:
         slack = np.where(
             finger_moving, config.finger_workspace_tolerance, config.workspace_tolerance
         )[:, None]
+        self._slack = slack[:, 0]
         self._box_lower = np.array([b.lower for b in boxes]).reshape(-1, 3) - slack
         self._box_upper = np.array([b.upper for b in boxes]).reshape(-1, 3) + slack
         self._moving_owner = np.array(owners, dtype=object)
@@ -314,13 +315,14 @@ class CollisionGuard:
             if owner in reasons:
                 continue
             axis = int(np.argmax(out_low[k] | out_high[k]))
+            slack = self._slack[k]
             if out_low[k, axis]:
-                depth, side = self._box_lower[k, axis] - low[k, axis], "below"
+                depth, side = self._box_lower[k, axis] + slack - low[k, axis], "below"
             else:
-                depth, side = high[k, axis] - self._box_upper[k, axis], "above"
+                depth, side = high[k, axis] - self._box_upper[k, axis] + slack, "above"
             reasons[owner] = (
-                f"workspace: {self._geom_names[self._moving[k]]} {1e3 * depth:.1f} mm past the "
-                f"tolerance, {side} the box ({'xyz'[axis]}){where}"
+                f"workspace: {self._geom_names[self._moving[k]]} {1e3 * depth:.1f} mm {side} "
+                f"the box ({'xyz'[axis]}; tolerance {1e3 * slack:.0f} mm){where}"
             )
         mujoco.mj_collision(m, d)
         n = d.ncon

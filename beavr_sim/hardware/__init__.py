@@ -1,0 +1,1 @@
+"""Hardware drivers, their protocol emulators, and the rig that mirrors the twin."""

@@ -1,0 +1,74 @@
+"""The one interface every hardware device implements (xArm7, LEAP hand, later Feetech).
+
+A device drives the joints of one part of one effector (an arm, or a hand) in the model's
+joint convention: radians, the order of :class:`~beavr_sim.robots.embodiment.JointIndex`
+(arm joints 1..7, LEAP motor ids 0..15). Conversions to the device's own units and zero live
+inside its driver, in one tested place.
+
+Lifecycle: :meth:`Device.connect` (raises :class:`DeviceError` naming the device and what to
+check when it cannot be reached), then any number of :meth:`read_positions` /
+:meth:`send_positions` / :meth:`hold`, then :meth:`disconnect` (idempotent, never raises).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """A device could not be reached, refused a command, or reported an error."""
+
+
+class Device(ABC):
+    """One physical device. Subclasses implement the four ``_``-free hooks below."""
+
+    #: Unique name in a rig, e.g. ``"right_arm"``.
+    name: str
+    #: Model joint names this device drives, in order.
+    joint_names: tuple[str, ...]
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Open the connection and bring the device into streaming position control; raises
+        :class:`DeviceError` naming the device and what to check."""
+
+    @abstractmethod
+    def read_positions(self) -> np.ndarray:
+        """Measured joint positions (model convention, radians), shape ``(n_joints,)``."""
+
+    @abstractmethod
+    def send_positions(self, positions: np.ndarray) -> np.ndarray:
+        """Stream joint targets (model convention); returns the targets actually sent, after
+        any clipping the driver applies. Raises :class:`DeviceError` on a failed write."""
+
+    @abstractmethod
+    def hold(self) -> None:
+        """Stop following new targets: stay at the last sent target (or the measured pose)."""
+
+    @abstractmethod
+    def disconnect(self) -> None:
+        """Release the device (idempotent; never raises)."""
+
+    def check_positions(self, positions: np.ndarray) -> np.ndarray:
+        """``positions`` as a finite float64 vector of this device's length, or ValueError."""
+        q = np.asarray(positions, dtype=np.float64)
+        if q.shape != (self.n_joints,):
+            raise ValueError(
+                f"{self.name}: expected {self.n_joints} joint targets, got shape {q.shape}"
+            )
+        if not np.isfinite(q).all():
+            raise ValueError(f"{self.name}: non-finite joint targets {q.tolist()}")
+        return q
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.disconnect()
