@@ -109,8 +109,18 @@ class BeavrEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[self.joints.qpos_adr] = self.joints.home
-        self.data.ctrl[self.joints.actuator_ids] = self.joints.home
+        start = self.joints.home
+        if options and options.get("robot_qpos") is not None:
+            # Start where a mirrored robot stands (teleop --mirror-hardware), not at home.
+            start = np.asarray(options["robot_qpos"], dtype=np.float64)
+            if start.shape != (self.joints.size,) or not np.isfinite(start).all():
+                raise ValueError(
+                    f"options['robot_qpos'] needs {self.joints.size} finite joint positions "
+                    f"(agent_pos order), got shape {start.shape}"
+                )
+            start = np.clip(start, self.joints.lower, self.joints.upper)
+        self.data.qpos[self.joints.qpos_adr] = start
+        self.data.ctrl[self.joints.actuator_ids] = start
         self.task.initialize_episode(self.model, self.data, self.np_random)
         mujoco.mj_forward(self.model, self.data)
         self._elapsed_steps = 0

@@ -21,6 +21,10 @@ class DeviceError(RuntimeError):
     """A device could not be reached, refused a command, or reported an error."""
 
 
+class MirrorError(RuntimeError):
+    """Hardware mirroring cannot start (a device unreachable or misconfigured)."""
+
+
 class Device(ABC):
     """One physical device. Subclasses implement the four ``_``-free hooks below."""
 
@@ -28,6 +32,12 @@ class Device(ABC):
     name: str
     #: Model joint names this device drives, in order.
     joint_names: tuple[str, ...]
+    #: Rate (Hz) at which the device wants targets streamed; a mirror interpolates the twin's
+    #: commands up to it (the xArm's servo mode expects ~100 Hz). None: once per command.
+    stream_hz: float | None = None
+    #: The device's own joint speed cap (rad/s), if it has one below the guard's: a mirror
+    #: never sends targets faster than this.
+    max_velocity: float | None = None
 
     @property
     def n_joints(self) -> int:

@@ -91,6 +91,21 @@ def build_parser() -> argparse.ArgumentParser:
         default=5.0,
         help="camera images in the Rerun log per second of session time (default 5; 0: none)",
     )
+    hw = p.add_argument_group("hardware mirroring (docs/hardware.md)")
+    hw.add_argument(
+        "--mirror-hardware",
+        action="store_true",
+        help="send every guarded command to the rig's devices too (real clock)",
+    )
+    hw.add_argument(
+        "--hardware-config",
+        default=None,
+        metavar="F.toml",
+        help="rig file, or 'emulated' for protocol emulators of every device (default rig.toml)",
+    )
+    hw.add_argument(
+        "--dry-run", action="store_true", help="mirror everything but the final device write"
+    )
     rec = p.add_argument_group("recording a LeRobot dataset")
     rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
@@ -116,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from beavr_sim.hardware.device import MirrorError
     from beavr_sim.teleop.session import SessionOptions, run_session
 
     try:
@@ -132,6 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     except (UnknownNameError, ValueError, FileNotFoundError, FileExistsError, ImportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except MirrorError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
     report = summary.to_dict()
     report["wall_s"] = round(time.perf_counter() - start, 3)
     line = json.dumps(report)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import sys
 import threading
+from collections.abc import Callable
 from typing import TextIO
 
 from beavr_sim.naming import check_name
@@ -47,24 +48,44 @@ class EpisodeControl:
 
 
 class KeyboardControl:
-    """Reads command lines from ``stream`` (stdin) in a daemon thread."""
+    """Reads command lines from ``stream`` (stdin) in a daemon thread.
+
+    Episode keys go to ``control`` (None: no recording); ``actions`` adds keys of its own,
+    each a (help text, callable) pair, e.g. the hardware mirror's ``e`` (emergency stop) and
+    ``r`` (release).
+    """
 
     KEYS = {"": "toggle", "s": "toggle", "d": "discard", "q": "quit"}
     HELP = "keys: Enter = start/stop episode, d + Enter = discard it, q + Enter = save and quit"
 
-    def __init__(self, control: EpisodeControl, stream: TextIO | None = None):
+    def __init__(
+        self,
+        control: EpisodeControl | None,
+        stream: TextIO | None = None,
+        actions: dict[str, tuple[str, Callable[[], None]]] | None = None,
+    ):
         self.control = control
+        self.actions = dict(actions or {})
         self.stream = sys.stdin if stream is None else stream
         self._thread = threading.Thread(target=self._read, name="keyboard", daemon=True)
         self._thread.start()
+
+    @property
+    def help(self) -> str:
+        parts = [self.HELP] if self.control is not None else []
+        parts += [f"{k} + Enter = {text}" for k, (text, _) in self.actions.items()]
+        return "; ".join(parts) if parts else ""
 
     def _read(self) -> None:
         try:
             for line in self.stream:
                 key = line.strip().lower()
-                what = self.KEYS.get(key)
+                if key in self.actions:
+                    self.actions[key][1]()
+                    continue
+                what = self.KEYS.get(key) if self.control is not None else None
                 if what is None:
-                    print(f"unknown key {key!r}; {self.HELP}", file=sys.stderr)
+                    print(f"unknown key {key!r}; {self.help}", file=sys.stderr)
                     continue
                 self.control.request(what, "keyboard")
         except (OSError, ValueError):  # stdin closed

@@ -44,6 +44,9 @@ class TeleopSummary:
     processes: dict = field(default_factory=dict)
     #: Commands the collision guard refused, per effector.
     guard_blocks: dict = field(default_factory=dict)
+    #: Per mirrored device (teleop --mirror-hardware): connected, commands sent and refused,
+    #: holds, largest divergence from the twin, errors.
+    hardware: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -90,11 +93,12 @@ class TeleopLoop:
         self.resets = 0
 
     # ------------------------------------------------------------------ control
-    def reset(self, seed: int | None = None) -> None:
-        """Reset the twin (new episode) and re-home the operator from the measured joints."""
+    def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> None:
+        """Reset the twin (new episode; the robot at ``robot_qpos`` or home) and re-home the
+        operator from the measured joints."""
         self.seed = seed
         self.resets += 1
-        q = self.twin.reset(seed)
+        q = self.twin.reset(seed, robot_qpos)
         self.operator.reset(q, self.twin.slices)
         self.ticks = 0
         self._t0 = time.monotonic()

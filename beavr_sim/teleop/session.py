@@ -58,6 +58,13 @@ class SessionOptions:
     rerun: Path | None = None
     #: Camera images in the Rerun log per second of session time (0: none).
     rerun_image_hz: float = 5.0
+    #: Send every guarded command to the rig's hardware too (implies the real clock).
+    mirror_hardware: bool = False
+    #: Rig file (TOML) or "emulated" (protocol emulators for every device); default
+    #: ``rig.toml`` in the working folder.
+    hardware_config: str | None = None
+    #: Mirror everything but the final write to the devices.
+    dry_run: bool = False
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -74,6 +81,22 @@ class SessionOptions:
                 raise FileNotFoundError(f"trace file not found: {self.trace}")
         elif self.trace is not None:
             raise ValueError("--trace needs --source trace")
+        if self.mirror_hardware:
+            if self.clock == "virtual":
+                raise ValueError("--mirror-hardware runs on the real clock; leave out --clock")
+            if self.multiprocess:
+                raise ValueError("--mirror-hardware runs in one process; leave out --multiprocess")
+            self.clock = "real"
+            if self.hardware_config is None:
+                if not Path("rig.toml").is_file():
+                    raise ValueError(
+                        "--mirror-hardware needs a rig: --hardware-config F.toml (see "
+                        "docs/hardware.md), or --hardware-config emulated to try it with "
+                        "emulated devices (no rig.toml in this folder)"
+                    )
+                self.hardware_config = "rig.toml"
+        elif self.dry_run or self.hardware_config is not None:
+            raise ValueError("--dry-run and --hardware-config need --mirror-hardware")
         if self.clock is None:
             self.clock = "virtual" if self.source == "trace" and not self.viser else "real"
         check_name("clock", self.clock, ("real", "virtual"))
@@ -141,6 +164,9 @@ class SessionOptions:
             auto_start=args.auto_start,
             rerun=getattr(args, "rerun", None),
             rerun_image_hz=getattr(args, "rerun_image_hz", 5.0),
+            mirror_hardware=getattr(args, "mirror_hardware", False),
+            hardware_config=getattr(args, "hardware_config", None),
+            dry_run=getattr(args, "dry_run", False),
         )
 
 
@@ -230,14 +256,25 @@ def run_session(options: SessionOptions) -> TeleopSummary:
     closers = [loop.source.close, loop.twin.env.close]
     control = None
     progress = ProgressLine(loop, options.progress)
+    mirror = None
+    keys = {}
     if options.record is not None:
-        from beavr_sim.teleop.episodes import EpisodeControl, KeyboardControl
+        from beavr_sim.teleop.episodes import EpisodeControl
 
         control = EpisodeControl()
-        if not options.auto_start and sys.stdin is not None and sys.stdin.isatty():
-            KeyboardControl(control)
-            print(KeyboardControl.HELP, file=sys.stderr)
     try:
+        if options.mirror_hardware:
+            mirror = start_mirror(options, loop, closers)
+            keys = {
+                "e": ("emergency stop (every device holds)", lambda: mirror.estop("keyboard")),
+                "r": ("release the emergency stop", mirror.release),
+            }
+        interactive = sys.stdin is not None and sys.stdin.isatty()
+        if interactive and ((control is not None and not options.auto_start) or keys):
+            from beavr_sim.teleop.episodes import KeyboardControl
+
+            keyboard = KeyboardControl(control if not options.auto_start else None, actions=keys)
+            print(keyboard.help, file=sys.stderr)
         if options.rerun is not None:
             from beavr_sim.viz.rerun_log import RerunLogger
 
@@ -250,16 +287,17 @@ def run_session(options: SessionOptions) -> TeleopSummary:
         if options.viser:
             from beavr_sim.teleop.view import attach_view
 
-            # No hardware mirroring yet: no emergency-stop button (mirroring=False).
             view = attach_view(
                 loop,
                 options.viser_host,
                 options.viser_port,
                 progress,
                 control,
-                mirroring=False,
+                mirroring=mirror is not None,
                 rate_hz=options.viser_rate_hz,
             )
+            if mirror is not None:
+                loop.listeners.append(_BrowserEstop(view, mirror))
             closers.append(view.close)
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
         if not options.headless and options.source == "quest":
@@ -277,7 +315,10 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 )
             )
         if options.record is not None:
-            return record_episodes(options, loop, progress, control)
+            summary = record_episodes(options, loop, progress, control)
+            if mirror is not None:
+                summary.hardware = mirror.summary()
+            return summary
         run, played = 0, 0.0
         while True:
             remaining = None if options.max_seconds is None else options.max_seconds - played
@@ -305,6 +346,9 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             progress.success = False
         if options.progress:
             print(file=sys.stderr)
+        if mirror is not None:
+            mirror.close()
+            summary.hardware = mirror.summary()
         return summary
     finally:
         for close in reversed(closers):
@@ -454,3 +498,76 @@ class _HeadsetListener:
             return
         self._next = now + self.period
         self.publisher.publish(self.cameras.render(self.env.data, "front"))
+
+
+def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
+    """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
+    add the mirror as the loop's first listener: it gets every guarded command in the tick the
+    twin applies it. Raises :class:`~beavr_sim.hardware.mirror.MirrorError` (or ValueError,
+    FileNotFoundError for the rig file) naming what to check."""
+    from beavr_sim.hardware.mirror import HardwareMirror
+    from beavr_sim.hardware.rig import EmulatedRig, RigConfig
+
+    env = loop.twin.env
+    if options.hardware_config == "emulated":
+        rig = EmulatedRig(env.embodiment, env.joints, env.joints.home)
+        closers.append(rig.close)
+        config = rig.config
+    else:
+        config = RigConfig.from_toml(options.hardware_config)
+    mirror = HardwareMirror(
+        config,
+        env.embodiment,
+        env.joints,
+        env.model,
+        env.control_hz,
+        dry_run=options.dry_run,
+    )
+    q_measured = mirror.connect()
+    closers.append(mirror.close)
+    loop.reset(loop.seed, robot_qpos=q_measured)
+    mirror.start(loop.twin.action)
+    loop.listeners.insert(0, _MirrorListener(mirror, loop))
+    print(
+        f"mirroring {', '.join(link.name for link in mirror.links)}"
+        f"{' (dry run: nothing is written)' if options.dry_run else ''}; "
+        "e + Enter: emergency stop",
+        file=sys.stderr,
+    )
+    return mirror
+
+
+class _MirrorListener:
+    """Hands each tick's guarded action to the hardware mirror (first listener of the loop);
+    while the emergency stop is latched the operator is paused (nothing jumps at release)."""
+
+    def __init__(self, mirror, loop: TeleopLoop):
+        self.mirror, self.loop = mirror, loop
+        self._estopped = False
+
+    def __call__(self, tick: Tick) -> None:
+        state = tick.state
+        self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+        if self.mirror.estopped != self._estopped:
+            self._estopped = self.mirror.estopped
+            self.loop.operator.set_paused(self._estopped)
+
+
+class _BrowserEstop:
+    """Keeps the browser view's emergency-stop button and the mirror's e-stop in step: the
+    button latches and releases it; a latch or release from the keyboard shows on the button."""
+
+    def __init__(self, view, mirror):
+        self.view, self.mirror = view, mirror
+        self._shown = False
+
+    def __call__(self, tick: Tick) -> None:
+        if self.view.estop_requested != self._shown:  # the button was clicked
+            self._shown = self.view.estop_requested
+            if self._shown:
+                self.mirror.estop("browser view")
+            else:
+                self.mirror.release()
+        elif self.mirror.estopped != self._shown:  # the keyboard latched or released it
+            self._shown = self.mirror.estopped
+            self.view.set_estop(self._shown)

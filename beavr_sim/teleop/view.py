@@ -104,8 +104,8 @@ def attach_view(
     rate_hz: float = DEFAULT_RATE_HZ,
 ) -> TwinView:
     """A :class:`TwinView` of ``loop``'s twin, driven by a :class:`ViewListener` appended to
-    the loop's listeners. ``mirroring``: there is no hardware mirroring yet; pass True only
-    from a session that drives hardware and stops it on ``view.estop_requested``."""
+    the loop's listeners. ``mirroring``: the session drives hardware; the view gets an
+    emergency-stop button whose state (``view.estop_requested``) the session follows."""
     env = loop.twin.env
     joints = env.joints
     by_effector = {name: joints.names[sl] for name, sl in joints.slices.items()}

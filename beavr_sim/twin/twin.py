@@ -44,9 +44,10 @@ class TwinInterface:
         self.malformed: dict[str, int] = {}
         self.applied_perf = self.applied_monotonic = float("nan")
 
-    def reset(self, seed: int | None = None) -> np.ndarray:
-        """Reset the env; returns the measured joint positions (action order)."""
-        self.env.reset(seed=seed)
+    def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> np.ndarray:
+        """Reset the env (the robot at ``robot_qpos``, action order, or home); returns the
+        measured joint positions (action order)."""
+        self.env.reset(seed=seed, options={"robot_qpos": robot_qpos})
         self.action = self.env.agent_pos.astype(np.float64).copy()
         if self.guard is not None:
             self.guard.reset()

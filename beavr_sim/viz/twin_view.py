@@ -396,9 +396,16 @@ class TwinView:
         self.pause_button.icon = viser.Icon.PLAYER_PLAY if self._paused else viser.Icon.PLAYER_PAUSE
 
     def _estop(self) -> None:
-        self.estop_requested = True
-        self.estop_button.label = "E-STOP LATCHED"
-        self.estop_button.disabled = True
+        """The button: latch the emergency stop, or release it when latched."""
+        self.set_estop(not self.estop_requested)
+
+    def set_estop(self, latched: bool) -> None:
+        """Show the emergency stop latched (the session holds the hardware) or released."""
+        self.estop_requested = bool(latched)
+        if self.estop_button is not None:
+            self.estop_button.label = (
+                "E-STOP LATCHED: click to release" if latched else "EMERGENCY STOP"
+            )
 
     def take_reset(self) -> bool:
         """True once per Reset press."""

@@ -1,0 +1,253 @@
+"""A rig: which devices mirror the twin, the effector each serves, and how the mirror behaves.
+
+A rig file (``--hardware-config F.toml``, read with :mod:`tomllib`)::
+
+    [mirror]                      # optional; see MirrorConfig
+    command_timeout_s = 0.25
+
+    [[devices]]
+    name = "right_arm"            # unique in the rig
+    kind = "xarm7"                # xarm7 (the arm's 7 joints) | leap (the hand's 16)
+    effector = "right"            # an effector of the embodiment
+    host = "192.168.1.185"        # the rest are the device's config (XArmConfig, LeapHandConfig)
+
+    [[devices]]
+    name = "right_hand"
+    kind = "leap"
+    effector = "right"
+    port = "/dev/ttyUSB0"
+
+``--hardware-config emulated`` starts a protocol emulator for every device of the embodiment
+(:func:`emulated_rig`) so mirroring can be tried with no robot. Examples for the paper's three
+configurations are in ``docs/hardware.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from beavr_sim.hardware.device import Device
+from beavr_sim.hardware.leap import LeapHand, LeapHandConfig, model_to_counts
+from beavr_sim.hardware.xarm import XArm7, XArmConfig
+from beavr_sim.naming import check_name
+from beavr_sim.robots.embodiment import Embodiment, JointIndex
+
+#: Device kinds, the config class of each and the part of an effector it drives.
+DEVICE_KINDS: dict[str, tuple[type, str]] = {
+    "xarm7": (XArmConfig, "arm"),
+    "leap": (LeapHandConfig, "hand"),
+}
+_RESERVED = ("name", "kind", "effector")
+
+
+@dataclass(frozen=True)
+class MirrorConfig:
+    """How the hardware follows the twin (see :mod:`beavr_sim.hardware.mirror`)."""
+
+    #: Measured hardware joints may differ from the twin's by this much (rad) ...
+    arm_divergence_rad: float = 0.3
+    #: (fingers: the twin's fingers stop on objects the emulators do not have) ...
+    hand_divergence_rad: float = 0.8
+    #: ... for at most this long (s) before the device holds.
+    divergence_window_s: float = 0.5
+    #: A device holds when no fresh command came for this long (s).
+    command_timeout_s: float = 0.25
+    #: Speed (rad/s) at which a device catches up with the twin after a hold, a release or a
+    #: reset (the twin jumps home, the hardware moves there slowly, guarded).
+    arm_catch_up_speed: float = 0.5
+    hand_catch_up_speed: float = 1.5
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"mirror.{f.name} must be a number, got {value!r}")
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"mirror.{f.name} must be a positive number, got {value!r}")
+
+
+@dataclass(frozen=True)
+class DeviceEntry:
+    """One device of a rig: its name, kind, effector and its own config."""
+
+    name: str
+    kind: str
+    effector: str
+    config: Any
+
+    @property
+    def part(self) -> str:
+        return DEVICE_KINDS[self.kind][1]
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    devices: tuple[DeviceEntry, ...]
+    mirror: MirrorConfig = field(default_factory=MirrorConfig)
+    #: Where it came from (a path, or "emulated").
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.devices:
+            raise ValueError(f"rig {self.source or ''} has no devices".replace("  ", " "))
+        names = [d.name for d in self.devices]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise ValueError(f"rig device names must be unique, repeated: {duplicates}")
+        parts = [(d.effector, d.part) for d in self.devices]
+        twice = sorted({p for p in parts if parts.count(p) > 1})
+        if twice:
+            raise ValueError(f"rig drives the same effector part twice: {twice}")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: str = "") -> RigConfig:
+        unknown = sorted(set(data) - {"mirror", "devices"})
+        if unknown:
+            raise ValueError(f"{source}: unknown tables {unknown}; valid: ['devices', 'mirror']")
+        mirror_data = data.get("mirror", {})
+        valid = [f.name for f in dataclasses.fields(MirrorConfig)]
+        for key in mirror_data:
+            check_name("mirror setting", key, valid)
+        devices = []
+        for i, entry in enumerate(data.get("devices", [])):
+            missing = [k for k in _RESERVED if k not in entry]
+            if missing:
+                raise ValueError(f"{source}: devices[{i}] needs {missing}")
+            kind = check_name("device kind", entry["kind"], DEVICE_KINDS)
+            config_cls = DEVICE_KINDS[kind][0]
+            settings = {k: _tuples(v) for k, v in entry.items() if k not in _RESERVED}
+            fields = [f.name for f in dataclasses.fields(config_cls)]
+            for key in settings:
+                check_name(f"{kind} setting", key, [f for f in fields if f != "name"])
+            try:
+                config = config_cls(**settings)
+            except TypeError as exc:
+                raise ValueError(f"{source}: devices[{i}] ({entry['name']}): {exc}") from None
+            devices.append(DeviceEntry(str(entry["name"]), kind, str(entry["effector"]), config))
+        return cls(tuple(devices), MirrorConfig(**mirror_data), source)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> RigConfig:
+        path = Path(path)
+        try:
+            with path.open("rb") as f:
+                data = tomllib.load(f)
+        except FileNotFoundError:
+            raise FileNotFoundError(
+                f"rig file {path} not found (pass --hardware-config F.toml, or 'emulated' to "
+                "try mirroring with emulated devices; examples in docs/hardware.md)"
+            ) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"rig file {path}: {exc}") from None
+        return cls.from_dict(data, str(path))
+
+    def check_embodiment(self, embodiment: Embodiment) -> None:
+        """Every device serves an effector of ``embodiment``."""
+        names = [e.name for e in embodiment.effectors]
+        for d in self.devices:
+            check_name(f"effector (device {d.name})", d.effector, names)
+
+
+def _tuples(value: Any) -> Any:
+    """TOML arrays as tuples (the device configs are frozen dataclasses of tuples)."""
+    if isinstance(value, list):
+        return tuple(_tuples(v) for v in value)
+    return value
+
+
+def joint_names_of(entry: DeviceEntry, embodiment: Embodiment) -> tuple[str, ...]:
+    effector = embodiment.effector(entry.effector)
+    return effector.arm_joints if entry.part == "arm" else effector.hand_joints
+
+
+def build_device(entry: DeviceEntry, embodiment: Embodiment, joints: JointIndex) -> Device:
+    """The driver of ``entry``, its joint names (and, for a hand, limits) from the model."""
+    names = joint_names_of(entry, embodiment)
+    if entry.kind == "xarm7":
+        return XArm7(entry.config, name=entry.name, joint_names=names)
+    index = [joints.names.index(n) for n in names]
+    config = entry.config
+    config = dataclasses.replace(
+        config,
+        name=entry.name,
+        joint_names=names,
+        lower=config.lower if config.lower is not None else tuple(joints.lower[index]),
+        upper=config.upper if config.upper is not None else tuple(joints.upper[index]),
+    )
+    return LeapHand(config)
+
+
+class EmulatedRig:
+    """Protocol emulators for every device of an embodiment, and the rig that uses them.
+
+    The emulators run in a child process (``python -m beavr_sim.hardware.emulators``), as a
+    real controller and a real bus run outside ours: they do not compete with the drivers for
+    this interpreter (the Dynamixel SDK busy-waits for replies). :meth:`close` stops them and
+    keeps what they received in :attr:`received` (``{device: [[time, targets], ...]}``: every
+    servo_j target of an arm; every goal write of a hand, ``{motor id: model radians}``).
+    """
+
+    def __init__(
+        self, embodiment: Embodiment, joints: JointIndex, q_start: np.ndarray | None = None
+    ):
+        import json
+        import subprocess
+        import sys
+
+        q_start = joints.home if q_start is None else np.asarray(q_start, dtype=np.float64)
+        plan = []
+        for effector in embodiment.effectors:
+            q = q_start[joints.slices[effector.name]]
+            n_arm = len(effector.arm_joints)
+            plan.append([f"{effector.name}_arm", "xarm7", [float(v) for v in q[:n_arm]]])
+            counts = [int(c) for c in model_to_counts(q[n_arm:])]
+            plan.append([f"{effector.name}_hand", "leap", counts])
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "beavr_sim.hardware.emulators", json.dumps(plan)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        line = self._process.stdout.readline()
+        if not line:
+            self._process.kill()
+            raise RuntimeError("the device emulators did not start (see the error above)")
+        where = json.loads(line)
+        self.received: dict[str, list] = {}
+        devices = []
+        for name, kind, _ in plan:
+            effector = name.rsplit("_", 1)[0]
+            if kind == "xarm7":
+                host, port = where[name]
+                config = XArmConfig(host=host, port=port, max_joint_speed=math.pi)
+            else:
+                config = LeapHandConfig(port=where[name], reply_timeout_s=0.25)
+            devices.append(DeviceEntry(name, kind, effector, config))
+        # Emulated fingers close on nothing; the twin's stop on the objects they grasp.
+        self.config = RigConfig(tuple(devices), MirrorConfig(hand_divergence_rad=2.5), "emulated")
+
+    def close(self) -> None:
+        """Stop the emulators (idempotent); what they received lands in :attr:`received`."""
+        import json
+
+        if self._process.poll() is None:
+            try:
+                self._process.stdin.write("close\n")
+                self._process.stdin.flush()
+                line = self._process.stdout.readline()
+                if line:
+                    self.received = json.loads(line)
+                self._process.wait(10.0)
+            except (OSError, ValueError):
+                pass
+        if self._process.poll() is None:
+            self._process.kill()
+            self._process.wait()
