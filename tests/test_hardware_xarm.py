@@ -326,7 +326,7 @@ def test_config_validation_names_the_field(overrides, field):
 def test_config_normalises_sequences_and_defaults():
     cfg = XArmConfig(host="192.168.1.185", reduced_joint_ranges=[list(r) for r in RANGES])
     assert cfg.reduced_joint_ranges == RANGES and cfg.port is None and cfg.enable_report is False
-    assert cfg.collision_sensitivity == 3 and cfg.max_joint_speed == 1.0
+    assert cfg.collision_sensitivity == 3 and cfg.max_joint_speed == 2.5
 
 
 def test_controller_code_names():

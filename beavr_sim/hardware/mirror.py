@@ -180,12 +180,14 @@ class _Link:
             now = time.monotonic()
             if halted:
                 self._hold(halted)
+                self._seq_sent = seq
                 continue
+            if self.stats.holding.startswith("diverged"):
+                self._seq_sent = seq
+                continue  # latched until a release
             if now - t_submit > m.rig.mirror.command_timeout_s:
                 self._hold(f"no fresh command for {now - t_submit:.2f} s")
                 continue
-            if self.stats.holding.startswith("diverged"):
-                continue  # latched until a reset or a release
             if seq == self._seq_sent:
                 continue
             self._seq_sent = seq
@@ -337,7 +339,10 @@ class HardwareMirror:
         if self._dispatched is None:
             raise RuntimeError("HardwareMirror.submit before start()")
         action = np.asarray(action, dtype=np.float64)
-        previous = self._dispatched
+        previous = self._dispatched.copy()
+        for link in self.links:  # a holding device is where it was held, not where we sent
+            if (self._halted or link.stats.holding) and link._last is not None:
+                previous[link.index] = link._last
         step = action - previous
         target = action
         if (np.abs(step) > self._step_cap * (1 + 1e-9)).any():
