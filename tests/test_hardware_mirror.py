@@ -355,3 +355,29 @@ def test_mirroring_options_are_checked():
         SessionOptions(task="pour", source="trace", dry_run=True)
     with pytest.raises(ValueError, match="emulated"):
         SessionOptions(task="pour", source="trace", mirror_hardware=True)
+
+
+def test_recording_while_mirroring_stores_the_measured_hardware_state(tmp_path, capsys):
+    """observation.state is what the (emulated) hardware measured: its fingers close on
+    nothing and so follow the commands, where the twin's stop on the box they grasp."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = tmp_path / "rec"
+    code = teleop_main(
+        [
+            "--task", "pickup_box", "--source", "trace", "--no-viser", "--headless", "--quiet",
+            "--mirror-hardware", "--hardware-config", "emulated",
+            "--record", str(root), "--repo-id", "test/mirrored", "--cameras", "none",
+            "--no-keypoints",
+        ]
+    )  # fmt: skip
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["hardware"]["right_hand"]["errors"] == 0
+    ds = LeRobotDataset("test/mirrored", root=root)
+    state = np.array(ds.hf_dataset["observation.state"])
+    action = np.array(ds.hf_dataset["action"])
+    assert ds.num_episodes == 1 and len(state) > 100
+    # The hand's measured joints trail its commands by a few ticks at most.
+    lag = np.abs(state[4:, 7:] - action[:-4, 7:]).max()
+    assert lag < 0.5, lag

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
@@ -54,10 +55,19 @@ class CameraSet:
 class EpisodeRecorder:
     """A teleop-loop listener writing the ticks of each episode as LeRobot frames."""
 
-    def __init__(self, writer: EpisodeWriter, env, config: RecordingConfig):
+    def __init__(
+        self,
+        writer: EpisodeWriter,
+        env,
+        config: RecordingConfig,
+        state_source: Callable[[], np.ndarray] | None = None,
+    ):
         self.writer = writer
         self.env = env
         self.config = config
+        #: Where ``observation.state`` comes from: the twin's joints by default; the measured
+        #: hardware joints when mirroring (``HardwareMirror.latest_measured``).
+        self.state_source = state_source
         self.task_text = env.task.instruction or env.task.name
         self.sides = hand_sides(env.embodiment)
         self.cameras = CameraSet(env.model, config.cameras, config.image_height, config.image_width)
@@ -108,7 +118,8 @@ class EpisodeRecorder:
 
     # ------------------------------------------------------------------ frames
     def _observe(self) -> dict[str, np.ndarray]:
-        obs = {STATE: self.env.agent_pos.astype(np.float32)}
+        state = self.env.agent_pos if self.state_source is None else self.state_source()
+        obs = {STATE: np.asarray(state, dtype=np.float32)}
         if self.config.environment_state:
             obs[ENV_STATE] = self.env.environment_state
         for camera, image in self.cameras.render(self.env.data).items():

@@ -315,7 +315,13 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 )
             )
         if options.record is not None:
-            summary = record_episodes(options, loop, progress, control)
+            summary = record_episodes(
+                options,
+                loop,
+                progress,
+                control,
+                state_source=mirror.latest_measured if mirror is not None else None,
+            )
             if mirror is not None:
                 summary.hardware = mirror.summary()
             return summary
@@ -377,9 +383,14 @@ class _EpisodeRequests:
 
 
 def record_episodes(
-    options: SessionOptions, loop: TeleopLoop, progress: ProgressLine, control=None
+    options: SessionOptions,
+    loop: TeleopLoop,
+    progress: ProgressLine,
+    control=None,
+    state_source=None,
 ) -> TeleopSummary:
-    """``--record``: episodes saved to the dataset each as soon as it ends.
+    """``--record``: episodes saved to the dataset each as soon as it ends. ``state_source``:
+    where ``observation.state`` comes from (the mirrored hardware's measured joints).
 
     An episode starts at once (``options.auto_start``: the default for traces) or on a start
     request (keyboard, browser button, headset gesture; live sources), always from a fresh
@@ -416,7 +427,7 @@ def record_episodes(
         robot_type=env.embodiment.name,
         use_videos=config.use_videos,
     )
-    recorder = EpisodeRecorder(writer, env, config)
+    recorder = EpisodeRecorder(writer, env, config, state_source=state_source)
     summary = None
     attempts = saved = 0
 
