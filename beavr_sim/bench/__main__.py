@@ -1,4 +1,4 @@
-"""``python -m beavr_sim.bench {sim,retarget,teleop,view} [--seconds S] [--frames N] [--plot DIR]``:
+"""``python -m beavr_sim.bench {sim,retarget,teleop,view,hardware} [--seconds S] [--frames N] [--plot DIR]``:
 prints JSON; ``--plot DIR`` also writes latency / timing histograms (PNG) into DIR."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim", "retarget", "teleop", "view")
+BENCHMARKS = ("sim", "retarget", "teleop", "view", "hardware")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,7 +64,18 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         result = run_view(seconds=args.seconds)
-    if args.plot is not None and args.benchmark != "view":  # view: no samples to plot
+    elif args.benchmark == "hardware":
+        from beavr_sim.bench.hardware import run as run_hardware
+
+        print(
+            "benchmarking hardware mirroring on emulated devices (pour trace, real time)...",
+            file=sys.stderr,
+        )
+        result = run_hardware(samples=samples)
+    if args.plot is not None and args.benchmark not in (
+        "view",
+        "hardware",
+    ):  # view: no samples to plot
         from beavr_sim.bench.plots import write as write_plots
 
         result["plots"] = write_plots(args.benchmark, samples, args.plot, result)

@@ -12,44 +12,24 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-_T = mujoco.mjtGeom
+from beavr_sim.twin import kernels
 
 
 class GeomExtents:
     """Axis-aligned world boxes of a fixed set of geoms: ``centre`` and ``half`` (n x 3)."""
 
     def __init__(self, model: mujoco.MjModel, geoms: np.ndarray):
-        self.geoms = np.asarray(geoms, dtype=int)
-        types = model.geom_type[self.geoms]
-        self._size = model.geom_size[self.geoms].copy()
-        self._aabb = model.geom_aabb[self.geoms].reshape(-1, 6).copy()
-        self._by_type = {
-            t: np.flatnonzero(types == t)
-            for t in (_T.mjGEOM_SPHERE, _T.mjGEOM_CAPSULE, _T.mjGEOM_CYLINDER, _T.mjGEOM_BOX)
-        }
-        self._by_type["ellipsoid"] = np.flatnonzero(types == _T.mjGEOM_ELLIPSOID)
-        known = np.concatenate(list(self._by_type.values()))
-        self._other = np.setdiff1d(np.arange(len(self.geoms)), known)
+        self.geoms = np.asarray(geoms, dtype=np.int64)
+        self._types = model.geom_type[self.geoms].astype(np.int64)
+        self._size = np.ascontiguousarray(model.geom_size[self.geoms], dtype=np.float64)
+        self._aabb = np.ascontiguousarray(model.geom_aabb[self.geoms].reshape(-1, 6))
+        self.centre = np.zeros((len(self.geoms), 3))
+        self.half = np.zeros((len(self.geoms), 3))
 
     def compute(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
-        """``(centre, half)``, each n x 3, world frame."""
-        R = data.geom_xmat[self.geoms].reshape(-1, 3, 3)
-        centre = data.geom_xpos[self.geoms].copy()
-        half = np.empty_like(centre)
-        s = self._size
-        i = self._by_type[_T.mjGEOM_SPHERE]
-        half[i] = s[i, :1]
-        i = self._by_type[_T.mjGEOM_CAPSULE]
-        half[i] = np.abs(R[i, :, 2]) * s[i, 1:2] + s[i, :1]
-        i = self._by_type[_T.mjGEOM_CYLINDER]
-        axis = R[i, :, 2]
-        half[i] = np.abs(axis) * s[i, 1:2] + s[i, :1] * np.sqrt(np.clip(1.0 - axis**2, 0.0, 1.0))
-        i = self._by_type[_T.mjGEOM_BOX]
-        half[i] = np.einsum("nkj,nj->nk", np.abs(R[i]), s[i])
-        i = self._by_type["ellipsoid"]
-        half[i] = np.sqrt(np.einsum("nkj,nj->nk", R[i] ** 2, s[i] ** 2))
-        i = self._other
-        if len(i):
-            centre[i] += np.einsum("nkj,nj->nk", R[i], self._aabb[i, :3])
-            half[i] = np.einsum("nkj,nj->nk", np.abs(R[i]), self._aabb[i, 3:])
-        return centre, half
+        """``(centre, half)``, each n x 3, world frame (arrays owned by this object)."""
+        kernels.geom_boxes(
+            data.geom_xpos, data.geom_xmat, self.geoms, self._types, self._size, self._aabb,
+            self.centre, self.half,
+        )  # fmt: skip
+        return self.centre, self.half

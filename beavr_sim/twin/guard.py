@@ -38,6 +38,7 @@ import numpy as np
 
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
+from beavr_sim.twin import kernels
 from beavr_sim.twin.extents import GeomExtents
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
@@ -227,6 +228,10 @@ class CollisionGuard:
         self._box_lower = np.array([b.lower for b in boxes]).reshape(-1, 3) - slack
         self._box_upper = np.array([b.upper for b in boxes]).reshape(-1, 3) + slack
         self._moving_owner = np.array(owners, dtype=object)
+        self._outside = np.zeros(len(moving), dtype=np.bool_)
+        self._codes = np.zeros(joints.size, dtype=np.int64)
+        self.joint_names = joints.names
+        kernels.warm_up()
         # A private copy of the model in which only robot-static and robot-robot pairs can
         # collide (contype / conaffinity bits): objects, and the scene with itself, are never
         # checked, so the cost does not grow with the task's objects (e.g. pour's particles).
@@ -249,14 +254,23 @@ class CollisionGuard:
         #: Refusals per rule (every rule listed, zeros included).
         self.refusals_by_rule = dict.fromkeys(RULES, 0)
         self._velocity = np.zeros(joints.size)  # of the last accepted command
-        self._centres_at: np.ndarray | None = None  # action the cached geom centres belong to
-        self._centres: np.ndarray | None = None
+        # Preallocated for the per-tick path: the moving geoms' centres at the path's ends
+        # (the end of one check is the start of the next when accepted), samples, scratch.
+        n_moving = len(self._moving)
+        self._start, self._end = np.zeros((n_moving, 3)), np.zeros((n_moving, 3))
+        self._scratch = np.zeros((n_moving, 3))
+        self._sample = np.zeros(joints.size)
+        self._cached_at = np.zeros(joints.size)  # the action ``_start`` belongs to
+        self._cached = False
+        self._qpos_adr = np.asarray(joints.qpos_adr, dtype=np.int64)
+        self._qpos = self.data.qpos  # views into the private MjData
+        self._geom_xpos = self.data.geom_xpos
 
     # ------------------------------------------------------------------ rules
     def reset(self) -> None:
         """Forget the motion history (after an env reset: the robot stands still)."""
         self._velocity[:] = 0.0
-        self._centres_at = None
+        self._cached = False
 
     def still(self) -> None:
         """No new command this tick: the robot holds (its commanded velocity is zero)."""
@@ -265,52 +279,56 @@ class CollisionGuard:
     def _joint_rules(
         self, action: np.ndarray, previous: np.ndarray | None, reasons: dict[str, str]
     ) -> None:
-        names = self.joints.names
-        bad = ~np.isfinite(action)
-        for i in np.flatnonzero(bad):
-            reasons.setdefault(self._effector_of[i], f"non-finite: {names[i]} = {action[i]}")
-        with np.errstate(invalid="ignore"):
-            below, above = action < self._lower, action > self._upper
-        for i in np.flatnonzero(below | above):
-            limit = self._lower[i] if below[i] else self._upper[i]
-            reasons.setdefault(
-                self._effector_of[i],
-                f"joint limit: {names[i]} = {action[i]:.4f} {'<' if below[i] else '>'} "
-                f"{limit:.4f} rad",
-            )
-        if previous is None or self.dt is None:
+        codes = self._codes
+        has_previous = previous is not None and self.dt is not None
+        if not kernels.joint_rules(
+            action,
+            previous if has_previous else action,
+            has_previous,
+            self._velocity,
+            self._lower,
+            self._upper,
+            self._vmax,
+            self._amax,
+            self.dt or 0.0,
+            codes,
+        ):
             return
-        with np.errstate(invalid="ignore"):
-            velocity = (action - previous) / self.dt
-            fast = np.abs(velocity) > self._vmax * (1 + 1e-9)
-            jerk = np.abs(velocity - self._velocity) > self._amax * self.dt * (1 + 1e-9)
-        for i in np.flatnonzero(fast):
-            reasons.setdefault(
-                self._effector_of[i],
-                f"velocity: {names[i]} {abs(velocity[i]):.3g} > {self._vmax[i]:.3g} rad/s",
-            )
-        for i in np.flatnonzero(jerk):
-            accel = abs(velocity[i] - self._velocity[i]) / self.dt
-            reasons.setdefault(
-                self._effector_of[i],
-                f"acceleration: {names[i]} {accel:.3g} > {self._amax[i]:.3g} rad/s^2",
-            )
+        names = self.joint_names
+        for i in np.flatnonzero(codes):
+            effector, code, q = self._effector_of[i], codes[i], action[i]
+            if effector in reasons:
+                continue
+            if code == kernels.NON_FINITE:
+                reasons[effector] = f"non-finite: {names[i]} = {q}"
+            elif code == kernels.LIMIT:
+                below = q < self._lower[i]
+                limit = self._lower[i] if below else self._upper[i]
+                reasons[effector] = (
+                    f"joint limit: {names[i]} = {q:.4f} {'<' if below else '>'} {limit:.4f} rad"
+                )
+            elif code == kernels.VELOCITY:
+                speed = abs(q - previous[i]) / self.dt
+                reasons[effector] = f"velocity: {names[i]} {speed:.3g} > {self._vmax[i]:.3g} rad/s"
+            else:
+                accel = abs((q - previous[i]) / self.dt - self._velocity[i]) / self.dt
+                reasons[effector] = (
+                    f"acceleration: {names[i]} {accel:.3g} > {self._amax[i]:.3g} rad/s^2"
+                )
 
-    def _pose(self, action: np.ndarray, qpos_now: np.ndarray) -> np.ndarray:
-        """Kinematics of ``action`` (objects from ``qpos_now``); the moving geoms' centres."""
-        d = self.data
-        d.qpos[:] = qpos_now
-        d.qpos[self.joints.qpos_adr] = action
-        mujoco.mj_kinematics(self.model, d)
-        return d.geom_xpos[self._moving]
+    def _pose(self, action: np.ndarray, qpos_now: np.ndarray, out: np.ndarray) -> None:
+        """Kinematics of ``action`` (objects from ``qpos_now``); the moving geoms' centres
+        into ``out``."""
+        kernels.set_robot_qpos(self._qpos, qpos_now, self._qpos_adr, action)
+        mujoco.mj_kinematics(self.model, self.data)
+        kernels.gather_rows(self._geom_xpos, self._moving, out)
 
-    def _geometry_rules(self, reasons: dict[str, str], offending: list, where: str) -> None:
-        """Workspace and contact rules at the pose last computed by :meth:`_pose`."""
-        m, d = self.model, self.data
-        centre, half = self._extents.compute(d)
+    def _workspace_reasons(
+        self, centre: np.ndarray, half: np.ndarray, reasons: dict[str, str], where: str
+    ) -> None:
         low, high = centre - half, centre + half
         out_low, out_high = low < self._box_lower, high > self._box_upper
-        for k in np.flatnonzero((out_low | out_high).any(axis=1)):
+        for k in np.flatnonzero(self._outside):
             owner = self._moving_owner[k]
             if owner in reasons:
                 continue
@@ -324,6 +342,13 @@ class CollisionGuard:
                 f"workspace: {self._geom_names[self._moving[k]]} {1e3 * depth:.1f} mm {side} "
                 f"the box ({'xyz'[axis]}; tolerance {1e3 * slack:.0f} mm){where}"
             )
+
+    def _geometry_rules(self, reasons: dict[str, str], offending: list, where: str) -> None:
+        """Workspace and contact rules at the pose last computed by :meth:`_pose`."""
+        m, d = self.model, self.data
+        centre, half = self._extents.compute(d)
+        if kernels.outside(centre, half, self._box_lower, self._box_upper, self._outside):
+            self._workspace_reasons(centre, half, reasons, where)
         mujoco.mj_collision(m, d)
         n = d.ncon
         if not n:
@@ -358,28 +383,31 @@ class CollisionGuard:
                 sl = self.slices[name]
                 target[sl] = previous[sl] if previous is not None else self.joints.home[sl]
         offending: list[tuple[str, str, float]] = []
-        end = self._pose(target, qpos_now).copy()
+        end = self._end
+        self._pose(target, qpos_now, end)
         self._geometry_rules(reasons, offending, "")
         if previous is not None:
-            start = self._start_centres(previous, qpos_now)
-            step = float(np.max(np.linalg.norm(end - start, axis=1), initial=0.0))
+            start = self._start
+            if not (self._cached and kernels.same(self._cached_at, previous)):
+                self._pose(previous, qpos_now, start)
+            step = kernels.largest_move(end, start)
             n = min(self.config.max_path_samples, math.ceil(step / self.config.path_resolution))
+            sample = self._sample
             for k in range(1, n):
                 s = k / n
-                self._pose(previous + s * (target - previous), qpos_now)
+                kernels.lerp(previous, target, s, sample)
+                self._pose(sample, qpos_now, self._scratch)
                 self._geometry_rules(reasons, offending, f" at {100 * s:.0f} % of the path")
-        self._centres, self._centres_at = end, target
+        # The next command's path starts at this one's end when it is accepted as it is.
+        self._start, self._end = self._end, self._start
+        self._cached_at[:] = target
+        self._cached = True
         blocked = tuple(sorted(reasons))
         if blocked:
             self.refusals += 1
             for reason in reasons.values():
                 self.refusals_by_rule[reason.split(":", 1)[0]] += 1
         return GuardVerdict(blocked, tuple(offending), dict(sorted(reasons.items())))
-
-    def _start_centres(self, previous: np.ndarray, qpos_now: np.ndarray) -> np.ndarray:
-        if self._centres_at is not None and np.array_equal(self._centres_at, previous):
-            return self._centres
-        return self._pose(previous, qpos_now).copy()
 
     def filter(
         self,
