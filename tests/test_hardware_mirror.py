@@ -344,12 +344,20 @@ def test_pour_trace_mirrored_on_emulated_hardware(tmp_path, capsys):
         assert device["holding"] == "" and device["holds"] == 0, name
         assert device["commands_sent"] >= summary["ticks"] * 0.99, name
     assert hardware["right_arm"]["max_divergence_rad"] < 0.3
+    # A mirrored trace replays on the paced virtual clock: the same episode as a replay
+    # without hardware.
+    plain = tmp_path / "plain.json"
+    argv = ["--task", "pour", "--source", "trace", "--no-viser", "--headless", "--quiet"]
+    assert teleop_main([*argv, "--summary-json", str(plain)]) == 0
+    plain = json.loads(plain.read_text())
+    for key in ("ticks", "commands_applied", "frames_received", "holds", "operator"):
+        assert summary[key] == plain[key], key
 
 
 def test_mirroring_options_are_checked():
     from beavr_sim.teleop.session import SessionOptions
 
-    with pytest.raises(ValueError, match="real clock"):
+    with pytest.raises(ValueError, match="real control rate"):
         SessionOptions(task="pour", source="trace", mirror_hardware=True, clock="virtual")
     with pytest.raises(ValueError, match="need --mirror-hardware"):
         SessionOptions(task="pour", source="trace", dry_run=True)
@@ -381,3 +389,42 @@ def test_recording_while_mirroring_stores_the_measured_hardware_state(tmp_path, 
     # The hand's measured joints trail its commands by a few ticks at most.
     lag = np.abs(state[4:, 7:] - action[:-4, 7:]).max()
     assert lag < 0.5, lag
+
+
+def test_bimanual_rig_is_the_same_code():
+    """Two xArms and two LEAP hands (the paper's bimanual rig), emulated: every device
+    connects at the twin's pose and follows its own effector."""
+    from beavr_sim.hardware.rig import EmulatedRig
+
+    env = gym.make("beavr_sim/PickPlace-v0", embodiment="xarm7_leap_bimanual").unwrapped
+    rig = EmulatedRig(env.embodiment, env.joints)
+    try:
+        twin = TwinInterface(env)
+        twin.reset(seed=0)
+        mirror = HardwareMirror(rig.config, env.embodiment, env.joints, env.model, env.control_hz)
+        q = mirror.connect()
+        np.testing.assert_allclose(q, env.joints.home, atol=2 * np.pi / 4096)
+        twin.reset(seed=0, robot_qpos=q)
+        mirror.start(twin.action)
+        target = twin.action.copy()
+        for _ in range(10):
+            target[twin.slices["left"].start] += 0.02  # the left shoulder turns, slowly
+            command = {n: JointCommand(n, target[sl], 0.0, 0.0) for n, sl in twin.slices.items()}
+            state = twin.apply(command)
+            mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+            time.sleep(1 / env.control_hz)
+        time.sleep(0.3)
+        measured = mirror.latest_measured()
+        mirror.close()
+        summary = mirror.summary()
+        assert set(summary) == {"left_arm", "left_hand", "right_arm", "right_hand"}
+        assert all(d["errors"] == 0 and d["commands_sent"] >= 10 for d in summary.values())
+        left0, right0 = twin.slices["left"].start, twin.slices["right"].start
+        # The left shoulder followed (read after its last write: up to a tick behind).
+        assert abs(measured[left0] - target[left0]) < 0.03
+        assert measured[left0] - env.joints.home[left0] > 0.15
+        assert abs(measured[right0] - env.joints.home[right0]) < 1e-3
+    finally:
+        rig.close()
+        env.close()
+    assert len(rig.received["left_arm"]) >= 10 and len(rig.received["right_hand"]) >= 10

@@ -1,6 +1,7 @@
 """``python -m beavr_sim.bench hardware``: hardware mirroring on emulated devices.
 
-Replays a bundled trace (default pour) in real time with ``--mirror-hardware`` on the emulated
+Replays a bundled trace (default pour) at the real control rate (the paced virtual clock, as
+``teleop --mirror-hardware`` does for traces) on the emulated
 rig (an xArm7 controller emulator and a Dynamixel bus emulator in a child process, driven by
 the real ``xarm-python-sdk`` and ``dynamixel-sdk``) and reports, per device:
 
@@ -42,7 +43,7 @@ def run(task: str = DEFAULT_TASK, samples: dict | None = None) -> dict:
     from beavr_sim.teleop.session import SessionOptions, build_loop
 
     options = SessionOptions(
-        task=task, source="trace", viser=False, headless=True, progress=False, clock="real"
+        task=task, source="trace", viser=False, headless=True, progress=False, clock="paced"
     )
     loop = build_loop(options)
     env = loop.twin.env

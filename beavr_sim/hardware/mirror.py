@@ -186,7 +186,7 @@ class _Link:
                 self._seq_sent = seq
                 continue  # latched until a release
             if now - t_submit > m.rig.mirror.command_timeout_s:
-                self._hold(f"no fresh command for {now - t_submit:.2f} s")
+                self._hold(f"no fresh command within {m.rig.mirror.command_timeout_s:g} s")
                 continue
             if seq == self._seq_sent:
                 continue

@@ -32,7 +32,7 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 
 SOURCES = ("quest", "trace")
-CLOCKS = ("real", "virtual")
+CLOCKS = ("real", "virtual", "paced")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,8 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--clock",
         choices=CLOCKS,
         default=None,
-        help="real time, or a virtual clock (deterministic; trace only). Default: virtual for a "
-        "trace without the browser view, real otherwise",
+        help="real time; a virtual clock (deterministic; trace only); or paced: the virtual "
+        "clock slept to the control rate (deterministic at real speed; trace only). Default: "
+        "virtual for a trace without the browser view, paced for a mirrored trace, real otherwise",
     )
     p.add_argument("--headless", action="store_true", help="no rendered view to the headset")
     p.add_argument("--no-viser", action="store_true", help="no browser view")

@@ -3,7 +3,9 @@
 Used by tests, deterministic replay and the single-process CLI. On the virtual clock
 (``real_time=False``) tick k happens at t = k * dt whatever the machine's speed, and the
 source delivers the frames stamped up to that time: a replay is bit-for-bit repeatable. In
-real time the loop sleeps to the control rate and the clock is ``time.monotonic()``.
+real time the loop sleeps to the control rate and the clock is ``time.monotonic()``. Paced
+(``paced=True``, virtual clock): the virtual clock's ticks, slept to the control rate - the
+same deterministic replay, at the speed hardware moves (a mirrored trace replay).
 
 Latency is measured per applied (non-hold, not refused) command from the moment its hand frame
 entered the pipeline (received by the detector: ``t_receive`` in real time, the poll on the
@@ -72,6 +74,7 @@ class TeleopLoop:
         *,
         validator: StreamValidator | None = None,
         real_time: bool = False,
+        paced: bool = False,
         listeners: Sequence[TickListener] = (),
     ):
         self.twin = twin
@@ -79,6 +82,8 @@ class TeleopLoop:
         self.source = source
         self.validator = validator or StreamValidator()
         self.real_time = bool(real_time)
+        #: Sleep to the control rate on the virtual clock (real time implies it).
+        self.paced = bool(paced) or self.real_time
         self.listeners = list(listeners)
         self.dt = 1.0 / twin.env.control_hz
         self.frames_received = 0
@@ -160,7 +165,7 @@ class TeleopLoop:
         resets = self.resets
         success = False
         while True:
-            if self.real_time:
+            if self.paced:
                 target = self._t0 + self.ticks * self.dt
                 delay = target - time.monotonic()
                 if delay > 0:

@@ -83,10 +83,13 @@ class SessionOptions:
             raise ValueError("--trace needs --source trace")
         if self.mirror_hardware:
             if self.clock == "virtual":
-                raise ValueError("--mirror-hardware runs on the real clock; leave out --clock")
+                raise ValueError(
+                    "--mirror-hardware runs at the real control rate: --clock real or paced"
+                )
             if self.multiprocess:
                 raise ValueError("--mirror-hardware runs in one process; leave out --multiprocess")
-            self.clock = "real"
+            # A trace replays deterministically at the real rate; a headset on the wall clock.
+            self.clock = self.clock or ("paced" if self.source == "trace" else "real")
             if self.hardware_config is None:
                 if not Path("rig.toml").is_file():
                     raise ValueError(
@@ -99,9 +102,11 @@ class SessionOptions:
             raise ValueError("--dry-run and --hardware-config need --mirror-hardware")
         if self.clock is None:
             self.clock = "virtual" if self.source == "trace" and not self.viser else "real"
-        check_name("clock", self.clock, ("real", "virtual"))
-        if self.clock == "virtual" and self.source != "trace":
-            raise ValueError("a virtual clock needs a recorded source (--source trace)")
+        check_name("clock", self.clock, ("real", "virtual", "paced"))
+        if self.multiprocess and self.clock == "paced":
+            raise ValueError("--multiprocess runs on the real clock; leave out --clock paced")
+        if self.clock != "real" and self.source != "trace":
+            raise ValueError(f"a {self.clock} clock needs a recorded source (--source trace)")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
         if self.repeat < 0 or (self.repeat != 1 and self.source != "trace"):
@@ -237,6 +242,7 @@ def build_loop(options: SessionOptions, context=None):
         source,
         validator=validator,
         real_time=options.clock == "real",
+        paced=options.clock == "paced",
     )
     loop.reset(seed)
     return loop
