@@ -428,3 +428,63 @@ def test_bimanual_rig_is_the_same_code():
         rig.close()
         env.close()
     assert len(rig.received["left_arm"]) >= 10 and len(rig.received["right_hand"]) >= 10
+
+
+def test_estop_from_keyboard_browser_and_headset_gesture():
+    """Every e-stop input latches the mirror's e-stop and pauses the operator; the browser
+    button and the keyboard release it and each shows the other's state."""
+    import io
+    from types import SimpleNamespace
+
+    from beavr_sim.teleop.episodes import KeyboardControl
+    from beavr_sim.teleop.session import _BrowserEstop, _MirrorListener
+
+    class FakeMirror:
+        estopped = False
+        submitted = 0
+
+        def submit(self, *args):
+            self.submitted += 1
+
+        def estop(self, reason):
+            self.estopped, self.reason = True, reason
+
+        def release(self):
+            self.estopped = False
+
+    class FakeOperator:
+        paused = False
+        gestures = ["estop"]
+
+        def take_gestures(self, *kinds):
+            taken = [g for g in self.gestures if g in kinds]
+            self.gestures = [g for g in self.gestures if g not in kinds]
+            return taken
+
+        def set_paused(self, paused):
+            self.paused = paused
+
+    mirror, operator = FakeMirror(), FakeOperator()
+    listener = _MirrorListener(mirror, SimpleNamespace(operator=operator))
+    state = SimpleNamespace(action=None, positions=None, guard_blocked_effectors=())
+    tick = SimpleNamespace(state=state)
+    listener(tick)  # the headset gesture
+    assert mirror.estopped and "headset" in mirror.reason and operator.paused
+    view = SimpleNamespace(estop_requested=False)
+    view.set_estop = lambda latched: setattr(view, "estop_requested", latched)
+    browser = _BrowserEstop(view, mirror)
+    browser(tick)
+    assert view.estop_requested  # the button shows the latched e-stop
+    view.estop_requested = False  # clicked: release
+    browser(tick)
+    listener(tick)
+    assert not mirror.estopped and not operator.paused
+    view.estop_requested = True  # clicked: latch
+    browser(tick)
+    assert mirror.estopped and mirror.reason == "browser view"
+    keyboard = KeyboardControl(None, io.StringIO("r\n"), actions={"r": ("release", mirror.release)})
+    keyboard._thread.join(2.0)
+    assert not mirror.estopped
+    browser(tick)
+    assert not view.estop_requested  # the keyboard's release shows on the button
+    assert mirror.submitted == 2

@@ -7,6 +7,7 @@ import logging
 import numpy as np
 import pytest
 
+from beavr_sim.naming import UnknownNameError
 from beavr_sim.operator.arm_mapping import AxisMap, RelativeMotionMapping, axis_map
 from beavr_sim.operator.filters import KeypointSmoother, PoseSmoother, slerp, so3_exp, so3_log
 from beavr_sim.operator.operator import Operator, OperatorConfig
@@ -296,6 +297,23 @@ def test_long_left_pinch_is_the_record_gesture_and_leaves_pause_as_it_was(operat
     assert operator.take_gestures() == []
     operator.observe(frame(L, t, side="left", pinch=False))
     assert not operator.paused and operator.take_gestures() == []
+
+
+def test_both_hands_pinching_is_the_estop_gesture(operator):
+    fresh(operator)
+    L, R = palm_down([0.3, 0.2, 1.0]), palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(R, 0.0, pinch=True))  # one hand alone: no e-stop
+    assert operator.take_gestures("estop") == []
+    operator.observe(frame(L, 0.0, side="left", pinch=True))
+    operator.observe(frame(L, 0.03, side="left", pinch=True))  # held: one gesture
+    operator.observe(frame(R, 0.03, pinch=True))
+    assert operator.take_gestures("estop") == ["estop"]
+    operator.observe(frame(R, 0.06, pinch=False))
+    operator.observe(frame(R, 0.1, pinch=True))  # pinched again: a second one
+    gestures = operator.take_gestures("record")  # taking one kind leaves the other
+    assert gestures == [] and operator.take_gestures() == ["estop"]
+    with pytest.raises(UnknownNameError, match="estop"):
+        operator.take_gestures("stop")
 
 
 def test_commands_respect_joint_limits(operator):

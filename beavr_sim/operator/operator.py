@@ -13,7 +13,9 @@ Session control:
   hold their last command; on resume every mapping is re-anchored so nothing jumps.
 - gesture: a left-hand pinch held for ``long_pinch_s`` (source time) is the "record" gesture
   (start / stop a recorded episode): the pause its press toggled is undone and ``"record"``
-  is queued for :meth:`Operator.take_gestures`. The robot holds during the gesture.
+  is queued for :meth:`Operator.take_gestures`. The robot holds during the gesture. Both
+  hands pinching at once (rising edge) is the emergency-stop gesture ``"estop"`` (a mirrored
+  session latches its e-stop on it).
 - tracking loss: no usable frame (palm joints tracked) for ``tracking_timeout_s``: the effector
   holds where it is and a warning is logged; when tracking returns it continues from the same
   anchor (the hand may have moved meanwhile, within the jump limit).
@@ -50,6 +52,7 @@ log = logging.getLogger("beavr_sim.operator.operator")
 WRIST = JOINT_INDEX["wrist"]
 
 HOLD_REASONS = ("", "waiting", "paused", "tracking_lost")
+GESTURES = ("record", "estop")
 
 
 @dataclass(frozen=True)
@@ -376,14 +379,22 @@ class Operator:
                 self._pinch_paused = not self._pinch_paused  # undo the press's toggle
                 self._gestures.append("record")
                 log.info("left-hand long pinch: record gesture")
-            self._last_pinch["left"] = frame.pinch
+        both_before = all(self._last_pinch.values())
+        self._last_pinch[frame.side] = frame.pinch
+        if all(self._last_pinch.values()) and not both_before:
+            self._gestures.append("estop")
+            log.warning("both hands pinch: emergency-stop gesture")
         for op in self._by_side[frame.side]:
             op.observe(frame)
 
-    def take_gestures(self) -> list[str]:
-        """Gestures recognised since the last call (``"record"``: long left pinch)."""
-        gestures, self._gestures = self._gestures, []
-        return gestures
+    def take_gestures(self, *kinds: str) -> list[str]:
+        """Gestures recognised since they were last taken, of ``kinds`` (default: all):
+        ``"record"`` (a long left pinch), ``"estop"`` (both hands pinch at once)."""
+        for kind in kinds:
+            check_name("gesture", kind, GESTURES)
+        taken = [g for g in self._gestures if not kinds or g in kinds]
+        self._gestures = [g for g in self._gestures if kinds and g not in kinds]
+        return taken
 
     def targets(self) -> dict[str, EffectorTargets]:
         """Each effector's current targets in the world frame (views, logs)."""

@@ -380,7 +380,7 @@ class _EpisodeRequests:
 
     def taker(self, *accepted: str):
         def stop_when() -> bool:
-            for _ in self.operator.take_gestures():
+            for _ in self.operator.take_gestures("record"):
                 self.control.request("toggle", "headset gesture")
             self.last = [r for r in self.control.take() if r in accepted]
             return bool(self.last)
@@ -565,6 +565,8 @@ class _MirrorListener:
     def __call__(self, tick: Tick) -> None:
         state = tick.state
         self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+        if self.loop.operator.take_gestures("estop"):
+            self.mirror.estop("headset gesture: both hands pinch")
         if self.mirror.estopped != self._estopped:
             self._estopped = self.mirror.estopped
             self.loop.operator.set_paused(self._estopped)
