@@ -488,3 +488,86 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
     browser(tick)
     assert not view.estop_requested  # the keyboard's release shows on the button
     assert mirror.submitted == 2
+
+
+def _rig_toml(rig_config: RigConfig, path) -> None:
+    """A rig file for ``rig_config``'s emulated devices (their addresses and ports)."""
+    lines = []
+    for d in rig_config.devices:
+        lines += ["[[devices]]", f'name = "{d.name}"', f'kind = "{d.kind}"']
+        lines.append(f'effector = "{d.effector}"')
+        if d.kind == "xarm7":
+            lines += [f'host = "{d.config.host}"', f"port = {d.config.port}"]
+            lines.append(f"max_joint_speed = {d.config.max_joint_speed}")
+        else:
+            lines += [f'port = "{d.config.port}"', "reply_timeout_s = 0.25"]
+    lines += ["[mirror]", "hand_divergence_rad = 2.5"]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_killing_the_operator_process_leaves_the_hardware_holding(tmp_path):
+    """--multiprocess with mirroring: the operator process is killed mid-motion; the twin
+    holds its last targets and so does the hardware (no new goals, or goals equal to the
+    last), and the summary says the operator died."""
+    from beavr_sim.hardware.rig import EmulatedRig
+    from beavr_sim.teleop.processes import MultiprocessSession
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    rig = EmulatedRig(env.embodiment, env.joints)
+    env.close()
+    try:
+        _rig_toml(rig.config, tmp_path / "rig.toml")
+        options = SessionOptions(
+            task="pickup_box",
+            source="trace",
+            viser=False,
+            headless=True,
+            multiprocess=True,
+            mirror_hardware=True,
+            hardware_config=str(tmp_path / "rig.toml"),
+            transport=TransportConfig(ports=PortConfig.free()),
+        )
+        session = MultiprocessSession(options)
+        session.start()
+        try:
+            time.sleep(4.0)  # reaching for the box
+            session.processes["operator"].kill()
+            t_kill = time.monotonic()
+            time.sleep(1.5)
+        finally:
+            session.stop()
+        twin = session.results["twin"]
+    finally:
+        rig.close()
+    assert twin["hardware"]["right_arm"]["errors"] == 0
+    for name in ("right_arm", "right_hand"):
+        log = rig.received[name]
+        before = [targets for t, targets in log if t < t_kill]
+        after = [targets for t, targets in log if t > t_kill + 0.2]  # commands in flight
+        assert len(before) > 30, name
+        if name == "right_arm":
+            moved = np.abs(np.array(before[-1]) - np.array(before[0])).max()
+            assert moved > 0.05  # it was moving when the operator died
+            assert all(np.allclose(q, after[0], atol=1e-6) for q in after)
+        else:
+            assert after and all(g == after[0] for g in after), name
+
+
+@pytest.mark.parametrize("multiprocess", [False, True])
+def test_cli_refuses_to_start_naming_the_unreachable_device(tmp_path, capsys, multiprocess):
+    dead = XArmEmulator()
+    port = dead.port
+    dead.close()
+    rig = tmp_path / "rig.toml"
+    rig.write_text(
+        f'[[devices]]\nname = "right_arm"\nkind = "xarm7"\neffector = "right"\n'
+        f'host = "127.0.0.1"\nport = {port}\nconnect_timeout_s = 1.0\n'
+    )
+    argv = ["--task", "pickup_box", "--source", "trace", "--no-viser", "--headless", "--quiet"]
+    argv += ["--mirror-hardware", "--hardware-config", str(rig)]
+    code = teleop_main(argv + (["--multiprocess"] if multiprocess else []))
+    err = capsys.readouterr().err
+    assert code == 3
+    assert "cannot start mirroring: right_arm" in err and str(port) in err

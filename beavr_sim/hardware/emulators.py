@@ -43,10 +43,13 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(emulator, XArmEmulator):
             received[name] = [[t, list(q)] for t, q in emulator.servo_log]
         else:
-            by_time: dict[float, dict[int, float]] = {}
+            # One entry per write: a sync write's goals, or a single motor's.
+            writes: list = []
             for t, motor, counts in emulator.goal_log:
-                by_time.setdefault(t, {})[motor] = float(counts_to_model(counts))
-            received[name] = [[t, goals] for t, goals in by_time.items()]
+                if not writes or motor in writes[-1][1]:
+                    writes.append([t, {}])
+                writes[-1][1][motor] = float(counts_to_model(counts))
+            received[name] = writes
         emulator.close()
     print(json.dumps(received), flush=True)
     return 0

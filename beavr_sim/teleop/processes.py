@@ -231,6 +231,22 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     ).unwrapped
     twin = TwinInterface(env)
     twin.reset(options["seed"])
+    mirror = None
+    closers = []
+    if options.get("mirror_hardware"):
+        from beavr_sim.hardware.device import MirrorError
+        from beavr_sim.teleop.session import connect_mirror
+
+        try:
+            mirror, q_measured = connect_mirror(options, env, closers)
+        except (MirrorError, ValueError, FileNotFoundError) as exc:
+            for close in reversed(closers):
+                close()
+            conn.send_bytes(f"error: {exc}".encode())
+            env.close()
+            return
+        twin.reset(options["seed"], q_measured)  # the twin starts where the robot stands
+        mirror.start(twin.action)
     subs = {
         e.name: Subscriber(
             context,
@@ -261,8 +277,14 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 env.model, {n: joints.names[sl] for n, sl in joints.slices.items()}
             ),
             rate_hz=options.get("viser_rate_hz", 30.0),
+            mirroring=mirror is not None,
         )
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+    browser_estop = None
+    if view is not None and mirror is not None:
+        from beavr_sim.teleop.session import _BrowserEstop
+
+        browser_estop = _BrowserEstop(view, mirror)
     poller = zmq.Poller()
     for sub in subs.values():
         poller.register(sub.socket, zmq.POLLIN)
@@ -281,6 +303,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 break
             if msg is not None and msg.command == "reset":
                 twin.reset(options["seed"])
+            if msg is not None and mirror is not None and msg.command == "estop":
+                mirror.estop("keyboard")
+            if msg is not None and mirror is not None and msg.command == "release":
+                mirror.release()
             # Step as soon as every effector's next command is in (the operator paces the
             # twin: least latency), or at the control period's end without it (the operator
             # is slow or dead: the robot holds its last targets).
@@ -312,6 +338,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     last_t_source[name] = cmd.t_source
             commands = applied
             st = twin.apply(commands)
+            if mirror is not None:  # the same guarded action, the same tick
+                mirror.submit(st.action, st.positions, st.guard_blocked_effectors)
+                if browser_estop is not None:
+                    browser_estop(None)
             success = success or st.success
             details = {k: v for k, v in st.info.items() if k.startswith("task/")}
             state_pub.send(
@@ -339,9 +369,16 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     blocked = set()
             next_tick = max(next_tick + dt, time.monotonic() - dt)
     finally:
+        hardware = {}
+        if mirror is not None:
+            mirror.close()
+            hardware = mirror.summary()
+        for close in reversed(closers):
+            close()
         conn.send_bytes(
             json.dumps(
                 {
+                    "hardware": hardware,
                     "success": success,
                     "objects": {
                         n: o.pos(env.data).round(3).tolist()
@@ -425,8 +462,14 @@ class MultiprocessSession:
             self.processes[name], self.pipes[name] = proc, parent
         for name, pipe in self.pipes.items():
             if not pipe.poll(60.0):
+                self.stop()
                 raise RuntimeError(f"{name} process did not become ready within 60 s")
-            pipe.recv_bytes()
+            reply = pipe.recv_bytes()
+            if reply != b"ready":
+                self.stop()
+                from beavr_sim.hardware.device import MirrorError
+
+                raise MirrorError(reply.decode(errors="replace").removeprefix("error: "))
         self.session_pub.wait_for_subscribers(3, HANDSHAKE_TIMEOUT_S)
         self.send("resume")  # everyone is ready: the detector starts a trace now
 
@@ -456,12 +499,26 @@ class MultiprocessSession:
 
     def run(self, max_seconds: float | None, stop_on_success: bool) -> TeleopSummary:
         self.start()
+        requests: list[str] = []  # from the keyboard thread; sent from this one
+        if self.options.get("mirror_hardware") and sys.stdin is not None and sys.stdin.isatty():
+            from beavr_sim.teleop.episodes import KeyboardControl
+
+            keyboard = KeyboardControl(
+                None,
+                actions={
+                    "e": ("emergency stop (every device holds)", lambda: requests.append("estop")),
+                    "r": ("release the emergency stop", lambda: requests.append("release")),
+                },
+            )
+            print(keyboard.help, file=sys.stderr)
         reported: set[str] = set()
         t0 = time.monotonic()
         success = False
         try:
             while True:
                 state = self.state_sub.recv_latest(0.1)
+                while requests:
+                    self.send(requests.pop(0))
                 if state is not None:
                     success = success or state.success
                 for name in self.dead():
@@ -493,6 +550,7 @@ class MultiprocessSession:
             rejected_by_reason=det.get("rejected_by_reason", {}),
             operator=self.results.get("operator", {}).get("operator", {}),
             processes={n: ("died" if n in reported else "ok") for n in self.processes},
+            hardware=twin.get("hardware", {}),
         )
 
 

@@ -86,10 +86,10 @@ class SessionOptions:
                 raise ValueError(
                     "--mirror-hardware runs at the real control rate: --clock real or paced"
                 )
-            if self.multiprocess:
-                raise ValueError("--mirror-hardware runs in one process; leave out --multiprocess")
-            # A trace replays deterministically at the real rate; a headset on the wall clock.
-            self.clock = self.clock or ("paced" if self.source == "trace" else "real")
+            # A trace replays deterministically at the real rate; a headset (and the
+            # multiprocess layout) on the wall clock.
+            paced = self.source == "trace" and not self.multiprocess
+            self.clock = self.clock or ("paced" if paced else "real")
             if self.hardware_config is None:
                 if not Path("rig.toml").is_file():
                     raise ValueError(
@@ -517,40 +517,42 @@ class _HeadsetListener:
         self.publisher.publish(self.cameras.render(self.env.data, "front"))
 
 
-def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
-    """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
-    add the mirror as the loop's first listener: it gets every guarded command in the tick the
-    twin applies it. Raises :class:`~beavr_sim.hardware.mirror.MirrorError` (or ValueError,
-    FileNotFoundError for the rig file) naming what to check."""
+def connect_mirror(options, env, closers: list):
+    """The rig of ``options`` (a :class:`SessionOptions` or its dict) connected to the env's
+    embodiment; returns the mirror and the measured joints (the twin starts there). Adds what
+    must be closed to ``closers``. Raises :class:`~beavr_sim.hardware.device.MirrorError` (or
+    ValueError, FileNotFoundError for the rig file) naming what to check."""
     from beavr_sim.hardware.mirror import HardwareMirror
     from beavr_sim.hardware.rig import EmulatedRig, RigConfig
 
-    env = loop.twin.env
-    if options.hardware_config == "emulated":
+    get = options.get if isinstance(options, dict) else lambda k: getattr(options, k)
+    if get("hardware_config") == "emulated":
         rig = EmulatedRig(env.embodiment, env.joints, env.joints.home)
         closers.append(rig.close)
         config = rig.config
     else:
-        config = RigConfig.from_toml(options.hardware_config)
+        config = RigConfig.from_toml(get("hardware_config"))
     mirror = HardwareMirror(
-        config,
-        env.embodiment,
-        env.joints,
-        env.model,
-        env.control_hz,
-        dry_run=options.dry_run,
+        config, env.embodiment, env.joints, env.model, env.control_hz, dry_run=get("dry_run")
     )
     q_measured = mirror.connect()
     closers.append(mirror.close)
+    print(
+        f"mirroring {', '.join(link.name for link in mirror.links)}"
+        f"{' (dry run: nothing is written)' if get('dry_run') else ''}",
+        file=sys.stderr,
+    )
+    return mirror, q_measured
+
+
+def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
+    """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
+    add the mirror as the loop's first listener: it gets every guarded command in the tick the
+    twin applies it."""
+    mirror, q_measured = connect_mirror(options, loop.twin.env, closers)
     loop.reset(loop.seed, robot_qpos=q_measured)
     mirror.start(loop.twin.action)
     loop.listeners.insert(0, _MirrorListener(mirror, loop))
-    print(
-        f"mirroring {', '.join(link.name for link in mirror.links)}"
-        f"{' (dry run: nothing is written)' if options.dry_run else ''}; "
-        "e + Enter: emergency stop",
-        file=sys.stderr,
-    )
     return mirror
 
 

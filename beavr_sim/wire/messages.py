@@ -18,7 +18,16 @@ from msgspec.structs import force_setattr
 from beavr_sim.naming import check_name
 from beavr_sim.wire.hand import N_JOINTS, RESOLUTIONS, SIDES, HandFrame
 
-SESSION_COMMANDS = ("pause", "resume", "reset", "stop", "record_start", "record_stop")
+SESSION_COMMANDS = (
+    "pause",
+    "resume",
+    "reset",
+    "stop",
+    "record_start",
+    "record_stop",
+    "estop",  # hardware mirroring: every device holds, latched
+    "release",  # ... until released
+)
 
 
 class MessageError(ValueError):
