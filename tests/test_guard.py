@@ -283,7 +283,7 @@ def test_every_accepted_command_keeps_every_rule(twin, steps, nan_at):
         safe, verdict = guard.filter(q, previous, qpos)
         assert np.isfinite(safe).all()
         assert (safe >= env.joints.lower - 1e-12).all() and (safe <= env.joints.upper + 1e-12).all()
-        assert (np.abs(safe - previous) <= guard._vmax * guard.dt * (1 + 1e-9)).all()
+        assert (np.abs(safe - previous) <= guard.max_velocity * guard.dt * (1 + 1e-9)).all()
         if verdict.ok:
             np.testing.assert_array_equal(safe, q)
             assert guard.check(safe, qpos).ok

@@ -437,7 +437,7 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
     from types import SimpleNamespace
 
     from beavr_sim.teleop.episodes import KeyboardControl
-    from beavr_sim.teleop.session import _BrowserEstop, _MirrorListener
+    from beavr_sim.teleop.mirroring import BrowserEstop, MirrorListener
 
     class FakeMirror:
         estopped = False
@@ -465,14 +465,14 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
             self.paused = paused
 
     mirror, operator = FakeMirror(), FakeOperator()
-    listener = _MirrorListener(mirror, SimpleNamespace(operator=operator))
+    listener = MirrorListener(mirror, SimpleNamespace(operator=operator))
     state = SimpleNamespace(action=None, positions=None, guard_blocked_effectors=())
     tick = SimpleNamespace(state=state)
     listener(tick)  # the headset gesture
     assert mirror.estopped and "headset" in mirror.reason and operator.paused
     view = SimpleNamespace(estop_requested=False)
     view.set_estop = lambda latched: setattr(view, "estop_requested", latched)
-    browser = _BrowserEstop(view, mirror)
+    browser = BrowserEstop(view, mirror)
     browser(tick)
     assert view.estop_requested  # the button shows the latched e-stop
     view.estop_requested = False  # clicked: release

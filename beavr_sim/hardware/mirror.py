@@ -251,12 +251,12 @@ class HardwareMirror:
             for n in e.joints:
                 effector_of[n] = e.name
         self._link_effector = [effector_of[joints.names[link.index[0]]] for link in self.links]
-        vmax = self.guard._vmax.copy()
+        vmax = self.guard.max_velocity.copy()
         for link in self.links:  # no faster than a device's own cap
             if link.device.max_velocity:
                 vmax[link.index] = np.minimum(vmax[link.index], link.device.max_velocity)
         self._step_cap = vmax * self._period
-        hand = self.guard._vmax == guard_config.hand_max_velocity
+        hand = self.guard.hand_joints
         self._catch_up_cap = (
             np.where(hand, rig.mirror.hand_catch_up_speed, rig.mirror.arm_catch_up_speed)
             * self._period

@@ -235,7 +235,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     closers = []
     if options.get("mirror_hardware"):
         from beavr_sim.hardware.device import MirrorError
-        from beavr_sim.teleop.session import connect_mirror
+        from beavr_sim.teleop.mirroring import connect_mirror
 
         try:
             mirror, q_measured = connect_mirror(options, env, closers)
@@ -282,9 +282,9 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)
     browser_estop = None
     if view is not None and mirror is not None:
-        from beavr_sim.teleop.session import _BrowserEstop
+        from beavr_sim.teleop.mirroring import BrowserEstop
 
-        browser_estop = _BrowserEstop(view, mirror)
+        browser_estop = BrowserEstop(view, mirror)
     poller = zmq.Poller()
     for sub in subs.values():
         poller.register(sub.socket, zmq.POLLIN)

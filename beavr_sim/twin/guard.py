@@ -175,15 +175,19 @@ class CollisionGuard:
         self.slices = dict(joints.slices)
         # Per action index: effector, joint name, limits, speed and acceleration caps.
         self._effector_of = np.empty(joints.size, dtype=object)
-        hand = np.zeros(joints.size, dtype=bool)
+        #: Per action index: a hand joint (else an arm joint).
+        self.hand_joints = hand = np.zeros(joints.size, dtype=bool)
         for e in embodiment.effectors:
             sl = self.slices[e.name]
             self._effector_of[sl] = e.name
             hand[sl.start + len(e.arm_joints) : sl.stop] = True
         self._lower = joints.lower + config.limit_margin
         self._upper = joints.upper - config.limit_margin
-        self._vmax = np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
-        self._amax = np.where(hand, config.hand_max_acceleration, config.arm_max_acceleration)
+        #: Per action index: the speed (rad/s) and acceleration (rad/s^2) caps.
+        self.max_velocity = np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
+        self.max_acceleration = np.where(
+            hand, config.hand_max_acceleration, config.arm_max_acceleration
+        )
 
         # Owner of each geom: the effector whose subtree it is in; "static" for bodies welded
         # to the world (table, fixtures); None for objects (bodies that move freely, never
@@ -288,8 +292,8 @@ class CollisionGuard:
             self._velocity,
             self._lower,
             self._upper,
-            self._vmax,
-            self._amax,
+            self.max_velocity,
+            self.max_acceleration,
             self.dt or 0.0,
             codes,
         ):
@@ -309,11 +313,13 @@ class CollisionGuard:
                 )
             elif code == kernels.VELOCITY:
                 speed = abs(q - previous[i]) / self.dt
-                reasons[effector] = f"velocity: {names[i]} {speed:.3g} > {self._vmax[i]:.3g} rad/s"
+                reasons[effector] = (
+                    f"velocity: {names[i]} {speed:.3g} > {self.max_velocity[i]:.3g} rad/s"
+                )
             else:
                 accel = abs((q - previous[i]) / self.dt - self._velocity[i]) / self.dt
                 reasons[effector] = (
-                    f"acceleration: {names[i]} {accel:.3g} > {self._amax[i]:.3g} rad/s^2"
+                    f"acceleration: {names[i]} {accel:.3g} > {self.max_acceleration[i]:.3g} rad/s^2"
                 )
 
     def _pose(self, action: np.ndarray, qpos_now: np.ndarray, out: np.ndarray) -> None:

@@ -1,0 +1,76 @@
+"""Glue between the runners and the hardware mirror: connecting a rig for a session, handing
+each tick's guarded action to the mirror, and the e-stop inputs (browser button, headset
+gesture) that latch it. Used by the single-process session and the multiprocess twin.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from beavr_sim.wire.records import Tick
+
+
+def connect_mirror(options, env, closers: list):
+    """The rig of ``options`` (a :class:`SessionOptions` or its dict) connected to the env's
+    embodiment; returns the mirror and the measured joints (the twin starts there). Adds what
+    must be closed to ``closers``. Raises :class:`~beavr_sim.hardware.device.MirrorError` (or
+    ValueError, FileNotFoundError for the rig file) naming what to check."""
+    from beavr_sim.hardware.mirror import HardwareMirror
+    from beavr_sim.hardware.rig import EmulatedRig, RigConfig
+
+    get = options.get if isinstance(options, dict) else lambda k: getattr(options, k)
+    if get("hardware_config") == "emulated":
+        rig = EmulatedRig(env.embodiment, env.joints, env.joints.home)
+        closers.append(rig.close)
+        config = rig.config
+    else:
+        config = RigConfig.from_toml(get("hardware_config"))
+    mirror = HardwareMirror(
+        config, env.embodiment, env.joints, env.model, env.control_hz, dry_run=get("dry_run")
+    )
+    q_measured = mirror.connect()
+    closers.append(mirror.close)
+    print(
+        f"mirroring {', '.join(link.name for link in mirror.links)}"
+        f"{' (dry run: nothing is written)' if get('dry_run') else ''}",
+        file=sys.stderr,
+    )
+    return mirror, q_measured
+
+
+class MirrorListener:
+    """Hands each tick's guarded action to the hardware mirror (first listener of the loop);
+    while the emergency stop is latched the operator is paused (nothing jumps at release)."""
+
+    def __init__(self, mirror, loop):
+        self.mirror, self.loop = mirror, loop
+        self._estopped = False
+
+    def __call__(self, tick: Tick) -> None:
+        state = tick.state
+        self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+        if self.loop.operator.take_gestures("estop"):
+            self.mirror.estop("headset gesture: both hands pinch")
+        if self.mirror.estopped != self._estopped:
+            self._estopped = self.mirror.estopped
+            self.loop.operator.set_paused(self._estopped)
+
+
+class BrowserEstop:
+    """Keeps the browser view's emergency-stop button and the mirror's e-stop in step: the
+    button latches and releases it; a latch or release from the keyboard shows on the button."""
+
+    def __init__(self, view, mirror):
+        self.view, self.mirror = view, mirror
+        self._shown = False
+
+    def __call__(self, tick: Tick) -> None:
+        if self.view.estop_requested != self._shown:  # the button was clicked
+            self._shown = self.view.estop_requested
+            if self._shown:
+                self.mirror.estop("browser view")
+            else:
+                self.mirror.release()
+        elif self.mirror.estopped != self._shown:  # the keyboard latched or released it
+            self._shown = self.mirror.estopped
+            self.view.set_estop(self._shown)
