@@ -63,6 +63,7 @@ bench: venv
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench teleop
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench retarget
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench view
+	MUJOCO_GL=egl $(PY) -m beavr_sim.bench hardware
 
 # Regenerate the bundled VR traces (after changing the operator or the experts).
 TRACE_TASKS ?= pickup_box pick_place stack_blocks flip_cube lantern tape pour
