@@ -342,7 +342,8 @@ def test_pour_trace_mirrored_on_emulated_hardware(tmp_path, capsys):
     for name, device in hardware.items():
         assert device["errors"] == 0 and device["commands_refused"] == 0, name
         assert device["holding"] == "" and device["holds"] == 0, name
-        assert device["commands_sent"] >= summary["ticks"] * 0.99, name
+        # Each device writes the newest target; under load a writer may merge two ticks.
+        assert device["commands_sent"] >= summary["ticks"] * 0.95, name
     assert hardware["right_arm"]["max_divergence_rad"] < 0.3
     # A mirrored trace replays on the paced virtual clock: the same episode as a replay
     # without hardware.
@@ -571,3 +572,21 @@ def test_cli_refuses_to_start_naming_the_unreachable_device(tmp_path, capsys, mu
     err = capsys.readouterr().err
     assert code == 3
     assert "cannot start mirroring: right_arm" in err and str(port) in err
+
+
+def test_dry_run_connects_and_reads_but_never_writes():
+    bench = Bench(dry_run=True)
+    try:
+        n_servo, n_goals = len(bench.arm.servo_log), len(bench.hand.goal_log)
+        target = bench.twin.action.copy()
+        for _ in range(5):
+            target[0] += 0.03
+            bench.step(target)
+        assert len(bench.arm.servo_log) == n_servo and len(bench.hand.goal_log) == n_goals
+        summary = bench.mirror.summary()
+        assert summary["right_arm"]["connected"] and summary["right_arm"]["commands_sent"] == 0
+        assert summary["right_arm"]["write_latency_ms"]["n"] == 5  # the dispatch still ran
+    finally:
+        bench.close()
+    # Closing a dry run holds nothing either.
+    assert len(bench.arm.servo_log) == n_servo
