@@ -196,8 +196,9 @@ class _Link:
                 self._write(q, t_dispatch, now)
                 measured = self.device.read_positions()
                 self.measured = measured
-            except DeviceError as exc:
-                self._fail(exc)
+            except Exception as exc:  # noqa: BLE001 - a writer never dies silently: it fails
+                log.exception("%s: write failed", self.name)
+                self._fail(exc if isinstance(exc, DeviceError) else DeviceError(repr(exc)))
                 continue
             if m.dry_run:
                 continue
