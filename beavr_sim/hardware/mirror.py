@@ -196,7 +196,7 @@ class _Link:
                 self._write(q, t_dispatch, now)
                 measured = self.device.read_positions()
                 self.measured = measured
-            except Exception as exc:  # noqa: BLE001 - a writer never dies silently: it fails
+            except Exception as exc:  # a writer never dies silently: the device fails
                 log.exception("%s: write failed", self.name)
                 self._fail(exc if isinstance(exc, DeviceError) else DeviceError(repr(exc)))
                 continue
