@@ -181,13 +181,11 @@ def test_adversarial_commands_never_reach_a_motor(bench):
     st.integers(-1, 4),
 )
 def test_every_goal_a_motor_received_passed_the_guard(bench, steps, nan_at):
-    q = bench.twin.action.copy()
     for k, delta in enumerate(steps):
         command = bench.twin.action + np.asarray(delta)
         if k == nan_at:
             command[k] = np.nan
         bench.step(command)
-    del q
     assert not on_accepted_path(bench.arm_targets(), bench.accepted, slice(0, 7), 1e-5)
     assert not on_accepted_path(
         bench.hand_goals(), bench.accepted, slice(7, 23), np.pi / 4096 + 1e-9
@@ -239,7 +237,6 @@ def test_timeout_estop_and_failure_hold(bench):
 def test_divergence_holds_the_device():
     bench = Bench(MirrorConfig(arm_divergence_rad=0.05, divergence_window_s=0.1))
     try:
-        home = bench.twin.action.copy()
         state = bench.twin.apply({})
         wrong = state.positions.copy()
         wrong[2] += 0.3  # the twin reports joint 3 far from where the arm measures it
@@ -251,7 +248,6 @@ def test_divergence_holds_the_device():
         assert summary["right_arm"]["holding"].startswith("diverged")
         assert summary["right_arm"]["max_divergence_joint"] == "right/joint3"
         assert summary["right_arm"]["max_divergence_rad"] >= 0.29
-        del home
     finally:
         bench.close()
 
