@@ -94,3 +94,78 @@ def build_reference_model(
             hand, prefix=eff_spec.prefix, site=spec.site(eff_spec.prefix + "attachment_site")
         )
     return spec.compile()
+
+
+# --- the RX-1 (rx1_description/urdf/leap_rx1.urdf) -------------------------------------------
+
+#: Our RX-1 joint (without its ``right/`` / ``left/`` / ``body/`` prefix) -> the URDF joint
+#: (``{side}`` is the effector's side).
+RX1_URDF_JOINTS = {
+    "torso_yaw": "base2torso_yaw_joint",
+    "torso_pitch": "torso_yaw2pitch_joint",
+    "torso_roll": "torso_pitch2roll_joint",
+    "neck_yaw": "head_base2neck_yaw_joint",
+    "neck_pitch": "neck_yaw2pitch_joint",
+    "head_roll": "neck_pitch2head_depth_cam_mount_joint",
+    "shoulder_pitch": "{side}_shoul_base2shoul_joint",
+    "shoulder_roll": "{side}_shoul2shoul_rot_joint",
+    "arm_yaw": "{side}_arm2armrot_joint",
+    "elbow": "{side}_armrot2elbow_joint",
+    "forearm_yaw": "{side}_forearm2forearmrot_joint",
+    "wrist_pitch": "{side}_forearmrot2forearm_pitch_joint",
+    "wrist_roll": "{side}_forearm_pitch2forearm_roll_joint",
+}
+#: LEAP motor id -> URDF joint of the LEAP hand on the RX-1.
+RX1_URDF_LEAP_JOINTS = {
+    **{
+        4 * f + k: f"{{side}}_{finger}_joint_{name}"
+        for f, finger in enumerate(("index", "middle", "ring"))
+        for k, name in enumerate(("mcp_to_pip", "palm_to_mcp", "pip_to_dip", "dip_to_fingertip"))
+    },
+    12: "{side}_thumb_joint_palm_to_base",
+    13: "{side}_thumb_joint_base_to_pip",
+    14: "{side}_thumb_joint_pip_to_dip",
+    15: "{side}_thumb_joint_dip_to_fingertip",
+}
+#: Our hand body -> the URDF link of the same frame (``{side}`` is the effector's side).
+RX1_URDF_LINK = {
+    "thumb_distal": "urdf/{side}_thumb_fingertip",
+    "index_distal": "urdf/{side}_index_fingertip",
+    "middle_distal": "urdf/{side}_middle_fingertip",
+    "ring_distal": "urdf/{side}_ring_fingertip",
+    "palm": "urdf/{side}_palm_lower",
+}
+
+
+def rx1_urdf_joint_name(name: str) -> str:
+    """Our RX-1 scene joint name -> the reference model's (``right/elbow`` ->
+    ``urdf/right_armrot2elbow_joint``; see :func:`build_rx1_reference_model`)."""
+    prefix, _, local = name.rpartition("/")
+    if local.startswith("leap_"):
+        return "urdf/" + RX1_URDF_LEAP_JOINTS[int(local.removeprefix("leap_"))].format(side=prefix)
+    return "urdf/" + RX1_URDF_JOINTS[local].format(side=prefix)
+
+
+def build_rx1_reference_model(reference_dir: Path, base_pos) -> mujoco.MjModel:
+    """The RX-1 + LEAP URDF, loaded without meshes (it ships none), base at ``base_pos``.
+
+    Every fixed link stays a body (``fusestatic`` off) so that URDF frames can be looked up;
+    names carry the prefix ``urdf/``.
+    """
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(reference_dir / "rx1_description" / "urdf" / "leap_rx1.urdf").getroot()
+    for link in root.findall("link"):
+        for tag in ("visual", "collision"):
+            for element in link.findall(tag):
+                link.remove(element)
+    extension = ET.SubElement(root, "mujoco")
+    # The URDF's inertias are placeholders (some break the triangle inequality): balance them.
+    ET.SubElement(
+        extension, "compiler", fusestatic="false", discardvisual="true", balanceinertia="true"
+    )
+    spec = mujoco.MjSpec.from_string(ET.tostring(root, encoding="unicode"))
+    wrapper = mujoco.MjSpec()
+    frame = wrapper.worldbody.add_frame(pos=list(base_pos))
+    wrapper.attach(spec, prefix="urdf/", frame=frame)
+    return wrapper.compile()

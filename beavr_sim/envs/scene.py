@@ -106,17 +106,27 @@ def build_scene_spec(embodiment: Embodiment, height: int, width: int) -> mujoco.
                 pos=[sx * (half_x - 0.05), sy * (TABLE_HALF_Y - 0.05), -TABLE_THICKNESS - leg_h],
             )
 
+    shift = np.asarray(embodiment.spec.camera_shift, dtype=float)
     for name in CAMERA_NAMES:
         cam = CAMERAS[name]
+        pos, target = np.array(cam.pos) + shift, np.array(cam.target) + shift
         world.add_camera(
-            name=name,
-            pos=list(cam.pos),
-            fovy=cam.fovy_deg,
-            quat=list(_look_at_quat(np.array(cam.pos), np.array(cam.target))),
+            name=name, pos=list(pos), fovy=cam.fovy_deg, quat=list(_look_at_quat(pos, target))
         )
 
+    if embodiment.spec.body is not None and embodiment.spec.body_pos[2] > 0:
+        # A stand under a body that does not reach the floor.
+        x, y, z = embodiment.spec.body_pos
+        world.add_geom(
+            name="robot_stand",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            material="table",
+            size=[0.17, 0.17, z / 2],
+            pos=[x, y, z / 2],
+        )
     embodiment.attach_to(spec)
-    for effector in embodiment.spec.effectors:
-        # The base bolts onto the table; their primitives overlap by construction.
-        spec.add_exclude(bodyname1="table", bodyname2=effector.prefix + "link_base")
+    if embodiment.spec.body is None:
+        for effector in embodiment.spec.effectors:
+            # The base bolts onto the table; their primitives overlap by construction.
+            spec.add_exclude(bodyname1="table", bodyname2=effector.prefix + effector.arm.root_body)
     return spec

@@ -1,10 +1,10 @@
-"""Embodiments: one or more arm+hand effectors placed in a scene.
+"""Embodiments: one or more arm+hand effectors placed in a scene, optionally on a body.
 
-An :class:`EmbodimentSpec` is pure data (which effectors, on which side, where). An
-:class:`Embodiment` composes those effectors into a ``mujoco.MjSpec`` and, once the scene is
-compiled, binds to the model as a :class:`JointIndex`: the addresses that map the hardware
-joint order (arm ``joint1..joint7``, then LEAP motors ``0..15``, per effector) onto the
-model's ``qpos``, ``qvel`` and actuators.
+An :class:`EmbodimentSpec` is pure data (which effectors, on which side, where; for a humanoid,
+the body that carries the arms). An :class:`Embodiment` composes them into a ``mujoco.MjSpec``
+and, once the scene is compiled, binds to the model as a :class:`JointIndex`: the addresses
+that map the hardware joint order (per effector: arm joints, then LEAP motors ``0..15``; then
+the body's joints) onto the model's ``qpos``, ``qvel`` and actuators.
 """
 
 from __future__ import annotations
@@ -18,10 +18,14 @@ from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
 from beavr_sim.robots.parts import (
     LEAP_HAND,
+    LEAP_ON_RX1,
     LEAP_ON_XARM7,
+    RX1_ARM,
+    RX1_BODY,
     SIDES,
     XARM7,
     ArmModel,
+    BodyModel,
     HandModel,
     HandMount,
 )
@@ -30,7 +34,12 @@ from beavr_sim.workcell import TABLE_TOP_Z
 
 @dataclass(frozen=True)
 class EffectorSpec:
-    """One arm with a hand, placed at ``base_pos`` (world, metres) turned ``base_yaw_deg``."""
+    """One arm with a hand, placed at ``base_pos`` (world, metres) turned ``base_yaw_deg``.
+
+    On an embodiment with a body, the arm attaches to the body's site for its side instead,
+    and ``base_pos`` states where that site is in the world at the body's home pose (tasks
+    and experts read it; a test checks it against the compiled model).
+    """
 
     name: str
     side: str
@@ -83,11 +92,26 @@ class Effector:
         )
 
 
+#: Prefix of the body's names in the scene (``body/torso_yaw``).
+BODY_PREFIX = "body/"
+
+
 @dataclass(frozen=True)
 class EmbodimentSpec:
+    """Effectors, and optionally the body that carries them (``body`` at ``body_pos``).
+
+    ``workspace``: the table rectangle ``((x0, x1), (y0, y1))`` (world, m) where tasks lay out
+    objects, when the default in front of the arm bases does not suit (a humanoid behind the
+    table). ``camera_shift``: the scene's fixed cameras move by this (world, m) to frame it.
+    """
+
     name: str
     effectors: tuple[EffectorSpec, ...]
     description: str = ""
+    body: BodyModel | None = None
+    body_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    workspace: tuple[tuple[float, float], tuple[float, float]] | None = None
+    camera_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         names = [e.name for e in self.effectors]
@@ -95,7 +119,17 @@ class EmbodimentSpec:
             raise ValueError(
                 f"{self.name}: effector names must be unique and non-empty, got {names}"
             )
+        if self.body is not None:
+            for e in self.effectors:
+                check_name(f"side with an arm site on {self.body.name}", e.side,
+                           self.body.arm_sites_by_side)  # fmt: skip
+            if BODY_PREFIX.rstrip("/") in names:
+                raise ValueError(f"{self.name}: effector name 'body' is reserved for the body")
 
+
+#: Height of the RX-1's shoulder sites above its base (URDF: torso 0.5825 + 0.15 + 0.08 + 0.21,
+#: shoulder base 0.05 below the head base).
+RX1_SHOULDER_HEIGHT = 0.5825 + 0.15 + 0.08 + 0.21 - 0.05
 
 # Arms bolt to the table top at world z = TABLE_TOP_Z (beavr_sim.workcell); +x points away from
 # the robot base into the workspace, +y to the robot's left. Bimanual arms stand 0.6 m apart
@@ -121,6 +155,33 @@ EMBODIMENTS: dict[str, EmbodimentSpec] = {
         ),
         "two xArm7s side by side, left and right LEAP hands",
     ),
+    # The RX-1 stands on a 12 cm stand behind the table's near edge (x = -0.25), facing +x:
+    # shoulders about 0.42 m above the table top. Objects go where both hands reach them
+    # palm-down, 0.2-0.45 m in front of the shoulders.
+    "rx1": EmbodimentSpec(
+        "rx1",
+        (
+            EffectorSpec(
+                "left",
+                "left",
+                (-0.42, 0.12, 0.12 + RX1_SHOULDER_HEIGHT),
+                arm=RX1_ARM,
+                mount=LEAP_ON_RX1,
+            ),
+            EffectorSpec(
+                "right",
+                "right",
+                (-0.42, -0.12, 0.12 + RX1_SHOULDER_HEIGHT),
+                arm=RX1_ARM,
+                mount=LEAP_ON_RX1,
+            ),
+        ),
+        "the RX-1 humanoid (torso, head, two 7-DoF arms) with left and right LEAP hands",
+        body=RX1_BODY,
+        body_pos=(-0.42, 0.0, 0.12),
+        workspace=((-0.2, 0.02), (-0.3, 0.3)),
+        camera_shift=(-0.5, 0.0, 0.0),
+    ),
 }
 DEFAULT_EMBODIMENT = "xarm7_leap_right"
 
@@ -141,7 +202,10 @@ class JointIndex:
     lower: np.ndarray
     upper: np.ndarray
     home: np.ndarray
+    #: Effector name -> its joints' slice (arm then hand).
     slices: dict[str, slice] = field(default_factory=dict)
+    #: The body's joints (torso, head), after every effector's; empty without a body.
+    body: slice = slice(0, 0)
 
     @property
     def size(self) -> int:
@@ -160,33 +224,67 @@ class Embodiment:
         return self.spec.name
 
     @property
+    def body_joints(self) -> tuple[str, ...]:
+        """The body's joint names in the scene (``body/torso_yaw``, ...); empty without one."""
+        body = self.spec.body
+        return tuple(BODY_PREFIX + j for j in body.joints) if body else ()
+
+    @property
     def joint_names(self) -> tuple[str, ...]:
-        return tuple(j for e in self.effectors for j in e.joints)
+        """Every effector's joints (arm then hand), then the body's."""
+        return tuple(j for e in self.effectors for j in e.joints) + self.body_joints
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """Cameras the robot carries (e.g. the RX-1's ``head``), named so in the scene."""
+        body = self.spec.body
+        return tuple(body.cameras) if body else ()
 
     def effector(self, name: str) -> Effector:
         by_name = {e.name: e for e in self.effectors}
         return by_name[check_name("effector", name, by_name)]
 
     def attach_to(self, scene: mujoco.MjSpec) -> None:
-        """Add every arm (at its base pose) and its hand (on the flange) to ``scene``."""
-        for spec in self.spec.effectors:
-            arm = mujoco.MjSpec.from_file(str(mjcf_path(spec.arm.mjcf)))
-            base = scene.worldbody.add_frame(
-                pos=list(spec.base_pos), quat=list(_yaw_quat(spec.base_yaw_deg))
+        """Add the body (if any), every arm (at its base pose, or at the body's site for its
+        side) and its hand (on the flange) to ``scene``."""
+        body = self.spec.body
+        if body is not None:
+            frame = scene.worldbody.add_frame(pos=list(self.spec.body_pos))
+            scene.attach(
+                mujoco.MjSpec.from_file(str(mjcf_path(body.mjcf))), prefix=BODY_PREFIX, frame=frame
             )
+            for camera in body.cameras:  # the robot's cameras keep their own names
+                scene.camera(BODY_PREFIX + camera).name = camera
+        for spec in self.spec.effectors:
+            arm = mujoco.MjSpec.from_file(str(mjcf_path(spec.arm.mjcf_for(spec.side))))
+            if body is not None:
+                site = scene.site(BODY_PREFIX + body.arm_sites_by_side[spec.side])
+                base = site.parent.add_frame(pos=list(site.pos), quat=list(_site_quat(site)))
+            else:
+                base = scene.worldbody.add_frame(
+                    pos=list(spec.base_pos), quat=list(_yaw_quat(spec.base_yaw_deg))
+                )
             scene.attach(arm, prefix=spec.prefix, frame=base)
             hand = mujoco.MjSpec.from_file(str(mjcf_path(spec.hand.mjcf(spec.side))))
             flange = scene.site(spec.prefix + spec.arm.ee_site)
-            mount = flange.parent.add_frame(
-                pos=list(np.add(flange.pos, spec.mount.pos)),
-                quat=list(_quat_mul(np.asarray(flange.quat, float), spec.mount.quat(spec.side))),
+            pos, quat = (
+                np.add(flange.pos, spec.mount.pos),
+                _quat_mul(_site_quat(flange), spec.mount.quat(spec.side)),
             )
+            if spec.mount.anchor_body:
+                # The anchor body lands on the mount pose: the root goes at T_anchor_root.
+                pos, quat = _compose(
+                    pos, quat, *_inverse(*_body_pose(hand, spec.mount.anchor_body))
+                )
+            mount = flange.parent.add_frame(pos=list(pos), quat=list(quat))
             scene.attach(hand, prefix=spec.prefix, frame=mount)
 
     def home(self) -> np.ndarray:
-        """Home joint positions in action order (arm home of each side, hand open)."""
+        """Home joint positions in action order (arm home of each side, hand open, then the
+        body's held pose)."""
+        body = np.asarray(self.spec.body.home if self.spec.body else (), dtype=np.float64)
         return np.concatenate(
-            [np.r_[s.arm.home(s.side), s.hand.home] for s in self.spec.effectors]
+            [np.r_[s.arm.home(s.side), s.hand.home] for s in self.spec.effectors] + [body]
         ).astype(np.float64)
 
     def bind(self, model: mujoco.MjModel) -> JointIndex:
@@ -211,6 +309,7 @@ class Embodiment:
             slices[e.name] = slice(start, start + len(e.joints))
             start += len(e.joints)
         return JointIndex(
+            body=slice(start, len(names)),
             names=names,
             qpos_adr=np.array(qpos_adr),
             qvel_adr=np.array(qvel_adr),
@@ -226,6 +325,45 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = np.zeros(4)
     mujoco.mju_mulQuat(out, a / np.linalg.norm(a), b)
     return out
+
+
+def _site_quat(site) -> np.ndarray:
+    """A spec site's orientation as a unit quaternion, whichever way the file gave it."""
+    if site.alt.type == mujoco.mjtOrientation.mjORIENTATION_QUAT:
+        return np.asarray(site.quat, float) / np.linalg.norm(site.quat)
+    return _euler_quat(np.asarray(site.alt.euler, float))
+
+
+def _euler_quat(euler: np.ndarray) -> np.ndarray:
+    """Intrinsic x-y-z Euler angles (MuJoCo's default ``eulerseq``) -> quaternion."""
+    out = np.array([1.0, 0.0, 0.0, 0.0])
+    for axis, angle in zip(np.eye(3), euler, strict=True):
+        q = np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis]
+        out = _quat_mul(out, q)
+    return out
+
+
+def _body_pose(spec: mujoco.MjSpec, body: str) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of ``body`` in the root frame of the compiled ``spec`` at its zero configuration."""
+    model = spec.copy().compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    return data.body(body).xpos.copy(), data.body(body).xquat.copy()
+
+
+def _inverse(pos: np.ndarray, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    q_inv = np.zeros(4)
+    mujoco.mju_negQuat(q_inv, quat)
+    p_inv = np.zeros(3)
+    mujoco.mju_rotVecQuat(p_inv, -np.asarray(pos, float), q_inv)
+    return p_inv, q_inv
+
+
+def _compose(p1, q1, p2, q2) -> tuple[np.ndarray, np.ndarray]:
+    """(p1, q1) * (p2, q2): the second pose expressed through the first."""
+    p = np.zeros(3)
+    mujoco.mju_rotVecQuat(p, np.asarray(p2, float), np.asarray(q1, float))
+    return np.asarray(p1, float) + p, _quat_mul(np.asarray(q1, float), np.asarray(q2, float))
 
 
 def make_embodiment(name: str) -> Embodiment:

@@ -1,8 +1,11 @@
-"""The robot parts of the xArm7 + LEAP rig, as data: model file, joint order, home, frames.
+"""The robot parts, as data: model file, joint order, home, frames.
 
-Left vs right is data here: a :class:`HandModel` names one MJCF file per side, and a
-:class:`HandMount` holds the flange-to-hand transform of each side. Nothing in the code
-branches on the side.
+Two rigs are built from these parts: xArm7 arms with LEAP hands, and the RX-1 humanoid (a
+:class:`BodyModel`: torso and head, carrying two RX-1 arms) with LEAP hands.
+
+Left vs right is data here: a :class:`HandModel` (and an arm whose sides differ) names one MJCF
+file per side, and a :class:`HandMount` holds the flange-to-hand transform of each side.
+Nothing in the code branches on the side.
 """
 
 from __future__ import annotations
@@ -22,15 +25,30 @@ def _deg(values: tuple[float, ...]) -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class ArmModel:
-    """An arm: its MJCF, joints in hardware (SDK) order, the flange site and home poses."""
+    """An arm: its MJCF, joints in hardware (SDK) order, the flange site and home poses.
+
+    ``mjcf`` serves both sides unless ``mjcf_by_side`` names a file for a side (an arm whose
+    left and right differ, like the RX-1's). ``root_body`` is the arm's base link;
+    ``upper_arm_links`` and ``forearm_links`` name the links the operator's IK keeps the hand
+    away from and off the table.
+    """
 
     name: str
     mjcf: str
     joints: tuple[str, ...]
     home_by_side: dict[str, tuple[float, ...]]
     ee_site: str = "ee"
+    mjcf_by_side: dict[str, str] = field(default_factory=dict)
+    root_body: str = "link_base"
+    upper_arm_links: tuple[str, ...] = ()
+    forearm_links: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        for side in self.mjcf_by_side:
+            check_name("side", side, SIDES)
+        for side in self.home_by_side:
+            if not (self.mjcf or side in self.mjcf_by_side):
+                raise ValueError(f"{self.name}: no MJCF file for side {side!r}")
         for side, home in self.home_by_side.items():
             check_name("side", side, SIDES)
             if len(home) != len(self.joints):
@@ -41,6 +59,11 @@ class ArmModel:
 
     def home(self, side: str) -> tuple[float, ...]:
         return self.home_by_side[check_name("side", side, self.home_by_side)]
+
+    def mjcf_for(self, side: str) -> str:
+        """The MJCF file (relative to ``assets/mjcf``) of this arm's ``side``."""
+        check_name("side", side, self.home_by_side)
+        return self.mjcf_by_side.get(side, self.mjcf)
 
 
 @dataclass(frozen=True)
@@ -80,15 +103,19 @@ class HandModel:
 
 @dataclass(frozen=True)
 class HandMount:
-    """Transform from the arm's flange frame to the hand's mount frame, per side.
+    """Transform from the arm's flange frame to a frame of the hand, per side.
 
-    ``T_flange_hand``: the hand frame sits ``pos`` (metres, flange frame) from the flange,
-    rotated by ``yaw_deg`` about the flange's +z. The hand frame convention (origin on the
-    adapter face, +z along the fingers, +x out of the palm) is documented in the hand MJCF.
+    The hand body ``anchor_body`` (``""``: the hand's root, its mount frame) sits ``pos``
+    (metres, flange frame) from the flange, rotated by ``yaw_deg`` about the flange's +z. The
+    hand frame convention (origin on the adapter face, +z along the fingers, +x out of the
+    palm) is documented in the hand MJCF. An arm whose facts place the hand's palm frame (the
+    RX-1 URDF places the LEAP URDF's ``palm_lower``) anchors ``"palm"``, our hand's body of
+    that frame, so the facts carry over unchanged.
     """
 
     pos: tuple[float, float, float]
     yaw_deg_by_side: dict[str, float]
+    anchor_body: str = ""
 
     def quat(self, side: str) -> np.ndarray:
         """Unit quaternion (w, x, y, z) of the flange-to-hand rotation."""
@@ -96,10 +123,50 @@ class HandMount:
         return np.array([np.cos(half), 0.0, 0.0, np.sin(half)])
 
 
+@dataclass(frozen=True)
+class BodyModel:
+    """A body that carries the arms (a humanoid's torso and head), fixed at its base.
+
+    Its joints (in hardware order) are part of the embodiment: they hold a configurable pose
+    (``home``) and come after the effectors' joints in actions and ``agent_pos``. Each side's
+    arm attaches at ``arm_sites_by_side[side]``.
+    """
+
+    name: str
+    mjcf: str
+    joints: tuple[str, ...]
+    home: tuple[float, ...]
+    arm_sites_by_side: dict[str, str]
+    root_body: str = "base"
+    #: Cameras of the body file (e.g. the head camera), by their local names.
+    cameras: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if len(self.home) != len(self.joints):
+            raise ValueError(
+                f"{self.name}: home has {len(self.home)} values, expected {len(self.joints)} "
+                f"(one per joint {self.joints})"
+            )
+        for side in self.arm_sites_by_side:
+            check_name("side", side, SIDES)
+
+    def with_home(self, **pose: float) -> BodyModel:
+        """This body holding another pose: joint name -> angle (rad); others keep theirs."""
+        for name in pose:
+            check_name("body joint", name, self.joints)
+        home = tuple(float(pose.get(j, h)) for j, h in zip(self.joints, self.home, strict=True))
+        return BodyModel(
+            self.name, self.mjcf, self.joints, home, self.arm_sites_by_side, self.root_body,
+            self.cameras,
+        )  # fmt: skip
+
+
 XARM7 = ArmModel(
     name="xarm7",
     mjcf="xarm7_leap/xarm7.xml",
     joints=tuple(f"joint{i}" for i in range(1, 8)),
+    upper_arm_links=("link_base", "link1", "link2", "link3"),
+    forearm_links=("link5", "link6", "link7"),
     # BEAVR's xArm home, [0, -25, -1, 26, 0, 50, 0] degrees; the left arm mirrors it
     # through the robot's x-z plane, which negates the roll joints 1, 3, 5, 7.
     home_by_side={
@@ -123,3 +190,48 @@ LEAP_HAND = HandModel(
 # the only freedom is the rotation about the flange axis. With these angles the palm faces
 # the table at home and the thumb points to the robot's midline, mirrored for the left.
 LEAP_ON_XARM7 = HandMount(pos=(0.0, 0.0, 0.0), yaw_deg_by_side={"right": 0.0, "left": 0.0})
+
+
+#: The RX-1 arm (URDF ``leap_rx1.urdf``): seven revolute joints in Feetech servo order (right
+#: ids 11-17, left 21-27). The left and right files differ (mirrored shoulder, and the hand
+#: sits 7 cm further down the left forearm), so each side has its own.
+RX1_ARM = ArmModel(
+    name="rx1_arm",
+    mjcf="",
+    mjcf_by_side={"right": "rx1/rx1_arm_right.xml", "left": "rx1/rx1_arm_left.xml"},
+    joints=(
+        "shoulder_pitch",
+        "shoulder_roll",
+        "arm_yaw",
+        "elbow",
+        "forearm_yaw",
+        "wrist_pitch",
+        "wrist_roll",
+    ),
+    # Hands forward over the table, palms down, elbows bent; the left mirrors the right
+    # through the robot's x-z plane (the roll and yaw joints change sign).
+    home_by_side={
+        "right": _deg((-40, -10, 0, -70, 0, 0, 0)),
+        "left": _deg((40, 10, 0, -70, 0, 0, 0)),
+    },
+    root_body="shoulder_base",
+    upper_arm_links=("shoulder_base", "shoulder", "upper_arm"),
+    forearm_links=("forearm", "wrist_pitch", "wrist_roll"),
+)
+
+#: The RX-1's torso and head (servo ids 1-6); the ears are fixed. The head looks down at the
+#: table in front of the robot.
+RX1_BODY = BodyModel(
+    name="rx1_body",
+    mjcf="rx1/rx1_body.xml",
+    joints=("torso_yaw", "torso_pitch", "torso_roll", "neck_yaw", "neck_pitch", "head_roll"),
+    home=_deg((0, 0, 0, 0, 40, 0)),
+    arm_sites_by_side={"right": "right_shoulder", "left": "left_shoulder"},
+    cameras=("head",),
+)
+
+#: The LEAP hand on the RX-1 wrist: our ``palm`` body is the LEAP URDF's ``palm_lower`` frame,
+#: which the RX-1 URDF places; the arm's ``ee`` site is that placement.
+LEAP_ON_RX1 = HandMount(
+    pos=(0.0, 0.0, 0.0), yaw_deg_by_side={"right": 0.0, "left": 0.0}, anchor_body="palm"
+)
