@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from beavr_sim.envs.scene import CAMERA_NAMES
+from beavr_sim.envs.scene import ALL_CAMERA_NAMES
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment
 from beavr_sim.wire.hand import JOINT_NAMES, N_JOINTS
@@ -56,7 +56,7 @@ class RecordingConfig:
             raise ValueError(f"fps must be a positive integer, got {self.fps!r}")
         object.__setattr__(self, "cameras", tuple(self.cameras))
         for camera in self.cameras:
-            check_name("camera", camera, CAMERA_NAMES)
+            check_name("camera", camera, ALL_CAMERA_NAMES)
         if len(set(self.cameras)) != len(self.cameras):
             raise ValueError(f"cameras repeat: {self.cameras}")
         if self.image_height <= 0 or self.image_width <= 0:

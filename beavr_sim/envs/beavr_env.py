@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium import spaces
 
 from beavr_sim.envs.cameras import OffscreenCameras
-from beavr_sim.envs.scene import CAMERA_NAMES, build_scene_spec
+from beavr_sim.envs.scene import build_scene_spec, camera_names
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment, make_embodiment
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
@@ -49,14 +49,18 @@ class BeavrEnv(gym.Env):
         if render_mode is not None:
             check_name("render_mode", render_mode, RENDER_MODES)
         self.render_mode = render_mode
-        self.cameras = tuple(check_name("camera", c, CAMERA_NAMES) for c in (cameras or ()))
+        self.embodiment: Embodiment = make_embodiment(embodiment)
+        valid_cameras = camera_names(self.embodiment)
+        self.cameras = tuple(
+            check_name("camera", c, valid_cameras, f"for embodiment {embodiment}")
+            for c in (cameras or ())
+        )
         if not (math.isfinite(control_hz) and control_hz > 0):
             raise ValueError(f"control_hz must be a positive number, got {control_hz!r}")
         if camera_height <= 0 or camera_width <= 0:
             raise ValueError(f"camera size must be positive, got {camera_height}x{camera_width}")
         self.camera_height, self.camera_width = int(camera_height), int(camera_width)
 
-        self.embodiment: Embodiment = make_embodiment(embodiment)
         self.task: Task = task_class(task)(self.embodiment)
         if self.task.embodiments is not None:
             check_name("embodiment", embodiment, self.task.embodiments, f"for task {task}")

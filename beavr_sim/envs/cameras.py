@@ -7,7 +7,6 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from beavr_sim.envs.scene import CAMERA_NAMES
 from beavr_sim.naming import check_name
 
 
@@ -23,11 +22,12 @@ class OffscreenCameras:
             )
         self.height, self.width = int(height), int(width)
         self._model = model
+        self._names = tuple(model.camera(i).name for i in range(model.ncam))
         self._renderer: mujoco.Renderer | None = None
 
     def render(self, data: mujoco.MjData, camera: str) -> np.ndarray:
         """One HxWx3 uint8 frame from ``camera``."""
-        check_name("camera", camera, CAMERA_NAMES)
+        check_name("camera", camera, self._names)
         if self._renderer is None:
             self._renderer = mujoco.Renderer(self._model, self.height, self.width)
         self._renderer.update_scene(data, camera=camera)

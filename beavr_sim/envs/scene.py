@@ -7,10 +7,21 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from beavr_sim.robots import Embodiment
+from beavr_sim.robots import EMBODIMENTS, Embodiment
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_THICKNESS, TABLE_TOP_Z, TABLE_X
 
+#: The scene's fixed cameras (every embodiment has them).
 CAMERA_NAMES = ("front", "overhead")
+#: Every camera name some embodiment has: the fixed ones, then those robots carry (the RX-1's
+#: ``head``).
+ALL_CAMERA_NAMES = CAMERA_NAMES + tuple(
+    dict.fromkeys(c for spec in EMBODIMENTS.values() if spec.body for c in spec.body.cameras)
+)
+
+
+def camera_names(embodiment: Embodiment) -> tuple[str, ...]:
+    """The cameras of ``embodiment``'s scene: the fixed ones, then the robot's own."""
+    return CAMERA_NAMES + embodiment.cameras
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,8 @@ from beavr_sim.robots import Embodiment
 
 #: Arm joint speed limit used by the IK (rad/s), well under the xArm7's 180 deg/s.
 ARM_SPEED_LIMIT = 1.5
+#: The body's joints hold (a speed limit of zero, to the solver's tolerance).
+BODY_SPEED_LIMIT = 1e-9
 
 
 class TwinIK:
@@ -50,9 +52,13 @@ class TwinIK:
         }
         self.posture_task = mink.PostureTask(self.model, cost=posture_cost)
         arm_joints = [j for e in embodiment.effectors for j in e.arm_joints]
+        # The body (a humanoid's torso and head) holds its pose: the IK may not move it.
+        speeds = {j: ARM_SPEED_LIMIT for j in arm_joints} | dict.fromkeys(
+            embodiment.body_joints, BODY_SPEED_LIMIT
+        )
         self.limits = [
             mink.ConfigurationLimit(self.model),
-            mink.VelocityLimit(self.model, {j: ARM_SPEED_LIMIT for j in arm_joints}),
+            mink.VelocityLimit(self.model, speeds),
         ]
         self._q = np.zeros(self.model.nq)
         self.reset(self.joints.home)

@@ -208,11 +208,12 @@ RX1_ARM = ArmModel(
         "wrist_pitch",
         "wrist_roll",
     ),
-    # Hands forward over the table, palms down, elbows bent; the left mirrors the right
-    # through the robot's x-z plane (the roll and yaw joints change sign).
+    # Hands 0.18 m above the table just past its near edge, palms down, fingers forward (the
+    # hand frame 20 deg down), elbows bent: found by IK. The left differs from a mirror image
+    # because its hand sits 7 cm further down the forearm.
     home_by_side={
-        "right": _deg((-40, -10, 0, -70, 0, 0, 0)),
-        "left": _deg((40, 10, 0, -70, 0, 0, 0)),
+        "right": _deg((-16, 5, 13, -126, 8, 34, 0)),
+        "left": _deg((20, -8, -18, -122, -11, 28, 2)),
     },
     root_body="shoulder_base",
     upper_arm_links=("shoulder_base", "shoulder", "upper_arm"),

@@ -34,7 +34,7 @@ class PickPlace(TabletopTask):
     name = "PickPlace"
     instruction = "Pick up the tin and place it in the blue area."
     max_episode_seconds = 20.0
-    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual")
+    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual", "rx1")
     object_names = ("item",)
     fixture_names = ("target",)
 

@@ -30,7 +30,7 @@ class PickupBox(TabletopTask):
     name = "PickupBox"
     instruction = "Pick up the box and put it down in the green area."
     max_episode_seconds = 20.0
-    embodiments = ("xarm7_leap_right",)
+    embodiments = ("xarm7_leap_right", "rx1")
     object_names = ("box",)
     fixture_names = ("target",)
 

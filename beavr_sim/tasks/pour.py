@@ -96,7 +96,7 @@ class Pour(TabletopTask):
     name = "Pour"
     instruction = "Grasp the paper cup and tilt it to pour its contents into the other cup."
     max_episode_seconds = 25.0
-    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual")
+    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual", "rx1")
     object_names = ("source_cup",)
     fixture_names = ("target_cup",)
 

@@ -34,7 +34,7 @@ class StackBlocks(TabletopTask):
     name = "StackBlocks"
     instruction = "Stack the blocks in the yellow area, the small one on top of the large one."
     max_episode_seconds = 30.0
-    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual")
+    embodiments = ("xarm7_leap_right", "xarm7_leap_bimanual", "rx1")
     object_names = ("large_block", "small_block")
     fixture_names = ("target",)
 

@@ -33,11 +33,15 @@ class Workspace:
 
     @classmethod
     def for_embodiment(cls, embodiment: Embodiment) -> Workspace:
-        """In front of the arm bases: 0.35-0.55 m ahead, spanning the bases plus 0.15 m.
+        """The embodiment's own workspace if it names one; else in front of the arm bases:
+        0.35-0.55 m ahead, spanning the bases plus 0.15 m.
 
         For one arm the rectangle leans 5 cm to the hand's thumb-free side (right arm: to
         its right), where the hand reaches comfortably without crossing the base.
         """
+        if embodiment.spec.workspace is not None:
+            (x0, x1), (y0, y1) = embodiment.spec.workspace
+            return cls(x=(x0, x1), y=(y0, y1))
         ys = [e.base_pos[1] for e in embodiment.spec.effectors]
         if len(ys) == 1:
             lean = -0.05 if embodiment.spec.effectors[0].side == "right" else 0.05

@@ -190,11 +190,11 @@ class RerunLogger:
         self._cameras = None
         if self.cameras_names:
             from beavr_sim.envs.cameras import OffscreenCameras
-            from beavr_sim.envs.scene import CAMERA_NAMES
+            from beavr_sim.envs.scene import camera_names
             from beavr_sim.naming import check_name
 
             for c in self.cameras_names:
-                check_name("camera", c, CAMERA_NAMES)
+                check_name("camera", c, camera_names(env.embodiment))
             self._cameras = OffscreenCameras(env.model, *image_size)
 
         self.rec = rr.RecordingStream("beavr_sim_teleop")
