@@ -26,9 +26,18 @@ def mjcf_path(*parts: str) -> Path:
     return path
 
 
-def bundled_trace(task: str) -> Path:
-    """The VR trace bundled for ``task`` (``assets/traces/<task>.mcap``, task in snake case)."""
+#: Embodiments whose bundled traces live in ``assets/traces/<embodiment>/`` (the others' in
+#: ``assets/traces/``, recorded on the default single-arm rig).
+TRACE_FOLDERS = ("rx1",)
+
+
+def bundled_trace(task: str, embodiment: str | None = None) -> Path:
+    """The VR trace bundled for ``task`` (task in snake case): ``assets/traces/<task>.mcap``,
+    or ``assets/traces/<embodiment>/<task>.mcap`` for an embodiment in :data:`TRACE_FOLDERS`."""
     import re
 
     stem = re.sub(r"(?<!^)(?=[A-Z])", "_", task).lower()
-    return assets_dir() / "traces" / f"{stem}.mcap"
+    folder = assets_dir() / "traces"
+    if embodiment in TRACE_FOLDERS:
+        folder = folder / embodiment
+    return folder / f"{stem}.mcap"

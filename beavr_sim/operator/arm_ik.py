@@ -1,7 +1,7 @@
 """The operator's arm IK: one QP step per tick on a one-effector copy of the twin.
 
-Each effector gets its own robot-only model (its arm and hand at their base pose, and the
-table), so effectors solve independently. One call to :meth:`ArmIK.step` moves the arm one
+Each effector gets its own robot-only model (its arm and hand at their base pose, or on the
+body that carries it holding its pose, and the table), so effectors solve independently. One call to :meth:`ArmIK.step` moves the arm one
 control period towards the target hand pose: a damped Gauss-Newton step on the arm joints
 only (the quantities of ``mink.FrameTask`` and ``mink.PostureTask``: position and orientation
 error of the ``hand`` body, weighted by their costs, plus a small pull to the posture), under
@@ -9,8 +9,9 @@ error of the ``hand`` body, weighted by their costs, plus a small pull to the po
 - joint position limits (``mink.ConfigurationLimit``'s, gain 0.95) and arm joint velocity
   limits (``ArmIKConfig.max_joint_speed``), both as simple bounds on the step;
 - collision avoidance (:class:`~beavr_sim.operator.collision.CollisionLimit`, mink's rows): hand
-  and forearm against the table, hand against the upper arm and the base (self-collision), as
-  a velocity damper: one step closes at most ``collision_gain`` of the gap above the margin.
+  and forearm against the table, palm against the upper arm and the base (self-collision), palm
+  and forearm against the body (a humanoid's torso and head), as a velocity damper: one step closes at most
+  ``collision_gain`` of the gap above the margin.
 
 The QP is assembled here and solved with DAQP directly: ``mink.solve_ik`` builds the same
 problem over all 23 joints through generic task and limit objects, which took most of the
@@ -23,6 +24,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import dataclasses
+
 import mink
 import mujoco
 import numpy as np
@@ -31,11 +34,8 @@ from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.operator import kernels
 from beavr_sim.operator.collision import CollisionLimit
 from beavr_sim.operator.qp import StepQP
-from beavr_sim.robots.embodiment import Embodiment, EmbodimentSpec
+from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 
-#: Arm links checked against the table, and arm links the hand must not hit.
-FOREARM_LINKS = ("link5", "link6", "link7")
-UPPER_ARM_LINKS = ("link_base", "link1", "link2", "link3")
 #: Hand bodies whose geoms are checked: the palm and the four fingertips (the parts that
 #: reach furthest; fewer pairs keep the IK well under a millisecond).
 HAND_BODIES = ("palm", "thumb_distal", "index_distal", "middle_distal", "ring_distal")
@@ -82,6 +82,21 @@ class ArmIKConfig:
 JOINT_LIMIT_GAIN = 0.95
 
 
+def _only(joints: JointIndex, effector: str) -> JointIndex:
+    """The part of ``joints`` that is ``effector``'s (arm then hand)."""
+    sl = joints.slices[effector]
+    return JointIndex(
+        names=joints.names[sl],
+        qpos_adr=joints.qpos_adr[sl],
+        qvel_adr=joints.qvel_adr[sl],
+        actuator_ids=joints.actuator_ids[sl],
+        lower=joints.lower[sl],
+        upper=joints.upper[sl],
+        home=joints.home[sl],
+        slices={effector: slice(0, sl.stop - sl.start)},
+    )
+
+
 def _body_geoms(model: mujoco.MjModel, body: str) -> list[int]:
     return [g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(body).id]
 
@@ -96,14 +111,23 @@ class ArmIK:
         self.dt = float(dt)
         name = embodiment.effector(effector).name  # raises with the valid names
         spec_e = next(e for e in embodiment.spec.effectors if e.name == name)
-        self.single = Embodiment(EmbodimentSpec(f"{embodiment.name}:{effector}", (spec_e,)))
+        self.single = Embodiment(
+            dataclasses.replace(
+                embodiment.spec, name=f"{embodiment.name}:{effector}", effectors=(spec_e,)
+            )
+        )
         self.effector = self.single.effectors[0]
         self.model = build_scene_spec(self.single, 64, 64).compile()
         if self.model.nq != self.model.nv:
             raise ValueError("ArmIK expects a robot-only model (hinge and slide joints)")
-        self.joints = self.single.bind(self.model)
+        every = self.single.bind(self.model)
+        #: This effector's joints (arm then hand); the body, if any, holds its home pose.
+        self.joints = _only(every, name)
         self.n_arm = len(self.effector.arm_joints)
         self._configuration = mink.Configuration(self.model)
+        q = self._configuration.q.copy()
+        q[every.qpos_adr[every.body]] = every.home[every.body]
+        self._configuration.update(q)
         self._stale = False  # qpos changed since the last kinematics update
         self._hand_body = self.model.body(f"{self.effector.name}/hand").id
         self._arm_qpos = self.joints.qpos_adr[: self.n_arm].astype(np.int64)
@@ -121,12 +145,19 @@ class ArmIK:
             p = self.effector.name + "/"
             hand = [g for b in HAND_BODIES for g in _body_geoms(self.model, p + b)]
             palm = _body_geoms(self.model, p + "palm")
-            forearm = [g for link in FOREARM_LINKS for g in _body_geoms(self.model, p + link)]
-            upper = [g for link in UPPER_ARM_LINKS for g in _body_geoms(self.model, p + link)]
+            arm = spec_e.arm
+            forearm = [g for link in arm.forearm_links for g in _body_geoms(self.model, p + link)]
+            upper = [g for link in arm.upper_arm_links for g in _body_geoms(self.model, p + link)]
+            body = [
+                g
+                for g in range(self.model.ngeom)
+                if self.model.body(self.model.geom_bodyid[g]).name.startswith(BODY_PREFIX)
+                and (self.model.geom_contype[g] or self.model.geom_conaffinity[g])
+            ]
             table = [self.model.geom("table_top").id]
             self.collision = CollisionLimit(
                 self.model,
-                geom_pairs=[(hand + forearm, table), (palm, upper)],
+                geom_pairs=[(hand + forearm, table), (palm, upper + body), (forearm, body)],
                 spec=build_scene_spec(self.single, 64, 64),
                 minimum_distance_from_collisions=self.config.collision_margin,
                 collision_detection_distance=self.config.collision_detection,

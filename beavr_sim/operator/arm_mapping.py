@@ -11,7 +11,7 @@ with ``s`` the resolution scale (1.0 high, 0.6 low) and the axis matrices ``A_ro
 ``A_trans`` (the paper's ``H_RV^-1`` and ``H_TV^-1``) mapping palm-frame axes to robot-hand
 axes. They are data, one :class:`AxisMap` per (embodiment, side). Our palm frame is defined
 with the robot hand's axis convention (``beavr_sim.wire.hand``: +z along the fingers, +x the
-palmar normal), so for the xArm7 + LEAP rigs both matrices are the identity; the Quest app's
+palmar normal), so for the xArm7 + LEAP rigs and the RX-1 (LEAP hands too) both matrices are the identity; the Quest app's
 raw Unity frame would need the paper's matrices instead.
 
 Because nothing depends on absolute positions, the robot never jumps at an anchor: at that
@@ -57,6 +57,9 @@ AXIS_MAPS: dict[tuple[str, str], AxisMap] = {
     ("xarm7_leap_left", "left"): AxisMap(),
     ("xarm7_leap_bimanual", "right"): AxisMap(),
     ("xarm7_leap_bimanual", "left"): AxisMap(),
+    # The RX-1's hands are LEAP hands in the same hand frame convention: identity too.
+    ("rx1", "right"): AxisMap(),
+    ("rx1", "left"): AxisMap(),
 }
 
 

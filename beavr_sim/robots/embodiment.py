@@ -29,7 +29,7 @@ from beavr_sim.robots.parts import (
     HandModel,
     HandMount,
 )
-from beavr_sim.workcell import TABLE_TOP_Z
+from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,9 @@ class EmbodimentSpec:
     ``workspace``: the table rectangle ``((x0, x1), (y0, y1))`` (world, m) where tasks lay out
     objects, when the default in front of the arm bases does not suit (a humanoid behind the
     table). ``camera_shift``: the scene's fixed cameras move by this (world, m) to frame it.
+    ``guard_box``: ``(lower, upper)`` corners (world, m) of the box every moving robot geom must
+    stay in (the twin guard's workspace rule), when the table's box does not hold the robot
+    (arms that start behind the table).
     """
 
     name: str
@@ -112,6 +115,7 @@ class EmbodimentSpec:
     body_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
     workspace: tuple[tuple[float, float], tuple[float, float]] | None = None
     camera_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    guard_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     def __post_init__(self) -> None:
         names = [e.name for e in self.effectors]
@@ -181,6 +185,13 @@ EMBODIMENTS: dict[str, EmbodimentSpec] = {
         body_pos=(-0.42, 0.0, 0.12),
         workspace=((-0.2, 0.02), (-0.3, 0.3)),
         camera_shift=(-0.5, 0.0, 0.0),
+        # From behind the robot's shoulders to the table's far edge; down to 0.25 m below the
+        # table top behind its near edge (where the elbows pass), the table itself being an
+        # obstacle of the contact rule.
+        guard_box=(
+            (-0.7, -TABLE_HALF_Y, TABLE_TOP_Z - 0.25),
+            (TABLE_X[1], TABLE_HALF_Y, TABLE_TOP_Z + 1.2),
+        ),
     ),
 }
 DEFAULT_EMBODIMENT = "xarm7_leap_right"

@@ -208,12 +208,13 @@ RX1_ARM = ArmModel(
         "wrist_pitch",
         "wrist_roll",
     ),
-    # Hands 0.18 m above the table just past its near edge, palms down, fingers forward (the
-    # hand frame 20 deg down), elbows bent: found by IK. The left differs from a mirror image
-    # because its hand sits 7 cm further down the forearm.
+    # Hands 0.13 m above the table just past its near edge, palms down, fingers forward (the
+    # hand frame 11 deg down), elbows bent: found by IK (the elbow's lower limit, -126 deg, is
+    # 8 deg away). The left differs from a mirror image: its hand sits 7 cm further down the
+    # forearm.
     home_by_side={
-        "right": _deg((-16, 5, 13, -126, 8, 34, 0)),
-        "left": _deg((20, -8, -18, -122, -11, 28, 2)),
+        "right": _deg((-4, 5, 6, -118, 6, 36, -2)),
+        "left": _deg((7, -8, -10, -112, -9, 29, 4)),
     },
     root_body="shoulder_base",
     upper_arm_links=("shoulder_base", "shoulder", "upper_arm"),

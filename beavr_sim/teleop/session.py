@@ -76,7 +76,11 @@ class SessionOptions:
         if self.source == "trace":
             from beavr_sim.assets import bundled_trace
 
-            self.trace = Path(self.trace) if self.trace is not None else bundled_trace(self.task)
+            self.trace = (
+                Path(self.trace)
+                if self.trace is not None
+                else bundled_trace(self.task, self.embodiment)
+            )
             if not self.trace.is_file():
                 raise FileNotFoundError(f"trace file not found: {self.trace}")
         elif self.trace is not None:

@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.robots.embodiment import Embodiment, JointIndex
+from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 from beavr_sim.twin import kernels
 from beavr_sim.twin.extents import GeomExtents
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
@@ -94,7 +94,8 @@ class GuardConfig:
     #: bundled traces), so these sit above that and below what the speed caps allow.
     arm_max_acceleration: float = 150.0
     hand_max_acceleration: float = 250.0
-    #: Workspace box per effector name; effectors not listed get :data:`TABLE_WORKSPACE`.
+    #: Workspace box per effector name; effectors not listed get the embodiment's
+    #: ``guard_box``, or :data:`TABLE_WORKSPACE`.
     workspaces: Mapping[str, Workspace] = field(default_factory=dict)
     #: Path sampling: no robot geom moves more than this (m) between two checked samples ...
     path_resolution: float = 0.01
@@ -190,7 +191,7 @@ class CollisionGuard:
         )
 
         # Owner of each geom: the effector whose subtree it is in; "static" for bodies welded
-        # to the world (table, fixtures); None for objects (bodies that move freely, never
+        # to the world (table, fixtures) and the robot's body; None for objects (bodies that move freely, never
         # guarded).
         self._owner: list[str | None] = []
         self._geom_names: list[str] = []
@@ -208,7 +209,11 @@ class CollisionGuard:
             body = int(model.geom_bodyid[g])
             body_name = model.body(body).name
             owner = next((e for e in names if body_name.startswith(e + "/")), None)
-            if owner is None and int(model.body_weldid[body]) == 0:
+            if owner is None and (
+                int(model.body_weldid[body]) == 0 or body_name.startswith(BODY_PREFIX)
+            ):
+                # Welded to the world, or the robot's body (torso, head), which holds its pose:
+                # an obstacle for every arm (placed where the commanded action puts it).
                 owner = "static"
             self._owner.append(owner)
             if body in finger_bodies:
@@ -224,7 +229,10 @@ class CollisionGuard:
         self._moving = np.array(moving, dtype=int)
         self._extents = GeomExtents(model, self._moving)
         owners = [self._owner[g] for g in moving]
-        boxes = [config.workspaces.get(o, TABLE_WORKSPACE) for o in owners]
+        default_box = TABLE_WORKSPACE
+        if embodiment.spec.guard_box is not None:
+            default_box = Workspace(*embodiment.spec.guard_box)
+        boxes = [config.workspaces.get(o, default_box) for o in owners]
         slack = np.where(
             finger_moving, config.finger_workspace_tolerance, config.workspace_tolerance
         )[:, None]
