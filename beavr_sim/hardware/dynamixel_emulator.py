@@ -23,8 +23,9 @@ X-series motors (the LEAP hand's XC330s), so that the vendor's own ``dynamixel_s
   a write covering part of a field the data length error (0x05), an out-of-range value the
   data range error (0x04), and a refused write changes nothing.
 
-The servo model is deliberately simple and advanced by wall time: with torque on, each motor
-moves towards its goal position at a bounded speed, and its present current grows with the
+The servo model is deliberately simple and advanced by wall time (the one shared with the
+Feetech emulator, :mod:`beavr_sim.hardware.servo_model`): with torque on, each motor moves
+towards its goal position at a bounded speed, and its present current grows with the
 position error, capped at the goal current (current-based position mode) or the current limit,
 so a big step shows goal and present position diverging. There is no load, no gravity, no
 friction. Test hooks: :attr:`~DynamixelEmulator.goal_log`, :attr:`~DynamixelEmulator.motors`,
@@ -37,17 +38,11 @@ the installed ``dynamixel_sdk`` source; nothing here was checked against a real 
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import math
-import os
-import pty
-import select
-import threading
 import time
-import tty
 from dataclasses import dataclass, field
-from typing import Self
+
+from beavr_sim.hardware.servo_model import EmulatedBus, step_towards
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -335,12 +330,14 @@ def _check_value(motor: MotorState, addr: int, value: int) -> int:
 # --- the bus ---------------------------------------------------------------------------------
 
 
-class DynamixelEmulator:
+class DynamixelEmulator(EmulatedBus):
     """A chain of emulated X-series motors behind a pseudo-terminal, served by a daemon thread.
 
     ``emulator.port`` is the slave device path to hand to ``dynamixel_sdk.PortHandler``. The
     bus runs at whatever baud rate the host sets (a pty has no line rate).
     """
+
+    thread_name = "dxl-emulator"
 
     def __init__(
         self,
@@ -374,66 +371,10 @@ class DynamixelEmulator:
         self.goal_log: list[tuple[float, int, int]] = []
         #: Every instruction packet received: ``(time.monotonic(), id, instruction)``.
         self.packet_log: list[tuple[float, int, int]] = []
-        #: Exceptions raised while handling packets (the thread survives them).
-        self.faults: list[BaseException] = []
         self.parser = PacketParser()
-        self.lock = threading.RLock()
-        self._master, self._slave = pty.openpty()
-        tty.setraw(self._slave)
-        flags = fcntl.fcntl(self._master, fcntl.F_GETFL)
-        fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.port: str = os.ttyname(self._slave)
-        self._wake_r, self._wake_w = os.pipe()
-        self._stop = threading.Event()
-        self._vanish = threading.Event()
-        self._vanished = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._last_advance = time.monotonic()
-        self._drop_replies = 0
-
-    # -- lifecycle --
-
-    def start(self) -> Self:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._serve, name="dxl-emulator", daemon=True)
-            self._thread.start()
-        return self
-
-    def close(self) -> None:
-        """Stop the thread and close the pty (idempotent)."""
-        self._stop.set()
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        self._close_pty()
-        for fd in (self._wake_r, self._wake_w):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        self._wake_r = self._wake_w = -1
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        super().__init__()
 
     # -- test hooks --
-
-    def vanish(self, timeout: float = 1.0) -> None:
-        """Stop answering and close the pty master: the serial port unplugged mid-run."""
-        self._vanish.set()
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
-        if self._thread is None or not self._thread.is_alive():
-            self._close_pty()
-            self._vanished.set()
-        self._vanished.wait(timeout)
-
-    def drop_replies(self, n: int = 1) -> None:
-        """Lose the replies to the next ``n`` instruction batches (a glitch on the wire)."""
-        with self.lock:
-            self._drop_replies = n
 
     def inject_error(self, dxl_id: int, error_byte: int) -> None:
         """Make motor ``dxl_id`` report ``error_byte`` in every status packet (0 clears it).
@@ -443,77 +384,34 @@ class DynamixelEmulator:
             motor.error = error_byte & 0xFF
             motor.hardware_error = 0x20 if error_byte & ERR_ALERT else 0
 
-    def advance(self, now: float | None = None) -> None:
-        """Advance every motor's servo model to ``now`` (monotonic seconds)."""
-        with self.lock:
-            now = time.monotonic() if now is None else now
-            dt = now - self._last_advance
-            if dt <= 0:
-                return
-            self._last_advance = now
-            for m in self.motors.values():
-                self._step(m, dt)
+    # -- EmulatedBus hooks (called with the lock held) --
 
-    def _step(self, m: MotorState, dt: float) -> None:
-        cap = abs(m.goal_current) if m.operating_mode == 5 else m.current_limit
-        if not m.torque_enable or cap <= 0:
-            m.velocity = 0.0
-            m.current = 0.0
-            return
-        err = m.goal_position - m.position
-        step = max(-self.max_velocity_counts * dt, min(self.max_velocity_counts * dt, err))
-        m.position += step
-        m.velocity = step / dt
-        remaining = m.goal_position - m.position
-        m.current = math.copysign(min(cap, self.current_per_count_ma * abs(remaining)), remaining)
-
-    # -- the serving thread --
-
-    def _serve(self) -> None:
-        idle_since: float | None = None
-        while not self._stop.is_set():
-            if self._vanish.is_set():
-                self._close_pty()
-                self._vanished.set()
-                self._stop.wait()
-                return
-            try:
-                ready, _, _ = select.select([self._master, self._wake_r], [], [], 0.01)
-            except (OSError, ValueError):
-                if self._stop.is_set() or self._vanish.is_set():
-                    continue
-                time.sleep(0.01)
+    def _step(self, dt: float) -> None:
+        for m in self.motors.values():
+            cap = abs(m.goal_current) if m.operating_mode == 5 else m.current_limit
+            if not m.torque_enable or cap <= 0:
+                m.velocity = 0.0
+                m.current = 0.0
                 continue
-            if self._wake_r in ready:
-                with contextlib.suppress(OSError):
-                    os.read(self._wake_r, 64)
-            data = b""
-            if self._master in ready:
-                try:
-                    data = os.read(self._master, 4096)
-                except BlockingIOError:
-                    data = b""
-                except OSError:
-                    time.sleep(0.01)
-            self.advance()
-            if data:
-                idle_since = None
-                self._handle_bytes(data)
-            elif self.parser.buffer:
-                now = time.monotonic()
-                idle_since = idle_since or now
-                if now - idle_since > 0.05:  # a partial packet that stopped arriving
-                    with self.lock:
-                        self.parser.drop_partial()
-                        self._handle_packets(self.parser.feed(b""))
-                    idle_since = None
+            m.position, m.velocity = step_towards(
+                m.position, m.goal_position, dt, self.max_velocity_counts
+            )
+            remaining = m.goal_position - m.position
+            m.current = math.copysign(
+                min(cap, self.current_per_count_ma * abs(remaining)), remaining
+            )
 
-    def _handle_bytes(self, data: bytes) -> None:
-        with self.lock:
-            packets = self.parser.feed(data)
-            self._handle_packets(packets)
+    def _receive(self, data: bytes) -> bytes:
+        return self._handle_packets(self.parser.feed(data))
 
-    def _handle_packets(self, packets: list[Packet]) -> None:
+    def _has_partial(self) -> bool:
+        return bool(self.parser.buffer)
+
+    def _drop_partial(self) -> bytes:
+        self.parser.drop_partial()
+        return self._handle_packets(self.parser.feed(b""))
+
+    def _handle_packets(self, packets: list[Packet]) -> bytes:
         replies = bytearray()
         for bad_id in self.parser.crc_errors:
             if bad_id in self.motors:
@@ -525,30 +423,7 @@ class DynamixelEmulator:
                 replies += self._handle(packet)
             except Exception as exc:  # never let one odd packet kill the bus
                 self.faults.append(exc)
-        if replies and self._drop_replies > 0:
-            self._drop_replies -= 1
-        elif replies and not self._vanish.is_set():
-            self._send(bytes(replies))
-
-    def _send(self, data: bytes) -> None:
-        deadline = time.monotonic() + 0.1
-        view = memoryview(data)
-        while view and time.monotonic() < deadline:
-            try:
-                n = os.write(self._master, view)
-                view = view[n:]
-            except BlockingIOError:
-                select.select([], [self._master], [], 0.01)
-            except OSError:
-                return
-
-    def _close_pty(self) -> None:
-        for attr in ("_master", "_slave"):
-            fd = getattr(self, attr)
-            if fd >= 0:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-                setattr(self, attr, -1)
+        return bytes(replies)
 
     # -- instruction handling (called with the lock held) --
 

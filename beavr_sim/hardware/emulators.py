@@ -1,10 +1,14 @@
 """``python -m beavr_sim.hardware.emulators PLAN``: serve device emulators from another process.
 
 ``PLAN`` is a JSON list of ``[name, kind, start]``: ``kind`` ``"xarm7"`` (``start``: 7 joint
-angles, rad) or ``"leap"`` (``start``: 16 motor positions, counts). Prints one JSON line,
-``{name: [host, port]}`` for arms and ``{name: pty path}`` for hands, then serves until a line
+angles, rad), ``"leap"`` (``start``: 16 motor positions, counts) or ``"feetech"`` (an RX-1
+servo group, ``start``: ``{"group": name, "counts": [one per servo, in group order]}``, see
+:data:`beavr_sim.hardware.feetech.GROUPS`). Prints one JSON line, ``{name: [host, port]}`` for
+arms and ``{name: pty path}`` for Dynamixel and Feetech buses, then serves until a line
 ``close`` (or the end of) standard input; then prints one JSON line of what every emulator
-received (see :class:`beavr_sim.hardware.rig.EmulatedRig`) and exits.
+received (see :class:`beavr_sim.hardware.rig.EmulatedRig`): ``[time, targets]`` per servo_j
+of an arm, per goal write of a hand (``{motor id: model rad}``) and per sync write of a Feetech
+group (``{servo id: model rad}``, through the RX-1 servo table), and exits.
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ import json
 import sys
 
 from beavr_sim.hardware.dynamixel_emulator import DynamixelEmulator
+from beavr_sim.hardware.feetech import GROUPS, SERVOS_BY_ID, counts_to_angle
+from beavr_sim.hardware.feetech_emulator import FeetechEmulator
 from beavr_sim.hardware.leap import counts_to_model
 from beavr_sim.hardware.xarm_emulator import XArmEmulator
 
@@ -31,8 +37,21 @@ def main(argv: list[str] | None = None) -> int:
         elif kind == "leap":
             emulators[name] = DynamixelEmulator(initial_position=dict(enumerate(start))).start()
             where[name] = emulators[name].port
+        elif kind == "feetech":
+            group = start.get("group") if isinstance(start, dict) else None
+            if group not in GROUPS:
+                print(f"feetech {name!r}: group must be one of {sorted(GROUPS)}", file=sys.stderr)
+                return 2
+            ids = [s.id for s in GROUPS[group]]
+            counts = start.get("counts", [2048] * len(ids))
+            if len(counts) != len(ids):
+                print(f"feetech {name!r}: {len(ids)} counts needed for {group}", file=sys.stderr)
+                return 2
+            initial = dict(zip(ids, counts, strict=True))
+            emulators[name] = FeetechEmulator(ids, initial_position=initial).start()
+            where[name] = emulators[name].port
         else:
-            print(f"unknown emulator kind {kind!r}; valid: xarm7, leap", file=sys.stderr)
+            print(f"unknown emulator kind {kind!r}; valid: xarm7, leap, feetech", file=sys.stderr)
             return 2
     print(json.dumps(where), flush=True)
     for line in sys.stdin:
@@ -42,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, emulator in emulators.items():
         if isinstance(emulator, XArmEmulator):
             received[name] = [[t, list(q)] for t, q in emulator.servo_log]
+        elif isinstance(emulator, FeetechEmulator):
+            received[name] = _feetech_writes(emulator)
         else:
             # One entry per write: a sync write's goals, or a single motor's.
             writes: list = []
@@ -53,6 +74,17 @@ def main(argv: list[str] | None = None) -> int:
         emulator.close()
     print(json.dumps(received), flush=True)
     return 0
+
+
+def _feetech_writes(emulator: FeetechEmulator) -> list:
+    """One ``[time, {servo id: model rad}]`` per sync write (its goals share one time)."""
+    writes: list = []
+    for t, servo_id, counts in emulator.goal_log:
+        if not writes or writes[-1][0] != t:
+            writes.append([t, {}])
+        s = SERVOS_BY_ID[servo_id]
+        writes[-1][1][servo_id] = float(counts_to_angle(counts, s.direction, s.gear))
+    return writes
 
 
 if __name__ == "__main__":

@@ -22,9 +22,8 @@ satisfy a collision constraint by moving fingers the hand will not move.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import dataclasses
+from dataclasses import dataclass
 
 import mink
 import mujoco

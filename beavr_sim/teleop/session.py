@@ -503,6 +503,12 @@ def record_episodes(
     return summary
 
 
+def headset_camera(embodiment) -> str:
+    """The camera whose images go to the headset: the robot's own first camera where it has one
+    (the RX-1's ``head``: the operator sees what the robot's head sees), else ``front``."""
+    return embodiment.cameras[0] if embodiment.cameras else "front"
+
+
 class _HeadsetListener:
     """Rendered twin images to the headset at a limited rate."""
 
@@ -511,6 +517,7 @@ class _HeadsetListener:
 
         self.publisher = publisher
         self.env = loop.twin.env
+        self.camera = headset_camera(self.env.embodiment)
         self.cameras = OffscreenCameras(self.env.model, size[1], size[0])
         self.period = period_s
         self._next = 0.0
@@ -520,7 +527,7 @@ class _HeadsetListener:
         if now < self._next:
             return
         self._next = now + self.period
-        self.publisher.publish(self.cameras.render(self.env.data, "front"))
+        self.publisher.publish(self.cameras.render(self.env.data, self.camera))
 
 
 def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):

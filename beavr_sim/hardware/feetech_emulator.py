@@ -1,0 +1,453 @@
+"""A Feetech SCS/STS bus of STS3215 servos, emulated on a pseudo-terminal.
+
+What is emulated: the byte stream between the host and a chain of STS3215 servos (the RX-1's),
+so that the vendor's own ``scservo_sdk`` (``PortHandler`` on :attr:`FeetechEmulator.port`,
+``PacketHandler(0)``, ``GroupSyncWrite``, ``GroupSyncRead``) talks to it unchanged:
+
+* packets ``FF FF | id | length | instruction | params | checksum``, with ``length`` = number
+  of params + 2 and ``checksum = ~(id + length + instruction + sum(params)) & 0xFF``;
+* instructions ping (0x01), read (0x02: ``address, size``), write (0x03: ``address, data``),
+  sync read (0x82: ``address, size, id...``, one status packet per listed servo, in order) and
+  sync write (0x83: ``address, size, (id, data)...``, no reply); packets to the broadcast id
+  0xFE get no reply;
+* status packets ``FF FF | id | length | error | params | checksum``; the error byte is the
+  servo's protection flags (bit 0 voltage, 1 angle sensor, 2 overheat, 3 overcurrent,
+  5 overload), set only through :meth:`FeetechEmulator.inject_error`;
+* the part of the STS control table the RX-1 driver uses, words little-endian, positions and
+  speeds sign and magnitude (bit 15): firmware version 0-1, model number 3 (777), id 5, baud
+  rate 6, angle limits 9 / 11, operating mode 33, torque enable 40, acceleration 41 (100 steps
+  per s^2; 0: no limit), goal position 42, goal time 44, goal speed 46 (steps/s; 0: the servo's
+  top speed), torque limit 48, lock 55, present position 56, present speed 58, present load 60,
+  voltage 62, temperature 63, status 65, moving 66, present current 69.
+
+Choices where the facts at hand stop (nothing here was checked against a real servo): a packet
+with a bad checksum is ignored, with no reply, as the servo cannot trust the id it carries and
+the STS status byte has no checksum bit: the host sees a timeout and asks again. Unknown
+instructions are ignored too. A write to a read-only, undefined or EEPROM address (the EEPROM
+fields are fixed here) changes nothing and is answered with error 0; values a field cannot hold
+are ignored (torque enable other than 0 / 1: the real servo's 128 recalibrates its centre, which
+is never wanted here); goal positions are clamped to the angle limits, as the servo does in
+position mode. A goal write does not switch torque on.
+
+The servo model is the Dynamixel emulator's (:mod:`beavr_sim.hardware.servo_model`), advanced
+by wall time: with torque on, each servo moves towards its goal at its goal speed (or its top
+speed) with its acceleration, braking to stop on the goal. Test hooks:
+:attr:`~FeetechEmulator.goal_log`, :attr:`~FeetechEmulator.servos`,
+:meth:`~FeetechEmulator.vanish`, :meth:`~FeetechEmulator.inject_error`,
+:meth:`~FeetechEmulator.drop_replies`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+from beavr_sim.hardware.servo_model import EmulatedBus, step_towards
+
+HEADER = b"\xff\xff"
+BROADCAST_ID = 0xFE
+
+INST_PING = 0x01
+INST_READ = 0x02
+INST_WRITE = 0x03
+INST_SYNC_READ = 0x82
+INST_SYNC_WRITE = 0x83
+
+# Status-packet error bits (the servo's protection flags, as the SDK names them).
+ERRBIT_VOLTAGE = 0x01
+ERRBIT_ANGLE = 0x02
+ERRBIT_OVERHEAT = 0x04
+ERRBIT_OVERCURRENT = 0x08
+ERRBIT_OVERLOAD = 0x20
+
+# Control-table addresses (STS series).
+ADDR_FIRMWARE_MAJOR = 0
+ADDR_FIRMWARE_MINOR = 1
+ADDR_MODEL_NUMBER = 3
+ADDR_ID = 5
+ADDR_BAUD_RATE = 6
+ADDR_MIN_ANGLE_LIMIT = 9
+ADDR_MAX_ANGLE_LIMIT = 11
+ADDR_OPERATING_MODE = 33
+ADDR_TORQUE_ENABLE = 40
+ADDR_ACCELERATION = 41
+ADDR_GOAL_POSITION = 42
+ADDR_GOAL_TIME = 44
+ADDR_GOAL_SPEED = 46
+ADDR_TORQUE_LIMIT = 48
+ADDR_LOCK = 55
+ADDR_PRESENT_POSITION = 56
+ADDR_PRESENT_SPEED = 58
+ADDR_PRESENT_LOAD = 60
+ADDR_PRESENT_VOLTAGE = 62
+ADDR_PRESENT_TEMPERATURE = 63
+ADDR_STATUS = 65
+ADDR_MOVING = 66
+ADDR_PRESENT_CURRENT = 69
+EEPROM_END = 40  # addresses below this are EEPROM (fixed here)
+TABLE_SIZE = 86
+
+MODEL_STS3215 = 777
+COUNTS_PER_REV = 4096
+MAX_COUNT = COUNTS_PER_REV - 1
+TOP_SPEED_STEPS = 3072  # STS3215 no-load speed, 45 rpm, in steps/s
+ACC_UNIT = 100  # Acceleration (41) counts in 100 steps/s^2
+MAX_LENGTH = 246  # largest length field: the SDK's 250-byte packets less header, id, length
+
+
+def checksum(body: bytes | bytearray) -> int:
+    """The packet checksum over ``id, length, instruction/error, params``."""
+    return ~sum(body) & 0xFF
+
+
+def build_packet(servo_id: int, instruction: int, params: bytes | bytearray = b"") -> bytes:
+    """A complete packet (an instruction, or a status packet with the error byte in place of
+    the instruction)."""
+    body = bytes([servo_id, len(params) + 2, instruction]) + bytes(params)
+    return HEADER + body + bytes([checksum(body)])
+
+
+def status_packet(servo_id: int, error: int, params: bytes | bytearray = b"") -> bytes:
+    """A status packet from ``servo_id`` with ``error`` and ``params``."""
+    return build_packet(servo_id, error & 0xFF, params)
+
+
+def encode(value: int, size: int, sign_bit: int | None) -> bytes:
+    """A register value as the servo stores it: sign and magnitude at ``sign_bit`` (if any),
+    little-endian."""
+    if sign_bit is not None and value < 0:
+        value = -value | (1 << sign_bit)
+    return (value & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
+
+
+def decode(data: bytes, sign_bit: int | None) -> int:
+    """Inverse of :func:`encode`."""
+    value = int.from_bytes(data, "little")
+    if sign_bit is not None and value & (1 << sign_bit):
+        return -(value & ~(1 << sign_bit))
+    return value
+
+
+@dataclass(frozen=True)
+class Packet:
+    """One received instruction packet."""
+
+    id: int
+    instruction: int
+    params: bytes
+
+
+class PacketParser:
+    """Incremental parser of instruction packets from a byte stream.
+
+    Garbage before a header is dropped; a packet whose length field is implausible or whose
+    checksum fails is dropped one byte at a time (no reply), so parsing resyncs on the next
+    header. ``checksum_errors`` counts the packets dropped for their checksum.
+    """
+
+    def __init__(self) -> None:
+        self.buffer = bytearray()
+        self.checksum_errors = 0
+        self.dropped = 0
+
+    def feed(self, data: bytes) -> list[Packet]:
+        self.buffer += data
+        packets: list[Packet] = []
+        while True:
+            start = self.buffer.find(HEADER)
+            if start < 0:
+                keep = 1 if self.buffer[-1:] == b"\xff" else 0
+                self.dropped += len(self.buffer) - keep
+                del self.buffer[: len(self.buffer) - keep]
+                return packets
+            if start:
+                self.dropped += start
+                del self.buffer[:start]
+            if len(self.buffer) < 4:
+                return packets
+            servo_id, length = self.buffer[2], self.buffer[3]
+            if servo_id == 0xFF or length < 2 or length > MAX_LENGTH:
+                self._skip()  # FF FF FF: the first FF was noise; or an impossible length
+                continue
+            total = 4 + length
+            if len(self.buffer) < total:
+                return packets
+            raw = bytes(self.buffer[:total])
+            if checksum(raw[2:-1]) != raw[-1]:
+                self.checksum_errors += 1
+                self._skip()
+                continue
+            del self.buffer[:total]
+            packets.append(Packet(servo_id, raw[4], raw[5:-1]))
+
+    def drop_partial(self) -> None:
+        """Give up on a packet that stopped arriving mid-way (resync on the next header)."""
+        if self.buffer:
+            self._skip()
+
+    def _skip(self) -> None:
+        del self.buffer[:1]
+        self.dropped += 1
+
+
+# --- servos ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Field:
+    name: str  # attribute of ServoState
+    size: int
+    sign_bit: int | None
+    writable: bool
+
+
+_FIELDS: dict[int, _Field] = {
+    ADDR_FIRMWARE_MAJOR: _Field("firmware_major", 1, None, False),
+    ADDR_FIRMWARE_MINOR: _Field("firmware_minor", 1, None, False),
+    ADDR_MODEL_NUMBER: _Field("model_number", 2, None, False),
+    ADDR_ID: _Field("id", 1, None, False),
+    ADDR_BAUD_RATE: _Field("baud_rate", 1, None, False),
+    ADDR_MIN_ANGLE_LIMIT: _Field("min_angle_limit", 2, None, False),
+    ADDR_MAX_ANGLE_LIMIT: _Field("max_angle_limit", 2, None, False),
+    ADDR_OPERATING_MODE: _Field("operating_mode", 1, None, False),
+    ADDR_TORQUE_ENABLE: _Field("torque_enable", 1, None, True),
+    ADDR_ACCELERATION: _Field("acceleration", 1, None, True),
+    ADDR_GOAL_POSITION: _Field("goal_position", 2, 15, True),
+    ADDR_GOAL_TIME: _Field("goal_time", 2, None, True),
+    ADDR_GOAL_SPEED: _Field("goal_speed", 2, 15, True),
+    ADDR_TORQUE_LIMIT: _Field("torque_limit", 2, None, True),
+    ADDR_LOCK: _Field("lock", 1, None, True),
+    ADDR_PRESENT_POSITION: _Field("present_position", 2, 15, False),
+    ADDR_PRESENT_SPEED: _Field("present_speed", 2, 15, False),
+    ADDR_PRESENT_LOAD: _Field("present_load", 2, 10, False),
+    ADDR_PRESENT_VOLTAGE: _Field("present_voltage", 1, None, False),
+    ADDR_PRESENT_TEMPERATURE: _Field("present_temperature", 1, None, False),
+    ADDR_STATUS: _Field("error", 1, None, False),
+    ADDR_MOVING: _Field("moving", 1, None, False),
+    ADDR_PRESENT_CURRENT: _Field("present_current", 2, 15, False),
+}
+
+
+@dataclass
+class ServoState:
+    """One emulated STS3215: control-table fields plus the float servo state.
+
+    ``position`` is the true (float) shaft position in counts, ``velocity`` its speed
+    (counts/s); ``present_position`` is what the servo reports (rounded). ``error`` is the
+    status byte of every packet the servo sends.
+    """
+
+    id: int
+    position: float = 2048.0
+    velocity: float = 0.0
+    model_number: int = MODEL_STS3215
+    firmware_major: int = 3
+    firmware_minor: int = 10
+    baud_rate: int = 0  # 1 Mbaud
+    min_angle_limit: int = 0
+    max_angle_limit: int = MAX_COUNT
+    operating_mode: int = 0  # position mode
+    torque_enable: int = 0
+    acceleration: int = 0
+    goal_position: int = 2048
+    goal_time: int = 0
+    goal_speed: int = 0
+    torque_limit: int = 1000
+    lock: int = 1
+    present_voltage: int = 120  # 0.1 V
+    present_temperature: int = 30  # deg C
+    error: int = 0
+    writes: list[tuple[int, int, int]] = field(default_factory=list)  # (address, size, value)
+
+    @property
+    def present_position(self) -> int:
+        return round(self.position)
+
+    @property
+    def present_speed(self) -> int:
+        return round(self.velocity)
+
+    @property
+    def present_load(self) -> int:
+        return 0
+
+    @property
+    def present_current(self) -> int:
+        return 0
+
+    @property
+    def moving(self) -> int:
+        return int(self.velocity != 0.0)
+
+    def table(self) -> bytes:
+        """The control table as the servo would return it (undefined bytes read as 0)."""
+        out = bytearray(TABLE_SIZE)
+        for addr, f in _FIELDS.items():
+            out[addr : addr + f.size] = encode(int(getattr(self, f.name)), f.size, f.sign_bit)
+        return bytes(out)
+
+
+# --- the bus ---------------------------------------------------------------------------------
+
+
+class FeetechEmulator(EmulatedBus):
+    """A chain of emulated STS3215 servos behind a pseudo-terminal, served by a daemon thread.
+
+    ``emulator.port`` is the slave device path to hand to ``scservo_sdk.PortHandler``.
+    ``initial_position``: counts, for all servos or per id. ``top_speed_steps``: the speed
+    (steps/s) a servo moves at with Goal Speed 0, and the most it ever moves at.
+    """
+
+    thread_name = "feetech-emulator"
+
+    def __init__(
+        self,
+        servo_ids: tuple[int, ...] | list[int],
+        *,
+        initial_position: int | dict[int, int] = 2048,
+        top_speed_steps: float = TOP_SPEED_STEPS,
+        model_number: int = MODEL_STS3215,
+    ) -> None:
+        ids = tuple(servo_ids)
+        if not ids or len(set(ids)) != len(ids) or any(not 0 <= i <= 253 for i in ids):
+            raise ValueError(f"servo_ids must be unique ids in 0..253, got {servo_ids!r}")
+        if not top_speed_steps > 0:
+            raise ValueError(f"top_speed_steps must be > 0, got {top_speed_steps}")
+        self.top_speed_steps = float(top_speed_steps)
+        #: The servos by id (test hook: read or set their state under :attr:`lock`).
+        self.servos: dict[int, ServoState] = {}
+        for i in ids:
+            start = (
+                initial_position.get(i, 2048)
+                if isinstance(initial_position, dict)
+                else initial_position
+            )
+            self.servos[i] = ServoState(
+                id=i, position=float(start), goal_position=int(start), model_number=model_number
+            )
+        #: Every goal position value received (write or sync write), as sent:
+        #: ``(time.monotonic(), servo id, counts)``; the goals of one packet share the time.
+        self.goal_log: list[tuple[float, int, int]] = []
+        #: Every instruction packet received: ``(time.monotonic(), id, instruction)``.
+        self.packet_log: list[tuple[float, int, int]] = []
+        self.parser = PacketParser()
+        super().__init__()
+
+    # -- test hooks --
+
+    def inject_error(self, servo_id: int, error_byte: int) -> None:
+        """Make servo ``servo_id`` report ``error_byte`` (e.g. :data:`ERRBIT_OVERLOAD`) in every
+        status packet and in Status (65); 0 clears it. The SDK takes a status packet whose
+        error byte is above 0x7F for noise."""
+        with self.lock:
+            self.servos[servo_id].error = error_byte & 0xFF
+
+    # -- EmulatedBus hooks (called with the lock held) --
+
+    def _step(self, dt: float) -> None:
+        for s in self.servos.values():
+            if not s.torque_enable:
+                s.velocity = 0.0
+                continue
+            speed = s.goal_speed if s.goal_speed > 0 else self.top_speed_steps
+            accel = s.acceleration * ACC_UNIT if s.acceleration > 0 else math.inf
+            s.position, s.velocity = step_towards(
+                s.position,
+                s.goal_position,
+                dt,
+                min(speed, self.top_speed_steps),
+                s.velocity,
+                accel,
+            )
+
+    def _receive(self, data: bytes) -> bytes:
+        return self._handle_packets(self.parser.feed(data))
+
+    def _has_partial(self) -> bool:
+        return bool(self.parser.buffer)
+
+    def _drop_partial(self) -> bytes:
+        self.parser.drop_partial()
+        return self._handle_packets(self.parser.feed(b""))
+
+    def _handle_packets(self, packets: list[Packet]) -> bytes:
+        replies = bytearray()
+        for packet in packets:
+            self.packet_log.append((time.monotonic(), packet.id, packet.instruction))
+            try:
+                replies += self._handle(packet)
+            except Exception as exc:  # never let one odd packet kill the bus
+                self.faults.append(exc)
+        return bytes(replies)
+
+    # -- instruction handling --
+
+    def _handle(self, p: Packet) -> bytes:
+        if p.id == BROADCAST_ID:
+            return self._handle_broadcast(p)
+        servo = self.servos.get(p.id)
+        if servo is None:
+            return b""
+        if p.instruction == INST_PING:
+            return status_packet(servo.id, servo.error)
+        if p.instruction == INST_READ:
+            if len(p.params) != 2:
+                return b""
+            return self._read(servo, p.params[0], p.params[1])
+        if p.instruction == INST_WRITE:
+            if len(p.params) < 2:
+                return b""
+            self._write(servo, p.params[0], p.params[1:], time.monotonic())
+            return status_packet(servo.id, servo.error)
+        return b""
+
+    def _handle_broadcast(self, p: Packet) -> bytes:
+        if p.instruction == INST_WRITE and len(p.params) >= 2:
+            now = time.monotonic()
+            for s in self.servos.values():
+                self._write(s, p.params[0], p.params[1:], now)
+            return b""
+        if len(p.params) < 2:
+            return b""
+        addr, size, rest = p.params[0], p.params[1], p.params[2:]
+        if p.instruction == INST_SYNC_WRITE:
+            if size == 0 or len(rest) % (size + 1):
+                return b""
+            now = time.monotonic()
+            for k in range(0, len(rest), size + 1):
+                s = self.servos.get(rest[k])
+                if s is not None:
+                    self._write(s, addr, rest[k + 1 : k + 1 + size], now)
+            return b""
+        if p.instruction == INST_SYNC_READ:
+            return b"".join(
+                self._read(self.servos[i], addr, size) for i in rest if i in self.servos
+            )
+        return b""
+
+    def _read(self, s: ServoState, addr: int, size: int) -> bytes:
+        if size + 2 > MAX_LENGTH:
+            return b""
+        table = s.table()
+        data = table[addr : addr + size]
+        return status_packet(s.id, s.error, data + bytes(size - len(data)))
+
+    def _write(self, s: ServoState, addr: int, data: bytes, now: float) -> None:
+        """Apply a write to one servo: every writable field it covers whole, no other."""
+        end = addr + len(data)
+        for a, f in _FIELDS.items():
+            if not (addr <= a and a + f.size <= end):
+                continue
+            value = decode(data[a - addr : a - addr + f.size], f.sign_bit)
+            if a == ADDR_GOAL_POSITION:
+                self.goal_log.append((now, s.id, value))
+            if not f.writable or a < EEPROM_END:
+                continue
+            if a == ADDR_TORQUE_ENABLE and value not in (0, 1):
+                continue
+            if a == ADDR_GOAL_POSITION and s.operating_mode == 0:
+                if s.min_angle_limit or s.max_angle_limit:
+                    value = max(s.min_angle_limit, min(s.max_angle_limit, value))
+            setattr(s, f.name, value)
+            s.writes.append((a, f.size, value))
