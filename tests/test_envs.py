@@ -152,7 +152,7 @@ def test_unknown_names_list_valid_choices():
         KeyError, match="Valid cameras for embodiment xarm7_leap_right: front, overhead"
     ):
         BeavrEnv(cameras=["wrist"])
-    with pytest.raises(KeyError, match="Valid cameras .*: front, overhead"):
+    with pytest.raises(KeyError, match=r"Valid cameras .*: front, overhead"):
         BeavrEnv(cameras=["head"])  # the RX-1's camera; the xArm rig has none
     with pytest.raises(ValueError, match="render_mode"):
         BeavrEnv(render_mode="human")

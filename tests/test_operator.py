@@ -100,7 +100,7 @@ def test_axis_map_rejects_reflections_and_unknown_embodiments():
     with pytest.raises(ValueError, match="det"):
         AxisMap(A_rot=np.diag([1.0, 1.0, -1.0]))
     with pytest.raises(ValueError, match="Valid"):
-        axis_map("rx1", "right")
+        axis_map("no_such_robot", "right")
 
 
 # ------------------------------------------------------------------------------- filters
