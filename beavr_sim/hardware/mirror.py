@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from beavr_sim.hardware.device import Device, DeviceError, MirrorError
-from beavr_sim.hardware.rig import RigConfig, build_device, joint_names_of
+from beavr_sim.hardware.rig import BODY, RigConfig, build_device, joint_names_of
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
 from beavr_sim.twin.guard import CollisionGuard, GuardConfig
 
@@ -89,7 +89,7 @@ class _Link:
         self.index = index
         config = mirror.rig.mirror
         self.divergence_limit = (
-            config.arm_divergence_rad if part == "arm" else config.hand_divergence_rad
+            config.hand_divergence_rad if part == "hand" else config.arm_divergence_rad
         )
         self.stats = DeviceStats()
         self._seq_sent = 0
@@ -247,7 +247,7 @@ class HardwareMirror:
             device = build_device(entry, embodiment, joints)
             index = np.array([joints.names.index(n) for n in joint_names_of(entry, embodiment)])
             self.links.append(_Link(self, device, index, entry.part))
-        effector_of = {}
+        effector_of = dict.fromkeys(embodiment.body_joints, BODY)  # the body: never refused
         for e in embodiment.effectors:
             for n in e.joints:
                 effector_of[n] = e.name

@@ -17,8 +17,24 @@ A rig file (``--hardware-config F.toml``, read with :mod:`tomllib`)::
     effector = "right"
     port = "/dev/ttyUSB0"
 
+The RX-1 (``--embodiment rx1``) runs on Feetech STS3215 servos, one bus per servo group::
+
+    [[devices]]
+    name = "rx1_right_arm"
+    kind = "feetech"
+    effector = "right"            # group right_arm (ids 11-17)
+    group = "right_arm"
+    port = "/dev/ttyUSB1"
+
+    [[devices]]
+    name = "rx1_body"
+    kind = "feetech"
+    effector = "body"             # the torso and head (ids 1-6): they hold their pose
+    group = "body"
+    port = "/dev/ttyUSB0"
+
 ``--hardware-config emulated`` starts a protocol emulator for every device of the embodiment
-(:func:`emulated_rig`) so mirroring can be tried with no robot. Examples for the paper's three
+(:class:`EmulatedRig`) so mirroring can be tried with no robot. Examples for the paper's three
 configurations are in ``docs/hardware.md``.
 """
 
@@ -35,16 +51,32 @@ from typing import Any
 import numpy as np
 
 from beavr_sim.hardware.device import Device
+from beavr_sim.hardware.feetech import GROUPS, FeetechBus, FeetechConfig, angle_to_counts
 from beavr_sim.hardware.leap import LeapHand, LeapHandConfig, model_to_counts
 from beavr_sim.hardware.xarm import XArm7, XArmConfig
 from beavr_sim.naming import check_name
-from beavr_sim.robots.embodiment import Embodiment, JointIndex
+from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 
-#: Device kinds, the config class of each and the part of an effector it drives.
-DEVICE_KINDS: dict[str, tuple[type, str]] = {
+#: Device kinds, the config class of each and the part of an effector it drives (a Feetech
+#: bus: its servo group's part, :data:`FEETECH_GROUP_PART`).
+DEVICE_KINDS: dict[str, tuple[type, str | None]] = {
     "xarm7": (XArmConfig, "arm"),
     "leap": (LeapHandConfig, "hand"),
+    "feetech": (FeetechConfig, None),
 }
+#: An RX-1 servo group -> the part it drives: an effector's arm, or the body (effector
+#: ``"body"``, the torso and head).
+FEETECH_GROUP_PART = {
+    "right_arm": "arm",
+    "left_arm": "arm",
+    "body": "body",
+    "torso": "body",
+    "head": "body",
+}
+#: The effector name of a device that drives the body.
+BODY = BODY_PREFIX.rstrip("/")
+#: Each arm model's device kind (what ``--hardware-config emulated`` emulates).
+ARM_DEVICE_KIND = {"xarm7": "xarm7", "rx1_arm": "feetech"}
 _RESERVED = ("name", "kind", "effector")
 
 
@@ -85,7 +117,9 @@ class DeviceEntry:
 
     @property
     def part(self) -> str:
-        return DEVICE_KINDS[self.kind][1]
+        """``"arm"``, ``"hand"`` or ``"body"``."""
+        part = DEVICE_KINDS[self.kind][1]
+        return part if part is not None else FEETECH_GROUP_PART[self.config.group]
 
 
 @dataclass(frozen=True)
@@ -150,10 +184,26 @@ class RigConfig:
         return cls.from_dict(data, str(path))
 
     def check_embodiment(self, embodiment: Embodiment) -> None:
-        """Every device serves an effector of ``embodiment``."""
+        """Every device serves an effector (or the body) of ``embodiment``, with the servo group
+        of that effector's side."""
         names = [e.name for e in embodiment.effectors]
         for d in self.devices:
+            if d.part == "body":
+                if not embodiment.body_joints:
+                    raise ValueError(
+                        f"device {d.name} drives a body, but {embodiment.name} has none"
+                    )
+                if d.effector != BODY:
+                    raise ValueError(f"device {d.name} drives the body: effector = {BODY!r}")
+                continue
             check_name(f"effector (device {d.name})", d.effector, names)
+            if d.kind == "feetech":
+                side = embodiment.effector(d.effector).side
+                if d.config.group != f"{side}_arm":
+                    raise ValueError(
+                        f"device {d.name} serves the {side} effector {d.effector!r}: its group "
+                        f"must be {side}_arm, got {d.config.group!r}"
+                    )
 
 
 def _tuples(value: Any) -> Any:
@@ -164,12 +214,16 @@ def _tuples(value: Any) -> Any:
 
 
 def joint_names_of(entry: DeviceEntry, embodiment: Embodiment) -> tuple[str, ...]:
+    """The model joints ``entry`` drives, in the device's order."""
+    if entry.part == "body":
+        return tuple(BODY_PREFIX + s.joint for s in GROUPS[entry.config.group])
     effector = embodiment.effector(entry.effector)
     return effector.arm_joints if entry.part == "arm" else effector.hand_joints
 
 
 def build_device(entry: DeviceEntry, embodiment: Embodiment, joints: JointIndex) -> Device:
-    """The driver of ``entry``, its joint names (and, for a hand, limits) from the model."""
+    """The driver of ``entry``, its joint names (and, for a hand or a Feetech group, limits)
+    from the model."""
     names = joint_names_of(entry, embodiment)
     if entry.kind == "xarm7":
         return XArm7(entry.config, name=entry.name, joint_names=names)
@@ -182,7 +236,15 @@ def build_device(entry: DeviceEntry, embodiment: Embodiment, joints: JointIndex)
         lower=config.lower if config.lower is not None else tuple(joints.lower[index]),
         upper=config.upper if config.upper is not None else tuple(joints.upper[index]),
     )
-    return LeapHand(config)
+    return FeetechBus(config) if entry.kind == "feetech" else LeapHand(config)
+
+
+def _feetech_start(group: str, q: np.ndarray) -> dict:
+    servos = GROUPS[group]
+    counts = angle_to_counts(
+        np.asarray(q, float), [s.direction for s in servos], [s.gear for s in servos]
+    )
+    return {"group": group, "counts": [int(c) for c in np.clip(counts, 0, 4095)]}
 
 
 class EmulatedRig:
@@ -203,13 +265,21 @@ class EmulatedRig:
         import sys
 
         q_start = joints.home if q_start is None else np.asarray(q_start, dtype=np.float64)
-        plan = []
-        for effector in embodiment.effectors:
+        plan, groups = [], {}
+        for spec, effector in zip(embodiment.spec.effectors, embodiment.effectors, strict=True):
             q = q_start[joints.slices[effector.name]]
             n_arm = len(effector.arm_joints)
-            plan.append([f"{effector.name}_arm", "xarm7", [float(v) for v in q[:n_arm]]])
+            name = f"{effector.name}_arm"
+            if ARM_DEVICE_KIND[spec.arm.name] == "feetech":
+                groups[name] = f"{spec.side}_arm"
+                plan.append([name, "feetech", _feetech_start(groups[name], q[:n_arm])])
+            else:
+                plan.append([name, "xarm7", [float(v) for v in q[:n_arm]]])
             counts = [int(c) for c in model_to_counts(q[n_arm:])]
             plan.append([f"{effector.name}_hand", "leap", counts])
+        if embodiment.body_joints:
+            groups[BODY] = "body"
+            plan.append([BODY, "feetech", _feetech_start("body", q_start[joints.body])])
         self._process = subprocess.Popen(
             [sys.executable, "-m", "beavr_sim.hardware.emulators", json.dumps(plan)],
             stdin=subprocess.PIPE,
@@ -228,6 +298,11 @@ class EmulatedRig:
             if kind == "xarm7":
                 host, port = where[name]
                 config = XArmConfig(host=host, port=port, max_joint_speed=math.pi)
+            elif kind == "feetech":
+                # The emulated servos' top speed, not the RX-1 driver's calm 1 rad/s.
+                config = FeetechConfig(
+                    port=where[name], group=groups[name], speed_rad_s=None, reply_timeout_s=0.25
+                )
             else:
                 config = LeapHandConfig(port=where[name], reply_timeout_s=0.25)
             devices.append(DeviceEntry(name, kind, effector, config))

@@ -9,14 +9,29 @@ from beavr_sim.robots.embodiment import (
     JointIndex,
     make_embodiment,
 )
-from beavr_sim.robots.parts import LEAP_HAND, LEAP_ON_XARM7, XARM7, ArmModel, HandModel, HandMount
+from beavr_sim.robots.parts import (
+    LEAP_HAND,
+    LEAP_ON_RX1,
+    LEAP_ON_XARM7,
+    RX1_ARM,
+    RX1_BODY,
+    XARM7,
+    ArmModel,
+    BodyModel,
+    HandModel,
+    HandMount,
+)
 
 __all__ = [
     "EMBODIMENTS",
     "LEAP_HAND",
+    "LEAP_ON_RX1",
     "LEAP_ON_XARM7",
+    "RX1_ARM",
+    "RX1_BODY",
     "XARM7",
     "ArmModel",
+    "BodyModel",
     "Effector",
     "EffectorSpec",
     "Embodiment",
