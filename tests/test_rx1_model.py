@@ -110,3 +110,29 @@ def test_home_pose_is_collision_free(rx1):
         if c.dist < 0
     ]
     assert not touching
+
+
+def test_head_camera_sees_the_table_and_goes_to_the_headset():
+    import gymnasium as gym
+
+    import beavr_sim.envs  # noqa: F401
+    from beavr_sim.teleop.session import headset_camera
+
+    env = gym.make(
+        "beavr_sim/PickPlace-v0", embodiment="rx1", cameras=["head"], camera_height=48,
+        camera_width=64,
+    ).unwrapped  # fmt: skip
+    try:
+        obs, _ = env.reset(seed=0)
+        head = obs["pixels"]["head"]
+        assert head.shape == (48, 64, 3) and head.std() > 5
+        assert not np.array_equal(head, env.render_camera("front"))
+        assert headset_camera(env.embodiment) == "head"
+        assert headset_camera(make_embodiment("xarm7_leap_right")) == "front"
+        # The head looks down at the table: its optical axis points forward and down.
+        data = env.data
+        R = data.cam("head").xmat.reshape(3, 3)
+        look = -R[:, 2]
+        assert look[0] > 0.5 and look[2] < -0.3
+    finally:
+        env.close()

@@ -43,6 +43,23 @@ def test_bundled_trace_replays_to_task_success(task):
     assert summary.commands_applied > 0
 
 
+RX1_TASKS = ["PickPlace", "PickupBox", "StackBlocks", "Pour"]
+
+
+@pytest.mark.parametrize("task", RX1_TASKS)
+def test_rx1_bundled_trace_replays_to_task_success(task):
+    """Both VR hands drive both RX-1 arms and LEAP hands through the same operator."""
+    path = bundled_trace(task, "rx1")
+    assert path.is_file(), f"no bundled RX-1 trace for {task}: {path}"
+    meta = TraceReader(path).metadata
+    assert (meta.task, meta.embodiment, meta.source) == (task, "rx1", "synth")
+    summary, _ = replay(task, embodiment="rx1")
+    assert summary.success, summary
+    assert summary.frames_rejected == 0
+    assert set(summary.operator) == {"left", "right"}
+    assert all(op["frames"] > 0 for op in summary.operator.values())
+
+
 def test_replay_is_deterministic():
     a, qa = replay("PickupBox")
     b, qb = replay("PickupBox")
