@@ -317,7 +317,9 @@ def test_stream_targets_converge_and_big_step_diverges():
         emu.advance()  # the read above was answered after the write: bring the model to now
         assert emu.motors[15].present_current == 550
         assert _wait_until(lambda: np.allclose(h.read_positions(), sent, atol=1e-12), 3.0)
-        assert emu.motors[15].present_current == 0
+        # The present position reads whole counts: it may arrive half a count before the motor
+        # stops (under load on this machine it did); the current falls to zero once it has.
+        assert _wait_until(lambda: (emu.advance(), emu.motors[15].present_current == 0)[1], 1.0)
         assert h.commands_sent == 1 and h.errors == 0
         assert _new_goals(emu, n) == model_to_counts(sent).tolist()
 
