@@ -32,11 +32,14 @@ from beavr_sim.hardware.device import DeviceError
 from beavr_sim.hardware.feetech import (
     EAR_SERVO_IDS,
     GROUPS,
+    MULTI_TURN_MAX_COUNT,
+    RX1_ANGLE_LIMITS,
     SERVOS_BY_ID,
     STS3215_NO_LOAD_RAD_S,
     FeetechBus,
     FeetechConfig,
     _Port,
+    allowed_counts,
     angle_to_counts,
     counts_to_angle,
     from_sign_magnitude,
@@ -47,6 +50,8 @@ from beavr_sim.hardware.feetech_emulator import (
     INST_READ,
     INST_SYNC_WRITE,
     INST_WRITE,
+    MULTI_TURN,
+    ONE_TURN,
     FeetechEmulator,
     build_packet,
     checksum,
@@ -74,6 +79,17 @@ RX1 = {
 }  # fmt: skip
 RX1["body"] = tuple(a + b for a, b in zip(RX1["torso"], RX1["head"], strict=True))
 ALL_SERVOS = [s for g in ("torso", "head", "right_arm", "left_arm") for s in GROUPS[g]]
+# The RX-1 model's arm joint limits (rad), servo order: (lower, upper).
+RX1_ARM_LIMITS = {
+    "right_arm": (
+        (-2.5132, -1.57075, -1.57075, -2.19905, -1.57075, -0.785375, -0.785375),
+        (2.5132, 0.50264, 1.57075, 0.0, 1.57075, 0.785375, 0.785375),
+    ),
+    "left_arm": (
+        (-2.5132, -0.50264, -1.57075, -2.19905, -1.57075, -0.785375, -0.785375),
+        (2.5132, 1.57075, 1.57075, 0.0, 1.57075, 0.785375, 0.785375),
+    ),
+}
 
 
 def _ids(group: str) -> list[int]:
@@ -243,15 +259,48 @@ def test_config_defaults_and_registers():
     assert body.max_velocity == pytest.approx(STS3215_NO_LOAD_RAD_S / 3)  # the geared torso
 
 
-def test_count_limits_follow_direction_and_stay_in_one_turn():
+def test_count_limits_follow_direction_within_the_multi_turn_range():
     # Right shoulder pitch (-1, 3): model [-0.1, 0.2] -> counts [2048 - 391.2, 2048 + 195.6].
-    lower = (-0.1, -3.0, -3.0, -3.0, -3.0, 0.5, 0.3)
-    upper = (0.2, 3.0, 3.0, 3.0, 3.0, 0.5 + 1e-6, 0.3)
-    lo, hi = FeetechConfig(port="p", group="right_arm", lower=lower, upper=upper).count_limits()
+    lower = (-0.1, -3.0, -3.0, -30.0, -3.0, 0.5, 0.3)
+    upper = (0.2, 3.0, 3.0, 30.0, 3.0, 0.5 + 1e-6, 0.3)
+    cfg = FeetechConfig(port="p", group="right_arm", lower=lower, upper=upper)
+    lo, hi = cfg.count_limits()
     assert (lo[0], hi[0]) == (1657, 2243)
-    assert (lo[1], hi[1]) == (0, 4095)  # +-3 rad x gear 3: past one turn both ways
+    # +-3 rad x gear 3: past one turn both ways (2048 -+ 5867.04), kept: multi-turn.
+    assert (lo[1], hi[1]) == (2048 - 5867, 2048 + 5867)
+    assert (lo[3], hi[3]) == (-MULTI_TURN_MAX_COUNT, MULTI_TURN_MAX_COUNT)  # +-30 rad: 7 turns
     assert lo[5] == hi[5] == angle_to_counts(0.5, 1, 1)  # narrower than a count: the nearest
     assert lo[6] == hi[6] == angle_to_counts(0.3, -1, 1)
+    assert [x.tolist() for x in cfg.limited_count_sides()] == [[True] * 7, [True] * 7]
+    free = FeetechConfig(port="p", group="right_arm", upper=upper)
+    lo, hi = free.count_limits()
+    # No lower limits: shoulder pitch (direction -1) is unbounded above, arm yaw (+1) below.
+    assert (lo[0], hi[0]) == (1657, MULTI_TURN_MAX_COUNT)
+    assert (lo[2], hi[2]) == (-MULTI_TURN_MAX_COUNT, 2048 + 5867)
+    low_known, high_known = free.limited_count_sides()
+    assert low_known.tolist() == [True, True, False, False, False, False, True]
+    assert high_known.tolist() == [False, False, True, True, True, True, False]
+
+
+def test_allowed_counts_and_the_rx1_angle_limits():
+    assert MULTI_TURN_MAX_COUNT == 7 * 4096
+    assert allowed_counts(0, 0) == (-MULTI_TURN_MAX_COUNT, MULTI_TURN_MAX_COUNT)
+    assert allowed_counts(0, 4095) == (0, 4095)
+    assert allowed_counts(1000, 3000) == (1000, 3000)
+    for bad in ((3000, 1000), (0, 4096), (5, 5)):
+        with pytest.raises(ValueError, match="multi-turn"):
+            allowed_counts(*bad)
+    # Multi-turn behind every 3:1 gearbox (Red-Rabbit-Robotics/rx1 issue #3), one turn elsewhere.
+    assert sorted(RX1_ANGLE_LIMITS) == sorted(SERVOS_BY_ID)
+    for s in ALL_SERVOS:
+        assert RX1_ANGLE_LIMITS[s.id] == ((0, 0) if s.gear == 3 else (0, 4095))
+    # The whole RX-1 arm range fits in what these limits allow, and in 15-bit sign-magnitude.
+    for group, (lower, upper) in RX1_ARM_LIMITS.items():
+        lo, hi = FeetechConfig(port="p", group=group, lower=lower, upper=upper).count_limits()
+        for k, s in enumerate(GROUPS[group]):
+            a_lo, a_hi = allowed_counts(*RX1_ANGLE_LIMITS[s.id])
+            assert a_lo <= lo[k] <= hi[k] <= a_hi
+            assert -32767 <= lo[k] and hi[k] <= 32767
 
 
 # --- shared servo model ----------------------------------------------------------------------
@@ -328,7 +377,7 @@ def test_checksum_matches_sdk(servo_id, instruction, params):
 
 def test_sdk_ping_read_write_sync_write_sync_read():
     start = {1: 100, 2: 4000, 3: 2048}
-    with FeetechEmulator((1, 2, 3), initial_position=start) as e:
+    with FeetechEmulator((1, 2, 3), initial_position=start, angle_limits=ONE_TURN) as e:
         port = _open_sdk_port(e.port)
         ph = PacketHandler(0)
         try:
@@ -340,7 +389,7 @@ def test_sdk_ping_read_write_sync_write_sync_read():
             assert ph.write2ByteTxRx(port, 3, 46, 3000) == (COMM_SUCCESS, 0)
             assert e.servos[3].torque_enable == 1 and e.servos[3].goal_speed == 3000
             assert ph.write1ByteTxRx(port, 3, 40, 0) == (COMM_SUCCESS, 0)
-            # A negative goal goes out as sign and magnitude; position mode clamps it to 0.
+            # A negative goal goes out as sign and magnitude; one-turn limits clamp it to 0.
             assert ph.write2ByteTxRx(port, 3, 42, SCS_TOSCS(-5, 15)) == (COMM_SUCCESS, 0)
             assert e.goal_log[-1][1:] == (3, -5) and e.servos[3].goal_position == 0
             writer = GroupSyncWrite(port, ph, 42, 2)
@@ -357,6 +406,48 @@ def test_sdk_ping_read_write_sync_write_sync_read():
             assert [inst for _, _, inst in e.packet_log[-2:]] == [0x83, 0x82]
         finally:
             port.closePort()
+
+
+def test_multi_turn_servo_takes_and_reports_signed_positions_past_one_turn():
+    start = {1: -1979, 2: 6964, 3: 2048}
+    limits = {1: MULTI_TURN, 2: MULTI_TURN, 3: ONE_TURN}
+    with FeetechEmulator((1, 2, 3), initial_position=start, angle_limits=limits) as e:
+        port = _open_sdk_port(e.port)
+        ph = PacketHandler(0)
+        try:
+            assert ph.readTxRx(port, 1, 9, 4)[0] == [0, 0, 0, 0]  # multi-turn: limits 0 and 0
+            assert ph.readTxRx(port, 3, 9, 4)[0] == [0, 0, 0xFF, 0x0F]
+            assert ph.read1ByteTxRx(port, 1, 18)[0] & 0x10  # full-angle feedback
+            # Negative present positions come back as sign and magnitude (bit 15).
+            assert ph.read2ByteTxRx(port, 1, 56)[0] == 0x8000 | 1979
+            assert ph.read2ByteTxRx(port, 2, 56)[0] == 6964
+            for i, goal in ((1, -4300), (3, -5)):
+                ph.write2ByteTxRx(port, i, 42, to_sign_magnitude(goal))
+            assert e.servos[1].goal_position == -4300  # multi-turn: taken as it is
+            assert e.servos[3].goal_position == 0  # one turn: clamped
+            assert e.servos[1].table()[42:44] == (0x8000 | 4300).to_bytes(2, "little")
+            ph.write1ByteTxRx(port, 1, 40, 1)
+            assert _wait_until(lambda: e.servos[1].present_position == -4300, 3.0)
+            assert from_sign_magnitude(ph.read2ByteTxRx(port, 1, 56)[0]) == -4300
+            # Without full-angle feedback (Phase bit 4) it reports the angle within one turn.
+            e.servos[1].phase = 0
+            assert ph.read2ByteTxRx(port, 1, 56)[0] == -4300 % 4096 == 3892
+        finally:
+            port.closePort()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"angle_limits": (3000, 1000)}, "angle_limits"),
+        ({"angle_limits": {1: (0, 4096)}}, "angle_limits"),
+        ({"angle_limits": ONE_TURN, "initial_position": -1}, "initial_position"),
+        ({"initial_position": 40_000}, "initial_position"),
+    ],
+)
+def test_emulator_refuses_limits_and_starts_a_servo_cannot_have(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        FeetechEmulator((1, 2), **kwargs)
 
 
 def test_emulated_servo_moves_with_torque_at_its_goal_speed():
@@ -452,19 +543,17 @@ def test_send_converges_and_goals_are_the_formula():
 
 
 def test_clipping_is_reported_in_the_returned_targets(emu):
-    lower = (-2.5132, -0.50264, -1.57075, -2.19905, -1.57075, -0.785375, -0.785375)
-    upper = (2.5132, 1.57075, 1.57075, 0.0, 1.57075, 0.785375, 0.785375)
+    lower, upper = RX1_ARM_LIMITS["right_arm"]
     with FeetechBus(_cfg(emu.port, lower=lower, upper=upper)) as bus:
-        # Shoulder pitch 2.0 rad is within the model's limits but past one servo turn (gear 3:
-        # +-pi/3); the elbow asks past its model limit; the wrist far past both.
+        # Multi-turn servos: shoulder pitch 2.0 rad (past one servo turn at gear 3, +-pi/3) goes
+        # out as it is; the elbow asks past its model limit; the wrist far past it.
         q = np.array([2.0, 0.2, -1.3, 0.4, 0.1, -9.0, 1e300])
         n = len(emu.goal_log)
         sent = bus.send_positions(q)
         goals = _new_goals(emu, n, 7)
-        assert all(0 <= c <= 4095 for c in goals)
-        assert goals[0] == 0  # direction -1: the top of the joint's range is count 0
-        assert sent[0] == pytest.approx(math.pi / 3)
-        assert sent[2] == -math.pi / 3 and goals[2] == 0  # arm yaw: direction +1
+        assert goals[0] == round(2048 - 2.0 / math.pi * 2048 * 3) == -1863  # below count 0
+        assert goals[2] == round(2048 - 1.3 / math.pi * 2048 * 3) == -494
+        assert sent[0] == pytest.approx(2.0, abs=math.pi / 6144)
         assert sent[3] <= 0.0 and sent[3] == pytest.approx(0.0, abs=1e-12)
         assert sent[5] == pytest.approx(-0.785375, abs=math.pi / 2048)
         assert sent[6] == pytest.approx(0.785375, abs=math.pi / 2048)
@@ -472,6 +561,118 @@ def test_clipping_is_reported_in_the_returned_targets(emu):
         servos = GROUPS["right_arm"]
         back = [counts_to_angle(c, s.direction, s.gear) for c, s in zip(goals, servos, strict=True)]
         assert np.array_equal(back, sent)
+
+
+def test_one_turn_servos_without_model_limits_clip_to_their_turn():
+    with FeetechEmulator(_ids("right_arm"), angle_limits=ONE_TURN) as e:
+        with FeetechBus(_cfg(e.port)) as bus:  # no model limits: nothing to refuse
+            assert bus.angle_limits == dict.fromkeys(_ids("right_arm"), (0, 4095))
+            n = len(e.goal_log)
+            sent = bus.send_positions(np.array([2.0, 0.0, -1.3, 0.0, 0.0, 0.0, 1e300]))
+            goals = _new_goals(e, n, 7)
+            assert all(0 <= c <= 4095 for c in goals)
+            assert goals[0] == 0 and sent[0] == pytest.approx(math.pi / 3)  # direction -1
+            assert goals[2] == 0 and sent[2] == -math.pi / 3  # arm yaw: direction +1
+            assert goals[6] == 0 and sent[6] == pytest.approx(math.pi)  # wrist roll: -1, gear 1
+
+
+@pytest.mark.parametrize("group", ["right_arm", "left_arm"])
+def test_rx1_arm_extremes_round_trip_through_multi_turn_servos(group):
+    """The shoulder pitch and the elbow at both ends of their model range, negative counts and
+    counts past 4095 included, are sent as the formula's counts and read back within a count."""
+    lower, upper = RX1_ARM_LIMITS[group]
+    ids = _ids(group)
+    limits = {i: RX1_ANGLE_LIMITS[i] for i in ids}
+    with FeetechEmulator(ids, angle_limits=limits, top_speed_steps=60_000) as e:
+        cfg = _cfg(e.port, group, lower=lower, upper=upper, speed_rad_s=None)
+        with FeetechBus(cfg) as bus:
+            assert bus.angle_limits == limits
+            servos = GROUPS[group]
+            for end in (lower, upper):
+                q = np.zeros(7)
+                q[0], q[3] = end[0], end[3]  # shoulder pitch, elbow
+                n = len(e.goal_log)
+                sent = bus.send_positions(q)
+                goals = _new_goals(e, n, 7)
+                for k in (0, 3):
+                    s = servos[k]
+                    exact = q[k] / math.pi * 2048 * s.direction * s.gear + 2048
+                    assert abs(goals[k] - exact) < 1.0  # the formula, rounded inward
+                    assert abs(sent[k] - q[k]) < math.pi / 2048 / 3
+                assert np.array_equal(
+                    sent, counts_to_angle(goals, [s.direction for s in servos], cfg.gears)
+                )
+                assert _wait_until(
+                    lambda sent=sent: np.all(np.abs(bus.read_positions() - sent) <= 1e-12), 3.0
+                )
+                raw = [e.servos[i].table()[56:58] for i in ids]
+                assert [decode(r, 15) for r in raw] == goals
+            # Where the counts went: below 0 and past 4095 (direction and gear 3).
+            seen = [c for _, i, c in e.goal_log if i in (ids[0], ids[3])]
+            assert min(seen) < -2000 and max(seen) > 6000
+
+
+def test_negative_goals_and_positions_on_the_wire(emu, arm):
+    n = len(emu.goal_log)
+    arm.send_positions(np.array([0.0, 0.0, 0.0, -2.0, 0.0, 0.0, 0.0]))  # elbow (+1, 3)
+    goal = round(2048 - 2.0 / math.pi * 2048 * 3)
+    assert goal == -1863 and _new_goals(emu, n, 7)[3] == goal
+    s = emu.servos[14]
+    assert s.table()[42:44] == bytes([1863 & 0xFF, 0x80 | 1863 >> 8])  # bit 15: negative
+    assert s.goal_position == goal
+    assert _wait_until(lambda: s.present_position == goal, 3.0)
+    assert s.table()[56:58] == s.table()[42:44]
+    assert arm.read_positions()[3] == pytest.approx(counts_to_angle(goal, 1, 3))
+    assert arm.read_positions()[3] == pytest.approx(-2.0, abs=math.pi / 6144)
+
+
+def test_one_turn_limits_too_narrow_for_the_model_refuse_to_connect():
+    lower, upper = RX1_ARM_LIMITS["right_arm"]
+    ids = _ids("right_arm")
+    # The factory's one turn everywhere, as a servo comes out of the box.
+    with FeetechEmulator(ids, angle_limits=ONE_TURN) as e:
+        bus = FeetechBus(_cfg(e.port, lower=lower, upper=upper))
+        with pytest.raises(DeviceError, match=r"servo\(s\) \[11, 12, 13, 14\] cannot reach") as err:
+            bus.connect()
+        text = str(err.value)
+        for part in (
+            "11 shoulder_pitch: needs counts -2867..6963",
+            "14 elbow: needs counts -2252..2048",
+            "allow 0..4095",
+            "set both to 0",
+            "multi-turn",
+            "Phase (18)",
+            "rx1_right_arm",
+        ):
+            assert part in text
+        assert not bus.connected and bus.errors == 1
+        assert all(s.torque_enable == 0 and s.writes == [] for s in e.servos.values())
+    # The RX-1's own setup connects; so would a gear-1 servo with limits its range fits in.
+    limits = {i: RX1_ANGLE_LIMITS[i] for i in ids} | {16: (1000, 3000)}  # wrist pitch: +-0.785
+    with FeetechEmulator(ids, angle_limits=limits) as e:
+        with FeetechBus(_cfg(e.port, lower=lower, upper=upper)) as bus:
+            assert bus.angle_limits == limits
+        e.servos[15].min_angle_limit, e.servos[15].max_angle_limit = 1500, 2600  # forearm yaw
+        with pytest.raises(DeviceError, match=r"\[15\] .*1025\.\.3071.*\(1500, 2600\)"):
+            FeetechBus(_cfg(e.port, lower=lower, upper=upper)).connect()
+        e.servos[15].min_angle_limit, e.servos[15].max_angle_limit = 3000, 1000
+        with pytest.raises(DeviceError, match=r"servo 15: angle limits 3000\.\.1000 are neither"):
+            FeetechBus(_cfg(e.port, lower=lower, upper=upper)).connect()
+
+
+def test_multi_turn_servo_without_full_angle_feedback_refuses_to_connect():
+    ids = _ids("torso")
+    with FeetechEmulator(ids) as e:
+        e.servos[1].phase = e.servos[3].phase = 0
+        bus = FeetechBus(_cfg(e.port, "torso"))
+        with pytest.raises(DeviceError, match=r"servo\(s\) \[1, 3\] run multi-turn.*bit 4"):
+            bus.connect()
+        assert not bus.connected and all(s.writes == [] for s in e.servos.values())
+        # A one-turn servo reports within its turn anyway: its phase does not matter.
+        for s in e.servos.values():
+            s.max_angle_limit = 4095
+        with FeetechBus(_cfg(e.port, "torso")) as bus:
+            assert bus.angle_limits == dict.fromkeys(ids, (0, 4095))
 
 
 def test_missing_servo_ids_are_named():
@@ -622,7 +823,7 @@ def test_every_goal_received_lies_within_the_limits(limited, q):
     sent = bus.send_positions(np.array(q))
     counts = _new_goals(e, n, 7)
     assert [i for _, i, _ in e.goal_log[n:]] == _ids("left_arm")
-    assert all(0 <= c <= 4095 for c in counts)
+    assert all(-MULTI_TURN_MAX_COUNT <= c <= MULTI_TURN_MAX_COUNT for c in counts)
     servos = GROUPS["left_arm"]
     angles = np.array(
         [counts_to_angle(c, s.direction, s.gear) for c, s in zip(counts, servos, strict=True)]
@@ -636,7 +837,12 @@ def test_every_goal_received_lies_within_the_limits(limited, q):
 
 def test_emulators_process_reports_sync_writes_in_model_radians():
     start = [2048, 2100, 1900]
-    plan = [["torso", "feetech", {"group": "torso", "counts": start}]]
+    # The right arm starts at the RX-1's elbow home, -2.06 rad: a count below 0, multi-turn.
+    arm_start = [2048, 2048, 2048, int(angle_to_counts(-2.0595, 1, 3)), 2048, 2048, 2048]
+    plan = [
+        ["torso", "feetech", {"group": "torso", "counts": start}],
+        ["right", "feetech", {"group": "right_arm", "counts": arm_start}],
+    ]
     proc = subprocess.Popen(
         [sys.executable, "-m", "beavr_sim.hardware.emulators", json.dumps(plan)],
         stdin=subprocess.PIPE,
@@ -648,9 +854,15 @@ def test_emulators_process_reports_sync_writes_in_model_radians():
         with FeetechBus(_cfg(where["torso"], "torso")) as bus:
             measured = bus.read_positions()
             sent = bus.send_positions(np.array([0.1, 0.0, -0.05]))
+        lower, upper = RX1_ARM_LIMITS["right_arm"]
+        with FeetechBus(_cfg(where["right"], lower=lower, upper=upper)) as arm:
+            assert arm.angle_limits == {i: RX1_ANGLE_LIMITS[i] for i in _ids("right_arm")}
+            assert arm_start[3] == -1980
+            assert arm.read_positions()[3] == pytest.approx(-2.0595, abs=math.pi / 6144)
         proc.stdin.write("close\n")
         proc.stdin.flush()
         received = json.loads(proc.stdout.readline())["torso"]
+        assert len(where) == 2
         assert proc.wait(10.0) == 0
     finally:
         if proc.poll() is None:

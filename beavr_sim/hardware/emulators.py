@@ -3,7 +3,9 @@
 ``PLAN`` is a JSON list of ``[name, kind, start]``: ``kind`` ``"xarm7"`` (``start``: 7 joint
 angles, rad), ``"leap"`` (``start``: 16 motor positions, counts) or ``"feetech"`` (an RX-1
 servo group, ``start``: ``{"group": name, "counts": [one per servo, in group order]}``, see
-:data:`beavr_sim.hardware.feetech.GROUPS`). Prints one JSON line, ``{name: [host, port]}`` for
+:data:`beavr_sim.hardware.feetech.GROUPS`; its servos get the RX-1's angle limits,
+:data:`~beavr_sim.hardware.feetech.RX1_ANGLE_LIMITS`: multi-turn behind a gearbox, so counts
+may be negative or past 4095 there, one turn 0..4095 elsewhere). Prints one JSON line, ``{name: [host, port]}`` for
 arms and ``{name: pty path}`` for Dynamixel and Feetech buses, then serves until a line
 ``close`` (or the end of) standard input; then prints one JSON line of what every emulator
 received (see :class:`beavr_sim.hardware.rig.EmulatedRig`): ``[time, targets]`` per servo_j
@@ -17,7 +19,7 @@ import json
 import sys
 
 from beavr_sim.hardware.dynamixel_emulator import DynamixelEmulator
-from beavr_sim.hardware.feetech import GROUPS, SERVOS_BY_ID, counts_to_angle
+from beavr_sim.hardware.feetech import GROUPS, RX1_ANGLE_LIMITS, SERVOS_BY_ID, counts_to_angle
 from beavr_sim.hardware.feetech_emulator import FeetechEmulator
 from beavr_sim.hardware.leap import counts_to_model
 from beavr_sim.hardware.xarm_emulator import XArmEmulator
@@ -48,7 +50,13 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"feetech {name!r}: {len(ids)} counts needed for {group}", file=sys.stderr)
                 return 2
             initial = dict(zip(ids, counts, strict=True))
-            emulators[name] = FeetechEmulator(ids, initial_position=initial).start()
+            limits = {i: RX1_ANGLE_LIMITS[i] for i in ids}
+            try:
+                emulator = FeetechEmulator(ids, initial_position=initial, angle_limits=limits)
+            except ValueError as exc:
+                print(f"feetech {name!r}: {exc}", file=sys.stderr)
+                return 2
+            emulators[name] = emulator.start()
             where[name] = emulators[name].port
         else:
             print(f"unknown emulator kind {kind!r}; valid: xarm7, leap, feetech", file=sys.stderr)

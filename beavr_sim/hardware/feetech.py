@@ -6,8 +6,28 @@ One :class:`FeetechBus` drives one group of the RX-1's servos (:data:`GROUPS`: `
 joint) and the conversion ``counts = angle / pi * 2048 * direction * gear + 2048`` follow the
 RX-1's own ROS driver (Red-Rabbit-Robotics/rx1, ``rx1_motor``) and live here, in one tested place
 (:data:`GROUPS`, :func:`angle_to_counts`, :func:`counts_to_angle`). Two departures from that
-driver: it divides by 3.14, not pi (0.05 % more counts per radian: about one count at the ends
-of a servo turn), and truncates to an integer where this rounds.
+driver: it divides by 3.14, not pi (0.05 % more counts per radian: about 2.5 counts at the
+shoulder's +-2.51 rad), and truncates to an integer where this rounds.
+
+Multi-turn: a joint behind a 3:1 gearbox covers only +-pi/3 rad in one servo turn (counts
+0..4095), less than its model range (shoulder pitch +-2.51 rad: counts 2048 -+ 4916; elbow
+[-2.2, 0] rad: down to 2048 - 4300). The RX-1 driver writes the formula's counts as they come,
+negative ones sign-magnitude (bit 15), which works because its makers set both angle limits
+(Min 9, Max 11) of every geared servo to 0 (Red-Rabbit-Robotics/rx1 issue #3): the STS3215's
+multi-turn position operation ("0 when multi-turn absolute position control is used", its memory
+table). :data:`RX1_ANGLE_LIMITS` records that setup. Goals here are the formula's counts, clipped
+to the model limits and to what each servo's angle limits allow (:func:`allowed_counts`): one
+turn, min..max, when they are set; +-7 turns (:data:`MULTI_TURN_MAX_COUNT`) when both are 0.
+:meth:`FeetechBus.connect` reads every servo's angle limits and refuses (``DeviceError``, naming
+the servos, the joints and the fix) a group whose model joint range does not fit in what its
+servos allow, rather than clip the joints there: a clipped joint would hold short of where the
+twin goes, every time, where one fix of two EEPROM registers makes it reach. It also refuses a
+multi-turn servo whose Phase (18) lacks bit 4 (full-angle feedback): such a servo reports its
+position within one turn, so the driver could not tell where the joint is (and "goal = present"
+at connect would move it by whole servo turns). Not detectable here: an STS3215 is reported to
+forget its turn count when powered off (Red-Rabbit-Robotics/rx1 issue #8), after which it reads
+its angle within one turn; power the RX-1 on with its geared joints within one servo turn of
+their zero (+-pi/3 rad at a 3:1 joint), or its readings and goals are off by whole turns.
 
 Not modelled: the RX-1's torso pitch and roll servos (ids 2 and 3) form a parallel linkage; its
 driver turns (pitch, roll) into the two servo angles with a closed-form IK (``torsoIk``) before
@@ -21,9 +41,8 @@ Position (42), Goal Time (44, always 0) and Goal Speed (46), seven bytes per ser
 SCServo library's ``SyncWritePosEx`` lays them out (the RX-1 driver's command). Speed and
 acceleration are set in joint units (:attr:`FeetechConfig.speed_rad_s`, ``acceleration_rad_s2``)
 and scaled by each servo's gear, as the RX-1 driver does. Targets are clipped to the model
-limits, then to one servo turn (counts 0..4095): a 3:1 geared joint covers only +-pi/3 rad
-within one servo turn, less than some model ranges (shoulder pitch +-2.51 rad). Positions come
-back in one sync read of Present Position (56).
+limits, then to the counts the servo allows (above). Positions come back, signed, in one sync
+read of Present Position (56).
 
 Notes on ``feetech-servo-sdk`` 1.0.0 (module ``scservo_sdk``), from its source: it is only the
 packet layer: no control-table constants and no sign handling (``SCS_TOHOST`` / ``SCS_TOSCS``
@@ -100,7 +119,15 @@ SERVOS_BY_ID: dict[int, Servo] = {s.id: s for g in GROUPS.values() for s in g}
 
 COUNTS_PER_REV = 4096
 CENTER_COUNTS = 2048  # the joint's zero
-MAX_COUNT = COUNTS_PER_REV - 1  # goals stay within one servo turn: 0..4095
+MAX_COUNT = COUNTS_PER_REV - 1  # the top of one servo turn: 0..4095
+# Multi-turn position operation (angle limits 9 and 11 both 0): a Feetech support note on it
+# ("Regarding SMS and STS servo multi-turn and large-angle setting and control", A. Hong, Feetech,
+# 2023, linkedin.com/pulse/anglecontrol-abby-hong) gives "plus or minus 7 turns" (and, in the same
+# line, 30721 counts = 2700 deg: 7.5 turns). Goals here stay within the smaller figure, 7 turns
+# either side of count 0, inside what the sign-magnitude word encodes (+-32767). Not checked on a
+# real servo. The RX-1 needs at most about 2048 + 4916 counts (shoulder pitch).
+MULTI_TURN_TURNS = 7
+MULTI_TURN_MAX_COUNT = MULTI_TURN_TURNS * COUNTS_PER_REV  # 28672
 STEPS_PER_RAD = COUNTS_PER_REV / (2.0 * math.pi)  # speed unit: counts (steps) per second
 ACC_UNIT = 100.0  # Acceleration (41) counts in 100 steps/s^2
 MAX_ACC_REGISTER = 254
@@ -136,9 +163,34 @@ def from_sign_magnitude(raw: int, sign_bit: int = SIGN_BIT) -> int:
     return -(raw & ~(1 << sign_bit)) if raw & (1 << sign_bit) else raw
 
 
+def allowed_counts(min_limit: int, max_limit: int) -> tuple[int, int]:
+    """The goal counts an STS3215 in position mode reaches with these angle limits (Min 9, Max
+    11): both 0, multi-turn, +-:data:`MULTI_TURN_MAX_COUNT`; otherwise one turn, min..max (the
+    servo clamps its goals to them). ValueError for limits an STS3215 does not take."""
+    if min_limit == 0 and max_limit == 0:
+        return -MULTI_TURN_MAX_COUNT, MULTI_TURN_MAX_COUNT
+    if not 0 <= min_limit < max_limit <= MAX_COUNT:
+        raise ValueError(
+            f"angle limits {min_limit}..{max_limit} are neither 0 and 0 (multi-turn) nor "
+            f"0 <= min < max <= {MAX_COUNT} (one turn)"
+        )
+    return min_limit, max_limit
+
+
+#: The angle limits (Min 9, Max 11) the RX-1's servos run with, by id: its makers set both to 0
+#: (multi-turn) on every servo behind a 3D-printed gearbox (Red-Rabbit-Robotics/rx1 issue #3);
+#: the others (gear 1) are taken to keep the factory 0..4095, which their model ranges fit in.
+#: What :mod:`beavr_sim.hardware.emulators` gives its emulated servos.
+RX1_ANGLE_LIMITS: dict[int, tuple[int, int]] = {
+    s.id: (0, 0) if s.gear > 1 else (0, MAX_COUNT) for s in SERVOS_BY_ID.values()
+}
+
+
 # --- control table (STS series) --------------------------------------------------------------
 
 ADDR_MODEL_NUMBER = 3
+ADDR_MIN_ANGLE_LIMIT = 9  # Max Angle Limit (11) follows it
+ADDR_PHASE = 18
 ADDR_OPERATING_MODE = 33
 ADDR_TORQUE_ENABLE = 40
 ADDR_ACCELERATION = 41
@@ -147,6 +199,10 @@ ADDR_GOAL_TIME = 44
 ADDR_GOAL_SPEED = 46
 ADDR_PRESENT_POSITION = 56
 POSITION_MODE = 0
+# Phase (18) bit 4, angle feedback: 0 reports the position within one turn, 1 the full
+# (multi-turn) angle (the STS memory table; Feetech's multi-turn note: "+16"; LeRobot clears it
+# on its STS3215s to keep readings within 0..4095).
+PHASE_FULL_ANGLE_FEEDBACK = 0x10
 COMMAND_SIZE = 7  # acceleration, goal position, goal time, goal speed: 41..47
 # Baud rates the SDK's PortHandler accepts (getCFlagBaud).
 SDK_BAUDRATES = (4800, 9600, 14400, 19200, 38400, 57600, 115200, 128000, 250000, 500000, 1000000)
@@ -305,25 +361,35 @@ class FeetechConfig:
 
     def count_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """Inclusive goal bounds in counts per servo: the model limits (if any) moved inward to
-        whole counts, within one servo turn (a direction of -1 swaps which limit is which)."""
+        whole counts (a direction of -1 swaps which limit is which), within the multi-turn range
+        +-:data:`MULTI_TURN_MAX_COUNT`; a side without a limit gets the end of that range. What
+        each servo's angle limits allow narrows these at :meth:`FeetechBus.connect`."""
         n = len(self.servos)
         d, g = self.directions, self.gears
+        top = MULTI_TURN_MAX_COUNT
         ends = []
         for bound, default in ((self.lower, -np.inf), (self.upper, np.inf)):
             q = np.full(n, default) if bound is None else np.asarray(bound, dtype=np.float64)
             ends.append(q / np.pi * CENTER_COUNTS * d * g + CENTER_COUNTS)  # unrounded counts
         tol = 1e-6  # counts: a limit that is a whole count stays that count
-        lo_c = np.clip(np.minimum(*ends) - tol, -1.0, COUNTS_PER_REV)
-        hi_c = np.clip(np.maximum(*ends) + tol, -1.0, COUNTS_PER_REV)
-        lo = np.maximum(np.ceil(lo_c).astype(np.int64), 0)
-        hi = np.minimum(np.floor(hi_c).astype(np.int64), MAX_COUNT)
-        # A range narrower than one count (or outside the turn): the count nearest to it.
+        lo_c = np.clip(np.minimum(*ends) - tol, -top - 1.0, top + 1.0)
+        hi_c = np.clip(np.maximum(*ends) + tol, -top - 1.0, top + 1.0)
+        lo = np.maximum(np.ceil(lo_c).astype(np.int64), -top)
+        hi = np.minimum(np.floor(hi_c).astype(np.int64), top)
+        # A range narrower than one count (or outside the range): the count nearest to it.
         empty = lo > hi
         if empty.any():
-            mid = np.clip(np.rint((lo + hi) / 2.0), 0, MAX_COUNT).astype(np.int64)
+            mid = np.clip(np.rint((lo + hi) / 2.0), -top, top).astype(np.int64)
             lo = np.where(empty, mid, lo)
             hi = np.where(empty, mid, hi)
         return lo, hi
+
+    def limited_count_sides(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per servo, whether the low and the high end of :meth:`count_limits` come from a model
+        limit (a direction of -1 swaps which limit is which)."""
+        up = self.directions > 0
+        has_lower, has_upper = self.lower is not None, self.upper is not None
+        return np.where(up, has_lower, has_upper), np.where(up, has_upper, has_lower)
 
 
 class _Port(PortHandler):
@@ -359,13 +425,13 @@ class FeetechBus(Device):
         self.holding = False
         self.last_target: np.ndarray | None = None  # model rad, as written (after clipping)
         self.model_numbers: dict[int, int] = {}  # as the servos reported them on connect
+        #: (Min, Max) Angle Limit per servo id, as read on connect; (0, 0): multi-turn.
+        self.angle_limits: dict[int, tuple[int, int]] = {}
         self._ids = config.servo_ids
         self._dirs = config.directions
         self._gears = config.gears
-        self._lo_counts, self._hi_counts = config.count_limits()
-        # The model range one servo turn covers, per joint (for clipping before rounding).
-        ends = counts_to_angle(np.array([[0], [MAX_COUNT]]), self._dirs, self._gears)
-        self._turn_lo, self._turn_hi = ends.min(axis=0), ends.max(axis=0)
+        self._model_lo, self._model_hi = config.count_limits()
+        self._set_count_range(self._model_lo, self._model_hi)  # narrowed on connect
         self._speeds = config.speed_registers()
         self._accs = config.acceleration_registers()
         self._port: PortHandler | None = None
@@ -411,6 +477,7 @@ class FeetechBus(Device):
         try:
             self._ping_all()
             self._check_modes()
+            self._check_angle_limits()
             # Goal = present before torque on: a stale goal cannot make the robot jump.
             self._write_goal_counts(self._read_counts(), count=False)
             for i in self._ids:
@@ -432,7 +499,7 @@ class FeetechBus(Device):
         if lo is not None or hi is not None:
             q = np.clip(q, -np.inf if lo is None else lo, np.inf if hi is None else hi)
         # Clip in radians first (no int overflow for huge targets), then to whole counts.
-        q = np.clip(q, self._turn_lo, self._turn_hi)
+        q = np.clip(q, self._q_lo, self._q_hi)
         counts = np.clip(
             angle_to_counts(q, self._dirs, self._gears), self._lo_counts, self._hi_counts
         )
@@ -523,30 +590,100 @@ class FeetechBus(Device):
                 f"be driven as an STS)"
             )
 
-    def _check_modes(self) -> None:
+    def _set_count_range(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """The goal counts sent from now on, and the joint angles they span (for clipping in
+        radians before rounding)."""
+        self._lo_counts, self._hi_counts = lo, hi
+        ends = counts_to_angle(np.stack([lo, hi]), self._dirs, self._gears)
+        self._q_lo, self._q_hi = ends.min(axis=0), ends.max(axis=0)
+
+    def _read_register(self, servo_id: int, addr: int, size: int, what: str) -> bytes:
+        """``size`` bytes from ``addr`` of one servo (retried when no reply comes)."""
         port = self._require_connected()
+        for attempt in range(self.config.retries + 1):
+            try:
+                data, result, error = self._ph.readTxRx(port, servo_id, addr, size)
+            except _PORT_ERRORS as exc:
+                raise self._fail(f"serial port {self.config.port!r} failed: {exc}") from exc
+            if result == COMM_SUCCESS and len(data) < size:
+                result = -7  # COMM_RX_CORRUPT: a reply without the data
+            if result == COMM_SUCCESS:
+                break
+            if attempt < self.config.retries:
+                self.comm_retries += 1
+        if result != COMM_SUCCESS:
+            raise self._fail(
+                f"reading {what} of servo {servo_id} on {self.config.port!r} failed "
+                f"({self._comm_text(result)}); check power and the serial cable"
+            )
+        if error:
+            raise self._fail(f"servo {servo_id} reports {self._error_text(error)}")
+        return bytes(data[:size])
+
+    def _check_modes(self) -> None:
         for i in self._ids:
-            for attempt in range(self.config.retries + 1):
-                try:
-                    data, result, error = self._ph.readTxRx(port, i, ADDR_OPERATING_MODE, 1)
-                except _PORT_ERRORS as exc:
-                    raise self._fail(f"serial port {self.config.port!r} failed: {exc}") from exc
-                if result == COMM_SUCCESS:
-                    break
-                if attempt < self.config.retries:
-                    self.comm_retries += 1
-            if result != COMM_SUCCESS:
+            mode = self._read_register(i, ADDR_OPERATING_MODE, 1, "the operating mode")[0]
+            if mode != POSITION_MODE:
                 raise self._fail(
-                    f"reading the operating mode of servo {i} on {self.config.port!r} failed "
-                    f"({self._comm_text(result)}); check power and the serial cable"
-                )
-            if error:
-                raise self._fail(f"servo {i} reports {self._error_text(error)}")
-            if data[0] != POSITION_MODE:
-                raise self._fail(
-                    f"servo {i} is in operating mode {data[0]}, not position mode "
+                    f"servo {i} is in operating mode {mode}, not position mode "
                     f"({POSITION_MODE}); set Operating_Mode (33) to 0 with Feetech's tools"
                 )
+
+    def _check_angle_limits(self) -> None:
+        """Read every servo's angle limits; refuse a servo whose model joint range does not fit
+        in the counts they allow, or a multi-turn one that reports its position within one turn
+        only; then narrow the goal range to what each servo allows."""
+        limits: dict[int, tuple[int, int]] = {}
+        for i in self._ids:
+            raw = self._read_register(i, ADDR_MIN_ANGLE_LIMIT, 4, "the angle limits (9, 11)")
+            limits[i] = (int.from_bytes(raw[:2], "little"), int.from_bytes(raw[2:], "little"))
+        allowed: list[tuple[int, int]] = []
+        for i in self._ids:
+            try:
+                allowed.append(allowed_counts(*limits[i]))
+            except ValueError as exc:
+                raise self._fail(
+                    f"servo {i}: {exc}; set them with Feetech's FD tool: both 0 for "
+                    f"multi-turn, as the RX-1 runs every servo behind a 3:1 gearbox"
+                ) from None
+        a_lo, a_hi = (np.array(column, dtype=np.int64) for column in zip(*allowed, strict=True))
+        lo, hi = self._model_lo, self._model_hi
+        lo_known, hi_known = self.config.limited_count_sides()
+        misfit = (lo_known & (lo < a_lo)) | (hi_known & (hi > a_hi)) | (hi < a_lo) | (lo > a_hi)
+        if misfit.any():
+            bad = [k for k in range(len(self._ids)) if misfit[k]]
+            needed = [
+                (f"{lo[k]}" if lo_known[k] else "-inf", f"{hi[k]}" if hi_known[k] else "inf")
+                for k in range(len(self._ids))
+            ]
+            details = "; ".join(
+                f"{self._ids[k]} {self.joint_names[k]}: needs counts {needed[k][0]}.."
+                f"{needed[k][1]}, angle limits {limits[self._ids[k]]} allow {a_lo[k]}..{a_hi[k]}"
+                for k in bad
+            )
+            raise self._fail(
+                f"servo(s) {[self._ids[k] for k in bad]} cannot reach their model joint range "
+                f"({details}); a servo whose angle limits (Min 9, Max 11) are set stays within "
+                f"one turn, counts 0..4095: set both to 0 with Feetech's FD tool, multi-turn "
+                f"position operation, as the RX-1 runs every servo behind a 3:1 gearbox "
+                f"(Red-Rabbit-Robotics/rx1 issue #3), and set bit 4 of its Phase (18) so it "
+                f"reports the full angle (or, for a range within one turn, widen the limits)"
+            )
+        multi = [i for i in self._ids if limits[i] == (0, 0)]
+        one_turn_feedback = [
+            i
+            for i in multi
+            if not self._read_register(i, ADDR_PHASE, 1, "the phase (18)")[0]
+            & PHASE_FULL_ANGLE_FEEDBACK
+        ]
+        if one_turn_feedback:
+            raise self._fail(
+                f"servo(s) {one_turn_feedback} run multi-turn (angle limits 0 and 0) but report "
+                f"their position within one turn (Phase (18) bit 4 clear): the driver could not "
+                f"tell where their joints are; set bit 4 of Phase (add 16) with Feetech's FD tool"
+            )
+        self.angle_limits = limits
+        self._set_count_range(np.maximum(lo, a_lo), np.minimum(hi, a_hi))
 
     def _write_register(self, servo_id: int, addr: int, value: int, what: str) -> None:
         port = self._require_connected()

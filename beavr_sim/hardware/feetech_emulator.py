@@ -15,10 +15,10 @@ so that the vendor's own ``scservo_sdk`` (``PortHandler`` on :attr:`FeetechEmula
   5 overload), set only through :meth:`FeetechEmulator.inject_error`;
 * the part of the STS control table the RX-1 driver uses, words little-endian, positions and
   speeds sign and magnitude (bit 15): firmware version 0-1, model number 3 (777), id 5, baud
-  rate 6, angle limits 9 / 11, operating mode 33, torque enable 40, acceleration 41 (100 steps
-  per s^2; 0: no limit), goal position 42, goal time 44, goal speed 46 (steps/s; 0: the servo's
-  top speed), torque limit 48, lock 55, present position 56, present speed 58, present load 60,
-  voltage 62, temperature 63, status 65, moving 66, present current 69.
+  rate 6, angle limits 9 / 11, phase 18, operating mode 33, torque enable 40, acceleration 41
+  (100 steps per s^2; 0: no limit), goal position 42, goal time 44, goal speed 46 (steps/s; 0:
+  the servo's top speed), torque limit 48, lock 55, present position 56, present speed 58,
+  present load 60, voltage 62, temperature 63, status 65, moving 66, present current 69.
 
 Choices where the facts at hand stop (nothing here was checked against a real servo): a packet
 with a bad checksum is ignored, with no reply, as the servo cannot trust the id it carries and
@@ -28,6 +28,15 @@ fields are fixed here) changes nothing and is answered with error 0; values a fi
 are ignored (torque enable other than 0 / 1: the real servo's 128 recalibrates its centre, which
 is never wanted here); goal positions are clamped to the angle limits, as the servo does in
 position mode. A goal write does not switch torque on.
+
+Multi-turn: a servo whose angle limits are both 0 (``angle_limits=(0, 0)``, the default, as the
+RX-1 runs its geared servos) takes any goal the sign-magnitude word encodes (the real servo's
+multi-turn reach, "+-7 turns" in Feetech's words, is not modelled) and its shaft position goes
+past one turn either way. It reports that full, signed position when bit 4 of its Phase (18) is
+set (the default here, :data:`PHASE_FULL_ANGLE_FEEDBACK`), else the position within one turn
+(0..4095), as an STS3215 with single-turn feedback does. A servo with limits set (e.g.
+``(0, 4095)``, the factory's) clamps its goals to them and stays within one turn. Not modelled:
+the turn count a real servo is reported to lose when powered off.
 
 The servo model is the Dynamixel emulator's (:mod:`beavr_sim.hardware.servo_model`), advanced
 by wall time: with torque on, each servo moves towards its goal at its goal speed (or its top
@@ -69,6 +78,7 @@ ADDR_ID = 5
 ADDR_BAUD_RATE = 6
 ADDR_MIN_ANGLE_LIMIT = 9
 ADDR_MAX_ANGLE_LIMIT = 11
+ADDR_PHASE = 18
 ADDR_OPERATING_MODE = 33
 ADDR_TORQUE_ENABLE = 40
 ADDR_ACCELERATION = 41
@@ -91,6 +101,10 @@ TABLE_SIZE = 86
 MODEL_STS3215 = 777
 COUNTS_PER_REV = 4096
 MAX_COUNT = COUNTS_PER_REV - 1
+MAX_MAGNITUDE = 0x7FFF  # the largest |position| a sign-magnitude word (bit 15) holds
+PHASE_FULL_ANGLE_FEEDBACK = 0x10  # Phase (18) bit 4: report the full (multi-turn) angle
+MULTI_TURN = (0, 0)  # angle limits of a servo in multi-turn position operation
+ONE_TURN = (0, MAX_COUNT)  # the factory's angle limits
 TOP_SPEED_STEPS = 3072  # STS3215 no-load speed, 45 rpm, in steps/s
 ACC_UNIT = 100  # Acceleration (41) counts in 100 steps/s^2
 MAX_LENGTH = 246  # largest length field: the SDK's 250-byte packets less header, id, length
@@ -210,6 +224,7 @@ _FIELDS: dict[int, _Field] = {
     ADDR_BAUD_RATE: _Field("baud_rate", 1, None, False),
     ADDR_MIN_ANGLE_LIMIT: _Field("min_angle_limit", 2, None, False),
     ADDR_MAX_ANGLE_LIMIT: _Field("max_angle_limit", 2, None, False),
+    ADDR_PHASE: _Field("phase", 1, None, False),
     ADDR_OPERATING_MODE: _Field("operating_mode", 1, None, False),
     ADDR_TORQUE_ENABLE: _Field("torque_enable", 1, None, True),
     ADDR_ACCELERATION: _Field("acceleration", 1, None, True),
@@ -233,9 +248,10 @@ _FIELDS: dict[int, _Field] = {
 class ServoState:
     """One emulated STS3215: control-table fields plus the float servo state.
 
-    ``position`` is the true (float) shaft position in counts, ``velocity`` its speed
-    (counts/s); ``present_position`` is what the servo reports (rounded). ``error`` is the
-    status byte of every packet the servo sends.
+    ``position`` is the true (float) shaft position in counts, past one turn either way when
+    multi-turn, ``velocity`` its speed (counts/s); ``present_position`` is what the servo
+    reports (rounded; within one turn for a multi-turn servo without full-angle feedback).
+    ``error`` is the status byte of every packet the servo sends.
     """
 
     id: int
@@ -245,8 +261,9 @@ class ServoState:
     firmware_major: int = 3
     firmware_minor: int = 10
     baud_rate: int = 0  # 1 Mbaud
-    min_angle_limit: int = 0
+    min_angle_limit: int = 0  # both 0: multi-turn
     max_angle_limit: int = MAX_COUNT
+    phase: int = PHASE_FULL_ANGLE_FEEDBACK
     operating_mode: int = 0  # position mode
     torque_enable: int = 0
     acceleration: int = 0
@@ -261,8 +278,14 @@ class ServoState:
     writes: list[tuple[int, int, int]] = field(default_factory=list)  # (address, size, value)
 
     @property
+    def multi_turn(self) -> bool:
+        return self.min_angle_limit == 0 and self.max_angle_limit == 0
+
+    @property
     def present_position(self) -> int:
-        return round(self.position)
+        if self.multi_turn and not self.phase & PHASE_FULL_ANGLE_FEEDBACK:
+            return round(self.position) % COUNTS_PER_REV
+        return max(-MAX_MAGNITUDE, min(MAX_MAGNITUDE, round(self.position)))
 
     @property
     def present_speed(self) -> int:
@@ -295,8 +318,12 @@ class FeetechEmulator(EmulatedBus):
     """A chain of emulated STS3215 servos behind a pseudo-terminal, served by a daemon thread.
 
     ``emulator.port`` is the slave device path to hand to ``scservo_sdk.PortHandler``.
-    ``initial_position``: counts, for all servos or per id. ``top_speed_steps``: the speed
-    (steps/s) a servo moves at with Goal Speed 0, and the most it ever moves at.
+    ``initial_position``: counts, for all servos or per id (signed, past one turn for a
+    multi-turn servo; within its limits for one with limits set). ``angle_limits``: (Min, Max)
+    Angle Limit, for all servos or per id (missing ids: multi-turn); :data:`MULTI_TURN`
+    ``(0, 0)``, the default, as the RX-1 runs its geared servos, or one turn, e.g.
+    :data:`ONE_TURN`. ``top_speed_steps``: the speed (steps/s) a servo moves at with Goal Speed 0,
+    and the most it ever moves at.
     """
 
     thread_name = "feetech-emulator"
@@ -306,6 +333,7 @@ class FeetechEmulator(EmulatedBus):
         servo_ids: tuple[int, ...] | list[int],
         *,
         initial_position: int | dict[int, int] = 2048,
+        angle_limits: tuple[int, int] | dict[int, tuple[int, int]] = MULTI_TURN,
         top_speed_steps: float = TOP_SPEED_STEPS,
         model_number: int = MODEL_STS3215,
     ) -> None:
@@ -323,8 +351,28 @@ class FeetechEmulator(EmulatedBus):
                 if isinstance(initial_position, dict)
                 else initial_position
             )
+            lo, hi = (
+                angle_limits.get(i, MULTI_TURN) if isinstance(angle_limits, dict) else angle_limits
+            )
+            if (lo, hi) != MULTI_TURN and not 0 <= lo < hi <= MAX_COUNT:
+                raise ValueError(
+                    f"servo {i}: angle_limits must be (0, 0) (multi-turn) or 0 <= min < max <= "
+                    f"{MAX_COUNT} (one turn), got {(lo, hi)!r}"
+                )
+            top = MAX_MAGNITUDE if (lo, hi) == MULTI_TURN else MAX_COUNT
+            bottom = -top if (lo, hi) == MULTI_TURN else 0
+            if not bottom <= start <= top:
+                raise ValueError(
+                    f"servo {i}: initial_position {start} must be in {bottom}..{top} for angle "
+                    f"limits {(lo, hi)!r}"
+                )
             self.servos[i] = ServoState(
-                id=i, position=float(start), goal_position=int(start), model_number=model_number
+                id=i,
+                position=float(start),
+                goal_position=int(start),
+                model_number=model_number,
+                min_angle_limit=int(lo),
+                max_angle_limit=int(hi),
             )
         #: Every goal position value received (write or sync write), as sent:
         #: ``(time.monotonic(), servo id, counts)``; the goals of one packet share the time.

@@ -51,7 +51,14 @@ from typing import Any
 import numpy as np
 
 from beavr_sim.hardware.device import Device
-from beavr_sim.hardware.feetech import GROUPS, FeetechBus, FeetechConfig, angle_to_counts
+from beavr_sim.hardware.feetech import (
+    GROUPS,
+    RX1_ANGLE_LIMITS,
+    FeetechBus,
+    FeetechConfig,
+    allowed_counts,
+    angle_to_counts,
+)
 from beavr_sim.hardware.leap import LeapHand, LeapHandConfig, model_to_counts
 from beavr_sim.hardware.xarm import XArm7, XArmConfig
 from beavr_sim.naming import check_name
@@ -244,7 +251,9 @@ def _feetech_start(group: str, q: np.ndarray) -> dict:
     counts = angle_to_counts(
         np.asarray(q, float), [s.direction for s in servos], [s.gear for s in servos]
     )
-    return {"group": group, "counts": [int(c) for c in np.clip(counts, 0, 4095)]}
+    # Each servo within what the RX-1's angle limits allow (multi-turn for the geared ones).
+    lo, hi = np.array([allowed_counts(*RX1_ANGLE_LIMITS[s.id]) for s in servos]).T
+    return {"group": group, "counts": [int(c) for c in np.clip(counts, lo, hi)]}
 
 
 class EmulatedRig:
