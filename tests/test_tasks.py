@@ -198,7 +198,20 @@ def test_task_names_accept_any_case():
 
 
 # ----------------------------------------------------------------------------- experts
-EXPERT_CASES = [(t, e) for t in EXPERTS for e in _supported(t)]
+#: Experts not yet at 2 of 3 seeds on an embodiment (issue 19, open: the RX-1's StackBlocks
+#: and Pour experts). Strict: a case that starts passing must be moved out of this list.
+KNOWN_SHORT = {("StackBlocks", "rx1"), ("Pour", "rx1")}
+EXPERT_CASES = [
+    pytest.param(
+        t,
+        e,
+        marks=pytest.mark.xfail(strict=True, reason="expert below 2/3 seeds here (issue 19)")
+        if (t, e) in KNOWN_SHORT
+        else (),
+    )
+    for t in EXPERTS
+    for e in _supported(t)
+]
 
 
 @pytest.mark.parametrize("task,embodiment", EXPERT_CASES)

@@ -27,6 +27,9 @@ MAX_ANGULAR_SPEED = 1.5  # rad/s
 MAX_FINGER_SPEED = 3.0  # rad/s per joint
 #: Joint speed of the opening move to the ready posture (rad/s, the fastest joint).
 READY_JOINT_SPEED = 1.0
+#: Ready hands stand at least this far apart sideways (m): two hands on close shoulders (a
+#: humanoid's) wait spread out, clear of each other and of the other's work.
+READY_MIN_SPACING = 0.4
 
 
 @dataclass
@@ -154,17 +157,37 @@ class ScriptedExpert(ABC):
     def effector_names(self) -> list[str]:
         return [e.name for e in self.embodiment.effectors]
 
+    def effector_spec(self, effector: str):
+        return next(e for e in self.embodiment.spec.effectors if e.name == effector)
+
+    def pinch_heading(self, effector: str) -> float:
+        """The palm-down hand heading (rad, world) ``effector``'s arm reaches the table with
+        most freely (:attr:`ArmModel.pinch_heading_deg_by_side`, turned with the base)."""
+        e = self.effector_spec(effector)
+        return e.arm.pinch_heading(e.side) + float(np.deg2rad(e.base_yaw_deg))
+
     def ready_poses(self) -> dict[str, mink.SE3]:
-        """Each hand palm down, fingers forward, 20 cm above the workspace in front of its
-        arm: the posture the IK's redundancy resolves towards (keeps the elbow and wrist in
-        one consistent configuration across episodes)."""
+        """Each hand palm down at its arm's pinch heading (fingers forward on an xArm), 20 cm
+        above the workspace in front of its arm (spread to READY_MIN_SPACING apart when the
+        arms stand closer): the posture the IK's redundancy resolves towards (keeps the elbow
+        and wrist in one consistent configuration across episodes)."""
         ws = self.task.workspace
+        specs = self.embodiment.spec.effectors
+        ys = np.array([e.base_pos[1] for e in specs], float)
+        if np.ptp(ys) > 0 and np.ptp(ys) < READY_MIN_SPACING:
+            ys = ys.mean() + (ys - ys.mean()) * READY_MIN_SPACING / np.ptp(ys)
         return {
             e.name: grasps.T_world_hand_pinching(
-                (np.mean(ws.x), e.base_pos[1], TABLE_TOP_Z + 0.2), grasps.R_world_palm_down(0.0)
+                (np.mean(ws.x), y, TABLE_TOP_Z + 0.2),
+                grasps.R_world_palm_down(self.pinch_heading(e.name)),
             )
-            for e in self.embodiment.spec.effectors
+            for e, y in zip(specs, ys, strict=True)
         }
+
+    def reaches(self, effector: str, targets) -> bool:
+        """Whether ``effector``'s hand can get to the poses ``targets`` in turn from where
+        the IK is now (a trial: the IK state is left as it was)."""
+        return self.ik.reaches(*({effector: T} for T in targets))
 
     # ------------------------------------------------------- motion primitives
     def pick(self, effector: str, obj: str, heading: float, lift: float = 0.12) -> Iterator[Move]:

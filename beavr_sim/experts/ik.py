@@ -90,6 +90,27 @@ class TwinIK:
                 break
         return q
 
+    def reaches(
+        self,
+        *waypoints: Mapping[str, mink.SE3],
+        position_tolerance: float = 0.005,
+        rotation_tolerance: float = np.deg2rad(3.0),
+    ) -> bool:
+        """Whether the hands can get to each of ``waypoints`` (effector name -> target) in
+        turn from the current configuration: trial :meth:`converge` calls (joint limits
+        included), after which the IK state is put back."""
+        q, posture = self.configuration.q.copy(), self.posture_task.target_q.copy()
+        try:
+            for targets in waypoints:
+                self.converge(targets)
+                errors = self.pose_error(targets).values()
+                if any(p > position_tolerance or r > rotation_tolerance for p, r in errors):
+                    return False
+            return True
+        finally:
+            self.configuration.update(q)
+            self.posture_task.set_target(posture)
+
     def T_world_hand(self, effector: str) -> mink.SE3:
         """The hand (mount) frame of ``effector`` in the current IK configuration."""
         return self.configuration.get_transform_frame_to_world(effector + "/hand", "body")

@@ -62,6 +62,11 @@ THUMB_FIRST = np.concatenate([grasps.PINCH_OPEN[:12], PINCH_FIRM[12:]])
 CLOSE_SEQUENCE = (THUMB_FIRST, PINCH_FIRM)
 #: Each closing step takes this long: slow enough for the thumb to land on the cup.
 CLOSE_SECONDS = 1.0
+#: Hand headings (deg from the arm's pinch heading, mirrored for a left hand) tried in turn
+#: for the pour: the first from which the arm reaches the whole pour is used.
+POUR_HEADING_STEPS = (0.0, 15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
+#: The tilt is checked at this many steps (the IK follows it from one to the next).
+TILT_CHECKS = 4
 
 
 @dataclass
@@ -73,6 +78,19 @@ class Tilt(Move):
     pivot: np.ndarray | None = None
     axis: np.ndarray | None = None
     angle: float = 0.0
+
+
+@dataclass(frozen=True)
+class PourPlan:
+    """A pour with one hand heading: ``R_grasp`` / ``grasp_centre``, the hand's orientation and
+    pinch centre on the cup; ``base``, the cup's base centre upright before the pour; ``lip``,
+    the pivot (its pouring lip then); ``axis``, what it tips about (world)."""
+
+    R_grasp: np.ndarray
+    grasp_centre: np.ndarray
+    base: np.ndarray
+    lip: np.ndarray
+    axis: np.ndarray
 
 
 def rotated_about(T: mink.SE3, pivot, axis, angle: float) -> mink.SE3:
@@ -126,13 +144,11 @@ class PourExpert(ScriptedExpert):
         source = self.task.objects["source_cup"].pos(data)
         target = self.task.fixtures["target_cup"].pos(data)
         effector = self.nearest_effector(source)
-        side = next(e.side for e in self.embodiment.spec.effectors if e.name == effector)
+        heading = self.pour_heading(effector, source, target)
+        plan = self.plan(effector, heading, source, target)
 
         # Pick the cup by its body.
-        heading = 0.0
-        R = grasps.R_world_palm_down(heading)
-        centre = np.array([source[0], source[1], TABLE_TOP_Z + PINCH_HEIGHT])
-        centre[:2] += GRASP_SHIFT[side] * np.array([np.cos(heading), np.sin(heading)])
+        R, centre = plan.R_grasp, plan.grasp_centre
         above = grasps.T_world_hand_pinching(centre + [0, 0, LIFT], R)
         yield Move(poses={effector: above}, fingers={effector: grasps.PINCH_OPEN}, settle=0.2)
         yield Move(poses={effector: grasps.T_world_hand_pinching(centre, R)}, settle=0.2)
@@ -141,16 +157,9 @@ class PourExpert(ScriptedExpert):
         yield Move(settle=0.2)
         yield Move(poses={effector: above}, settle=0.3)
 
-        # The pour direction: the hand's thumb side (the little-finger side has the ring
-        # finger along the cup, where the drops would run out onto it).
-        pour_dir = np.array([0.0, 1.0 if side == "right" else -1.0, 0.0])
-        axis = np.cross([0.0, 0.0, 1.0], pour_dir)  # tipping about it leans the cup pour_dir
         # The cup upright beside the target, its pouring lip over the target's opening, its
         # bottom clear above the target's rim; the hand pose from where the cup sits in it.
-        lip_xy = target[:2] + pour_dir[:2] * LIP_OFFSET
-        base = np.array([*(lip_xy - pour_dir[:2] * SOURCE_OUTER_RADIUS), 0.0])
-        base[2] = target[2] + TARGET_HEIGHT + BOTTOM_CLEARANCE
-        lip = np.array([*lip_xy, base[2] + SOURCE_HEIGHT])
+        base, lip, axis = plan.base, plan.lip, plan.axis
         yield Move(poses={effector: self.hand_for_cup(effector, base)}, settle=0.3)
         # Look again (the cup may have shifted in the pinch during the carry) and correct.
         yield Move(poses={effector: self.hand_for_cup(effector, base)}, settle=0.2)
@@ -176,6 +185,51 @@ class PourExpert(ScriptedExpert):
         )
         yield Move(poses={effector: up})
         yield from self.retreat(effector)
+
+    def plan(self, effector: str, heading: float, source, target) -> PourPlan:
+        """Where to pinch the cup with the hand at ``heading``, and where it pours from.
+
+        The pour direction is the hand's thumb side (the little-finger side has the ring
+        finger along the cup, where the drops would run out onto it), square to the fingers.
+        """
+        side = self.effector_spec(effector).side
+        fingers = np.array([np.cos(heading), np.sin(heading), 0.0])
+        centre = np.array([source[0], source[1], TABLE_TOP_Z + PINCH_HEIGHT])
+        centre += GRASP_SHIFT[side] * fingers
+        thumb = 1.0 if side == "right" else -1.0
+        pour_dir = thumb * np.cross([0.0, 0.0, 1.0], fingers)
+        lip_xy = np.asarray(target[:2]) + pour_dir[:2] * LIP_OFFSET
+        base = np.array([*(lip_xy - pour_dir[:2] * SOURCE_OUTER_RADIUS), 0.0])
+        base[2] = target[2] + TARGET_HEIGHT + BOTTOM_CLEARANCE
+        return PourPlan(
+            R_grasp=grasps.R_world_palm_down(heading),
+            grasp_centre=centre,
+            base=base,
+            lip=np.array([*lip_xy, base[2] + SOURCE_HEIGHT]),
+            axis=np.cross([0.0, 0.0, 1.0], pour_dir),  # tipping about it leans the cup pour_dir
+        )
+
+    def pour_heading(self, effector: str, source, target) -> float:
+        """The hand heading to pinch the cup with: the arm's pinch heading, or else the one
+        nearest it (POUR_HEADING_STEPS, mirrored for a left hand) from which the arm reaches
+        the grasp, the pour's start and the cup tipped over the target all the way (IK
+        trials with the cup where the pinch puts it)."""
+        spec = self.effector_spec(effector)
+        mirror = 1.0 if spec.side == "right" else -1.0
+        for step in POUR_HEADING_STEPS:
+            heading = self.pinch_heading(effector) + mirror * np.deg2rad(step)
+            plan = self.plan(effector, heading, source, target)
+            grasp = grasps.T_world_hand_pinching(plan.grasp_centre, plan.R_grasp)
+            start = mink.SE3.from_rotation_and_translation(
+                grasp.rotation(), grasp.translation() + plan.base - np.asarray(source, float)
+            )
+            tilt = [
+                rotated_about(start, plan.lip, plan.axis, POUR_ANGLE * k / TILT_CHECKS)
+                for k in range(1, TILT_CHECKS + 1)
+            ]
+            if self.reaches(effector, [grasp, start, *tilt]):
+                return heading
+        return self.pinch_heading(effector)
 
     def hand_for_cup(self, effector: str, base) -> mink.SE3:
         """The hand pose that puts the held cup upright with its base centre at ``base``,

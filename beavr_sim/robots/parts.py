@@ -30,7 +30,9 @@ class ArmModel:
     ``mjcf`` serves both sides unless ``mjcf_by_side`` names a file for a side (an arm whose
     left and right differ, like the RX-1's). ``root_body`` is the arm's base link;
     ``upper_arm_links`` and ``forearm_links`` name the links the operator's IK keeps the hand
-    away from and off the table.
+    away from and off the table. ``pinch_heading_deg_by_side``: the heading (degrees about the
+    vertical, 0 = along the base's +x) of a palm-down hand that the arm reaches the table with
+    most freely, per side (sides not listed: 0); scripted grasps choose headings around it.
     """
 
     name: str
@@ -42,9 +44,10 @@ class ArmModel:
     root_body: str = "link_base"
     upper_arm_links: tuple[str, ...] = ()
     forearm_links: tuple[str, ...] = ()
+    pinch_heading_deg_by_side: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for side in self.mjcf_by_side:
+        for side in (*self.mjcf_by_side, *self.pinch_heading_deg_by_side):
             check_name("side", side, SIDES)
         for side in self.home_by_side:
             if not (self.mjcf or side in self.mjcf_by_side):
@@ -59,6 +62,10 @@ class ArmModel:
 
     def home(self, side: str) -> tuple[float, ...]:
         return self.home_by_side[check_name("side", side, self.home_by_side)]
+
+    def pinch_heading(self, side: str) -> float:
+        """The palm-down heading (rad, base frame) this arm reaches the table with on ``side``."""
+        return float(np.deg2rad(self.pinch_heading_deg_by_side.get(side, 0.0)))
 
     def mjcf_for(self, side: str) -> str:
         """The MJCF file (relative to ``assets/mjcf``) of this arm's ``side``."""
@@ -219,6 +226,11 @@ RX1_ARM = ArmModel(
     root_body="shoulder_base",
     upper_arm_links=("shoulder_base", "shoulder", "upper_arm"),
     forearm_links=("forearm", "wrist_pitch", "wrist_roll"),
+    # The wrist bends only +-45 deg, so a palm-down hand points about where the forearm does:
+    # with the elbow out to the side, forward and in towards the midline. Palm down, the
+    # right hand reaches the table in front of the robot over headings of about 0 to 70 deg
+    # (the left -70 to 0), and barely at all pointing outwards (IK over the workspace).
+    pinch_heading_deg_by_side={"right": 35.0, "left": -35.0},
 )
 
 #: The RX-1's torso and head (servo ids 1-6); the ears are fixed. The head looks down at the
