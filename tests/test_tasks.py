@@ -198,20 +198,7 @@ def test_task_names_accept_any_case():
 
 
 # ----------------------------------------------------------------------------- experts
-#: Experts not yet at 2 of 3 seeds on an embodiment (issue 19, open: the RX-1's StackBlocks
-#: and Pour experts). Strict: a case that starts passing must be moved out of this list.
-KNOWN_SHORT = {("StackBlocks", "rx1"), ("Pour", "rx1")}
-EXPERT_CASES = [
-    pytest.param(
-        t,
-        e,
-        marks=pytest.mark.xfail(strict=True, reason="expert below 2/3 seeds here (issue 19)")
-        if (t, e) in KNOWN_SHORT
-        else (),
-    )
-    for t in EXPERTS
-    for e in _supported(t)
-]
+EXPERT_CASES = [(t, e) for t in EXPERTS for e in _supported(t)]
 
 
 @pytest.mark.parametrize("task,embodiment", EXPERT_CASES)
@@ -222,6 +209,27 @@ def test_expert_solves_a_few_seeds(task, embodiment):
     expert = expert_class(task)(env)
     results = [run_episode(env, expert, seed) for seed in (0, 1, 2)]
     assert sum(r.success for r in results) >= 2, [(r.seed, r.details) for r in results]
+
+
+def test_rx1_expert_relays_an_object_between_hands(monkeypatch):
+    """PickupBox seed 1 on the RX-1: the box lies at the robot's far right, the target left of
+    the middle, beyond the right hand's reach. The right hand sets the box down where both
+    hands reach and the left one takes it to the target."""
+    from beavr_sim.experts.pick_and_place import PickAndPlaceExpert
+    from beavr_sim.experts.registry import expert_class
+
+    relays = []
+    relay_point = PickAndPlaceExpert.relay_point
+
+    def recorded(self, obj, start, goal, giver, taker, heading):
+        relays.append((giver, taker))
+        return relay_point(self, obj, start, goal, giver, taker, heading)
+
+    monkeypatch.setattr(PickAndPlaceExpert, "relay_point", recorded)
+    env = gym.make("beavr_sim/PickupBox-v0", embodiment="rx1").unwrapped
+    result = run_episode(env, expert_class("PickupBox")(env), 1)
+    assert relays == [("right", "left")]
+    assert result.success, result.details
 
 
 def test_experts_cli_prints_one_json_line_last(capsys):

@@ -29,7 +29,7 @@ MAX_FINGER_SPEED = 3.0  # rad/s per joint
 READY_JOINT_SPEED = 1.0
 #: Ready hands stand at least this far apart sideways (m): two hands on close shoulders (a
 #: humanoid's) wait spread out, clear of each other and of the other's work.
-READY_MIN_SPACING = 0.4
+READY_MIN_SPACING = 0.5
 
 
 @dataclass
@@ -190,15 +190,33 @@ class ScriptedExpert(ABC):
         return self.ik.reaches(*({effector: T} for T in targets))
 
     # ------------------------------------------------------- motion primitives
-    def pick(self, effector: str, obj: str, heading: float, lift: float = 0.12) -> Iterator[Move]:
-        """Front-pinch object ``obj`` (read its pose now) with the hand heading ``heading``,
-        then lift it ``lift`` metres."""
+    def pick_poses(self, obj: str, heading: float, lift: float = 0.12) -> tuple[mink.SE3, ...]:
+        """The hand poses of :meth:`pick`: over object ``obj`` (its pose now), and at it."""
         centre = self.task.objects[obj].pos(self.env.data)
         centre[2] = max(centre[2], TABLE_TOP_Z + grasps.MIN_PINCH_HEIGHT)
         R = grasps.R_world_palm_down(heading)
-        above = grasps.T_world_hand_pinching(centre + [0, 0, lift], R)
-        at = grasps.T_world_hand_pinching(centre, R)
-        yield Move(poses={effector: above}, fingers={effector: grasps.PINCH_OPEN}, settle=0.2)
+        return (
+            grasps.T_world_hand_pinching(centre + [0, 0, lift], R),
+            grasps.T_world_hand_pinching(centre, R),
+        )
+
+    def pick(
+        self,
+        effector: str,
+        obj: str,
+        heading: float,
+        lift: float = 0.12,
+        also: Mapping[str, mink.SE3] | None = None,
+    ) -> Iterator[Move]:
+        """Front-pinch object ``obj`` (read its pose now) with the hand heading ``heading``,
+        then lift it ``lift`` metres. ``also``: other hands' poses to move to meanwhile, on
+        the way over the object."""
+        above, at = self.pick_poses(obj, heading, lift)
+        yield Move(
+            poses={**(also or {}), effector: above},
+            fingers={effector: grasps.PINCH_OPEN},
+            settle=0.2,
+        )
         yield Move(poses={effector: at}, settle=0.2)
         yield Move(fingers={effector: grasps.PINCH_CLOSED}, duration=0.6, settle=0.3)
         yield Move(poses={effector: above}, settle=0.2)
@@ -239,7 +257,12 @@ class ScriptedExpert(ABC):
 
     def retreat(self, effector: str) -> Iterator[Move]:
         """Take the hand back to its ready pose, out of the way of the cameras and objects."""
-        yield Move(poses={effector: self.ready_poses()[effector]})
+        yield Move(poses=self.ready_poses_of(effector))
+
+    def ready_poses_of(self, *effectors: str) -> dict[str, mink.SE3]:
+        """The ready poses of ``effectors`` (effector name -> pose)."""
+        ready = self.ready_poses()
+        return {name: ready[name] for name in effectors}
 
 
 def _interpolate(a: mink.SE3, b: mink.SE3, s: float) -> mink.SE3:

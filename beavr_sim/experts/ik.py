@@ -11,10 +11,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import mink
+import mujoco
 import numpy as np
 
 from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.robots import Embodiment
+from beavr_sim.robots.embodiment import BODY_PREFIX
 
 #: Arm joint speed limit used by the IK (rad/s), well under the xArm7's 180 deg/s.
 ARM_SPEED_LIMIT = 1.5
@@ -62,6 +64,17 @@ class TwinIK:
         ]
         self._q = np.zeros(self.model.nq)
         self.reset(self.joints.home)
+        # Geoms of each effector and of the body (a humanoid's torso and head), for reach
+        # trials.
+        body_name = [
+            self.model.body(self.model.geom_bodyid[g]).name for g in range(self.model.ngeom)
+        ]
+        self._effector_geoms = {
+            e.name: {g for g, b in enumerate(body_name) if b.startswith(e.name + "/")}
+            for e in embodiment.effectors
+        }
+        self._body_geoms = {g for g, b in enumerate(body_name) if b.startswith(BODY_PREFIX)}
+        self._trial = mujoco.MjData(self.model)
 
     def reset(self, q_action_order: np.ndarray, posture: np.ndarray | None = None) -> None:
         """Start from joint positions given in action order (e.g. the measured ones).
@@ -97,7 +110,8 @@ class TwinIK:
         rotation_tolerance: float = np.deg2rad(3.0),
     ) -> bool:
         """Whether the hands can get to each of ``waypoints`` (effector name -> target) in
-        turn from the current configuration: trial :meth:`converge` calls (joint limits
+        turn from the current configuration, without the arm running into the robot's body
+        there (the IK does not avoid it): trial :meth:`converge` calls (joint limits
         included), after which the IK state is put back."""
         q, posture = self.configuration.q.copy(), self.posture_task.target_q.copy()
         try:
@@ -106,10 +120,27 @@ class TwinIK:
                 errors = self.pose_error(targets).values()
                 if any(p > position_tolerance or r > rotation_tolerance for p, r in errors):
                     return False
+                if any(self.touches_body(name) for name in targets):
+                    return False
             return True
         finally:
             self.configuration.update(q)
             self.posture_task.set_target(posture)
+
+    def touches_body(self, effector: str) -> bool:
+        """Whether ``effector``'s arm or hand, in the current IK configuration, runs into the
+        robot's body (a humanoid's torso or head; never, on arms without a body)."""
+        own, body = self._effector_geoms[effector], self._body_geoms
+        if not body:
+            return False
+        d = self._trial
+        d.qpos[:] = self.configuration.q
+        mujoco.mj_fwdPosition(self.model, d)
+        return any(
+            c.dist < 0
+            and ((c.geom1 in own and c.geom2 in body) or (c.geom2 in own and c.geom1 in body))
+            for c in d.contact[: d.ncon]
+        )
 
     def T_world_hand(self, effector: str) -> mink.SE3:
         """The hand (mount) frame of ``effector`` in the current IK configuration."""

@@ -160,8 +160,10 @@ EMBODIMENTS: dict[str, EmbodimentSpec] = {
         "two xArm7s side by side, left and right LEAP hands",
     ),
     # The RX-1 stands on a 12 cm stand behind the table's near edge (x = -0.25), facing +x:
-    # shoulders about 0.42 m above the table top. Objects go where both hands reach them
-    # palm-down, 0.2-0.45 m in front of the shoulders.
+    # shoulders about 0.42 m above the table top. Objects go 0.34-0.56 m in front of the
+    # shoulders, where each hand reaches them palm-down both at the table and 12 cm above it
+    # (closer in, the wrist would have to be inside the shoulder to hold a palm-down hand high
+    # over an object: the scripted approaches from above fall short and sweep it away).
     "rx1": EmbodimentSpec(
         "rx1",
         (
@@ -183,7 +185,7 @@ EMBODIMENTS: dict[str, EmbodimentSpec] = {
         "the RX-1 humanoid (torso, head, two 7-DoF arms) with left and right LEAP hands",
         body=RX1_BODY,
         body_pos=(-0.42, 0.0, 0.12),
-        workspace=((-0.2, 0.02), (-0.3, 0.3)),
+        workspace=((-0.08, 0.14), (-0.3, 0.3)),
         camera_shift=(-0.5, 0.0, 0.0),
         # From behind the robot's shoulders to the table's far edge; down to 0.25 m below the
         # table top behind its near edge (where the elbows pass), the table itself being an
