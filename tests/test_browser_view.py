@@ -39,6 +39,8 @@ if CHROMIUM is None:
         allow_module_level=True,
     )
 
+from beavr_sim.teleop.pipeline import StopTeleop  # noqa: E402
+
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "browser"
 #: Headless WebGL without a GPU: SwiftShader through ANGLE.
 CHROMIUM_ARGS = [
@@ -57,7 +59,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-class _Stop(Exception):
+class _Stop(StopTeleop):
     pass
 
 

@@ -12,6 +12,7 @@ import pytest
 from beavr_sim.assets import mjcf_path
 from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.operator.collision import CollisionLimit
+from beavr_sim.operator.obstacles import fixture_obstacles
 from beavr_sim.operator.retarget import LeapRetargeter, finger_geoms
 from beavr_sim.robots import make_embodiment
 from beavr_sim.robots.parts import LEAP_HAND
@@ -169,3 +170,91 @@ def test_arm_ik_stops_the_fingers_above_the_table():
     margin = ArmIKConfig().collision_margin
     assert reached[True] > margin - 5e-4, reached
     assert reached[False] < 0.0, reached
+
+
+# --------------------------------------------------------------------------- fixtures
+def _fixture_env(task):
+    import gymnasium as gym
+
+    import beavr_sim  # noqa: F401  (registers the envs)
+
+    env = gym.make(f"beavr_sim/{task}-v0").unwrapped
+    env.reset(seed=0)
+    return env
+
+
+def test_fixture_obstacles_are_the_fixtures_where_the_reset_put_them():
+    """Each mocap body with colliding geoms is one obstacle; built into a model and placed,
+    its geoms are where the env has them (Pour's cup: a cylinder and 16 boxes). A visual-only
+    target area is none."""
+    from beavr_sim.operator.obstacles import add_obstacles, obstacle_geoms, place_obstacles
+
+    env = _fixture_env("PickupBox")
+    assert fixture_obstacles(env.model, env.data) == ()
+    env.close()
+    env = _fixture_env("Pour")
+    obstacles = fixture_obstacles(env.model, env.data)
+    assert [o.name for o in obstacles] == ["target_cup"]
+    cup = env.task.fixtures["target_cup"]
+    assert len(obstacles[0].geoms) == len(cup.geom_ids) == 17
+    spec = mujoco.MjSpec()
+    add_obstacles(spec, obstacles)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    place_obstacles(model, data, obstacles)
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_kinematics(env.model, env.data)
+    ours = obstacle_geoms(model, obstacles)
+    np.testing.assert_allclose(data.geom_xpos[ours], env.data.geom_xpos[cup.geom_ids], atol=1e-9)
+    np.testing.assert_allclose(data.geom_xmat[ours], env.data.geom_xmat[cup.geom_ids], atol=1e-9)
+    np.testing.assert_allclose(model.geom_size[ours], env.model.geom_size[cup.geom_ids])
+    env.close()
+
+
+def test_arm_ik_keeps_the_hand_out_of_a_fixture():
+    """Tape's box under the raised hand and a target 15 cm below the hand's home: with the
+    fixtures set, the IK stops the hand and forearm at its margin above the box; without, they
+    go into it. Setting fixtures of the same shapes again only moves them (no new model)."""
+    env = _fixture_env("Tape")
+    emb = env.embodiment
+    margin = ArmIKConfig().collision_margin
+    probe = ArmIK(emb, "right", 1 / 30)
+    T = probe.T_world_hand()
+    env.task.fixtures["box"].place(env.data, T[:2, 3])
+    obstacles = fixture_obstacles(env.model, env.data)
+    assert [o.name for o in obstacles] == ["box"]
+    probe.set_obstacles(obstacles)
+    box = probe.model.geom("obstacle/box/geom0").id
+    watched = {g for pair in probe.collision.geom_id_pairs for g in pair if g != box}
+    assert {g for pair in probe.collision.geom_id_pairs if box in pair for g in pair} - {box}
+    reached = {}
+    for with_box in (True, False):
+        ik = ArmIK(emb, "right", 1 / 30)
+        target = T.copy()
+        target[2, 3] += 0.1  # at home the fingertips are 6 mm below the box's top
+        for _ in range(60):
+            ik.step(target)
+        if with_box:
+            ik.set_obstacles(obstacles)
+        target[2, 3] -= 0.25
+        for _ in range(120):
+            ik.step(target)
+        probe.reset(ik.q)
+        data = probe.configuration.data
+        reached[with_box] = min(
+            mujoco.mj_geomDistance(probe.model, data, g, box, 1.0, None)
+            for g in watched
+            if probe.model.body(probe.model.geom_bodyid[g]).name.startswith("right/")
+        )
+    assert reached[True] > margin - 5e-4, reached
+    assert reached[False] < 0.0, reached
+    # Same shapes, another pose: moved, not rebuilt.
+    model = probe.model
+    env.task.fixtures["box"].place(env.data, T[:2, 3] + [0.0, 0.3])
+    probe.set_obstacles(fixture_obstacles(env.model, env.data))
+    assert probe.model is model
+    xpos = probe.configuration.data.geom_xpos[box]
+    np.testing.assert_allclose(xpos[:2], T[:2, 3] + [0.0, 0.3], atol=1e-9)
+    probe.set_obstacles(())  # none: the robot and table only again
+    assert probe.model.ngeom == ArmIK(emb, "right", 1 / 30).model.ngeom
+    env.close()

@@ -55,24 +55,75 @@ def test_home_and_objects_do_not_block(twin):
 
 def test_command_through_the_table_is_refused_and_robot_holds(twin):
     q_bad = _into_table(twin)
-    before = twin.action.copy()
-    sl = twin.slices["right"]
-    cmd = JointCommand("right", q_bad[sl], t_source=0.0, t_receive=0.0)
-    applied = twin.commands_applied
-    state = twin.apply({"right": cmd})
-    assert state.guard_blocked and state.guard_blocked_effectors == ("right",)
-    np.testing.assert_array_equal(state.action, before)  # the refused target never applied
-    assert twin.commands_applied == applied  # a refused command is not counted as applied
-    assert twin.guard_blocks["right"] >= 1
-    # A jump from home is refused before any geometry: too fast. As a configuration alone,
-    # it is in the table.
-    assert twin.last_refusal.reasons["right"].startswith("velocity")
-    alone = twin.guard.check(q_bad, twin.env.data.qpos)
+    before = twin.reset(seed=0)
+    qpos, sl = twin.env.data.qpos, twin.slices["right"]
+    # The jump from home is too fast for one tick: alone, the guard refuses it by speed; as a
+    # configuration, it is in the table.
+    assert twin.guard.check(q_bad, qpos, before).reasons["right"].startswith("velocity")
+    alone = twin.guard.check(q_bad, qpos)
     assert any("table" in a or "table" in b for a, b, _ in alone.contacts)
     assert alone.reasons["right"].startswith(("workspace", "contact"))
-    # A safe command afterwards goes through again.
+    # The twin steps towards it at the speed cap until the arm would enter the table, then
+    # refuses and holds.
+    cmd = JointCommand("right", q_bad[sl], t_source=0.0, t_receive=0.0)
+    applied, ticks = twin.commands_applied, 0
+    while ticks < 100:
+        ticks += 1
+        state = twin.apply({"right": cmd})
+        if state.guard_blocked:
+            break
+    assert state.guard_blocked_effectors == ("right",)
+    assert twin.last_refusal.reasons["right"].startswith(("workspace", "contact"))
+    assert twin.commands_applied == applied + ticks - 1  # a refused command is not counted
+    assert twin.guard_blocks["right"] >= 1 and twin.step_limited["right"] >= ticks
+    held = state.action.copy()
+    state = twin.apply({"right": cmd})
+    assert state.guard_blocked
+    np.testing.assert_array_equal(state.action, held)  # the refused target never applied
+    # A safe command afterwards goes through again (stepping back the way it came).
     ok = JointCommand("right", before[sl], t_source=0.0, t_receive=0.0)
     assert not twin.apply({"right": ok}).guard_blocked
+    twin.reset(seed=0)
+
+
+def test_a_command_into_a_fixture_is_refused():
+    """Tape's box is a fixture (a mocap body): a static obstacle like the table. The hand
+    lowered onto it is refused by the contact rule naming the box, above the table."""
+    env = gym.make("beavr_sim/Tape-v0")
+    try:
+        twin = TwinInterface(env)
+        home = twin.reset(seed=0)
+        model, data, guard = twin.env.model, twin.env.data, twin.guard
+        box = twin.env.task.fixtures["box"]
+        assert {guard._owner[g] for g in box.geom_ids} == {"static"}
+        # The hand lowered from above the box's height (the shoulder pitching down), the box
+        # moved (after the reset: the guard follows the fixtures) to under the fingertips
+        # where they pass 5 cm above the table.
+        up, down = home.copy(), home.copy()
+        up[1] -= 0.4
+        down[1] += 0.6
+        rows = [up + (down - up) * k / 100 for k in range(101)]
+        probe = mujoco.MjData(model)
+        probe.qpos[:] = data.qpos
+        tips = [model.site(f"right/{f}_tip").id for f in ("thumb", "index", "middle", "ring")]
+        for q in rows:
+            probe.qpos[twin.env.joints.qpos_adr] = q
+            mujoco.mj_kinematics(model, probe)
+            low = tips[int(np.argmin(probe.site_xpos[tips, 2]))]
+            if probe.site_xpos[low, 2] < TABLE_TOP_Z + 0.05:
+                break
+        box.place(data, probe.site_xpos[low, :2])
+        sl = twin.slices["right"]
+        for q in rows:
+            state = twin.apply({"right": JointCommand("right", q[sl], t_source=0, t_receive=0)})
+            if state.guard_blocked:
+                break
+        assert state.guard_blocked_effectors == ("right",), "the hand went into the box"
+        reason = twin.last_refusal.reasons["right"]
+        assert reason.startswith("contact: right/") and reason.split(" ")[3] == "box/geom", reason
+        assert any("box/geom" in (a, b) for a, b, _ in twin.last_refusal.contacts)
+    finally:
+        env.close()
 
 
 def test_tolerance_is_respected(twin):
@@ -140,9 +191,15 @@ def test_arms_driven_into_each_other_are_refused():
             name: JointCommand(name, q[sl], t_source=0.0, t_receive=0.0)
             for name, sl in twin.slices.items()
         }
-        state = twin.apply(commands)
+        # Through the twin, the arms step towards it at the speed cap until they would meet.
+        for _ in range(60):
+            state = twin.apply(commands)
+            if state.guard_blocked:
+                break
         assert state.guard_blocked_effectors == ("left", "right")
-        np.testing.assert_array_equal(state.action, q0)
+        assert all(r.startswith("contact") for r in twin.last_refusal.reasons.values())
+        assert arms_touch(twin.last_refusal)
+        assert not np.array_equal(state.action, q)  # held short of the collision
     finally:
         env.close()
 

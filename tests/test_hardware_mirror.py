@@ -149,9 +149,27 @@ def test_adversarial_commands_never_reach_a_motor(bench):
     jump[0] += 1.0
     nan = home.copy()
     nan[5] = np.nan
-    for bad in (into_table, past_limit, fingers_through_palm, jump, nan):
-        state = bench.step(bad)
+    cap = bench.twin.max_velocity * bench.twin.dt * (1 + 1e-9)
+    for bad in (into_table, past_limit, fingers_through_palm, nan):
+        # Corrupt targets are refused at once; unsafe ones are approached at the twin's step
+        # limit until the guard refuses the next step.
+        for _ in range(30):
+            before = bench.twin.action.copy()
+            state = bench.step(bad)
+            assert (np.abs(state.action - before) <= cap).all()
+            if state.guard_blocked:
+                break
         assert state.guard_blocked_effectors == ("right",), bad
+        while np.abs(bench.twin.action - home).max() > 0:  # back home at the speed cap
+            assert not bench.step(home).guard_blocked
+    # A 1 rad jump is a legal move at the speed cap: 10 ticks of at most pi / 30.
+    for _ in range(10):
+        before = bench.twin.action.copy()
+        state = bench.step(jump)
+        assert not state.guard_blocked and (np.abs(state.action - before) <= cap).all()
+    np.testing.assert_array_equal(state.action, jump)
+    while np.abs(bench.twin.action - home).max() > 0:
+        bench.step(home)
     # A legal, slow move afterwards still goes through.
     ok = home.copy()
     ok[0] += 0.03
@@ -168,9 +186,10 @@ def test_adversarial_commands_never_reach_a_motor(bench):
     assert not on_accepted_path(hand, bench.accepted, slice(7, 23), np.pi / 4096 + 1e-9)
     assert np.abs(arm[-1] - ok[:7]).max() < 1e-5
     summary = bench.mirror.summary()
-    assert summary["right_arm"]["commands_refused"] == 5
-    assert summary["right_hand"]["commands_refused"] == 5
+    assert summary["right_arm"]["commands_refused"] == 4
+    assert summary["right_hand"]["commands_refused"] == 4
     assert summary["right_arm"]["errors"] == 0 and bench.arm.error_code == 0
+    assert summary["right_arm"]["catch_up_steps"] == 0
 
 
 @settings(
@@ -320,9 +339,20 @@ variant = "lite"
         RigConfig.from_toml(tmp_path / "missing.toml")
 
 
-def test_pour_trace_mirrored_on_emulated_hardware(tmp_path, capsys):
+def test_pour_trace_mirrored_on_emulated_hardware(tmp_path, capsys, monkeypatch):
     """The bundled pour trace, in real time, mirrored to emulated xArm and LEAP: success, every
     device wrote at the control rate, nothing refused, no errors."""
+    import beavr_sim.teleop.mirroring as mirroring
+
+    measured = []
+    connect = mirroring.connect_mirror
+
+    def connect_and_keep(*args, **kwargs):
+        mirror, q_measured = connect(*args, **kwargs)
+        measured.append(np.asarray(q_measured, dtype=np.float64).copy())
+        return mirror, q_measured
+
+    monkeypatch.setattr(mirroring, "connect_mirror", connect_and_keep)
     out = tmp_path / "summary.json"
     code = teleop_main(
         [
@@ -342,11 +372,19 @@ def test_pour_trace_mirrored_on_emulated_hardware(tmp_path, capsys):
         assert device["commands_sent"] >= summary["ticks"] * 0.95, name
     assert hardware["right_arm"]["max_divergence_rad"] < 0.3
     # A mirrored trace replays on the paced virtual clock: the same episode as a replay
-    # without hardware.
-    plain = tmp_path / "plain.json"
-    argv = ["--task", "pour", "--source", "trace", "--no-viser", "--headless", "--quiet"]
-    assert teleop_main([*argv, "--summary-json", str(plain)]) == 0
-    plain = json.loads(plain.read_text())
+    # without hardware from the same start (the twin starts where the hardware measured it
+    # stands, which differs from home by the drivers' rounding, ~1e-7 rad: Pour's liquid is
+    # chaotic enough that this changes the episode).
+    from beavr_sim.teleop.session import SessionOptions, build_loop
+
+    options = SessionOptions(
+        task="pour", source="trace", viser=False, headless=True, progress=False
+    )
+    loop = build_loop(options)
+    (q_start,) = measured
+    loop.reset(loop.seed, robot_qpos=q_start)
+    plain = loop.run(stop_on_success=True).to_dict()
+    loop.twin.env.close()
     for key in ("ticks", "commands_applied", "frames_received", "holds", "operator"):
         assert summary[key] == plain[key], key
 

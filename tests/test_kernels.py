@@ -171,11 +171,6 @@ def test_point_targets_map_tracked_points_and_reject_nan_untouched():
 
 def test_small_helpers_match_numpy():
     rng = np.random.default_rng(5)
-    buffer, out = np.zeros((4, 6)), np.zeros(6)
-    rows = rng.normal(size=(6, 6))
-    for count, row in enumerate(rows, start=1):
-        kernels.ring_average(buffer, (count - 1) % 4, min(count, 4), row, out)
-        np.testing.assert_allclose(out, rows[max(0, count - 4) : count].mean(axis=0))
     values, index = rng.normal(size=10), np.array([7, 2, 2, 9])
     lower, upper = -0.5 * np.ones(4), 0.5 * np.ones(4)
     clipped = np.full(4, 9.0)

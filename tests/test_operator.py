@@ -9,7 +9,15 @@ import pytest
 
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.operator.arm_mapping import AxisMap, RelativeMotionMapping, axis_map
-from beavr_sim.operator.filters import KeypointSmoother, PoseSmoother, slerp, so3_exp, so3_log
+from beavr_sim.operator.filters import (
+    MIN_DT,
+    KeypointFilter,
+    PoseFilter,
+    lowpass_gain,
+    slerp,
+    so3_exp,
+    so3_log,
+)
 from beavr_sim.operator.operator import Operator, OperatorConfig
 from beavr_sim.operator.palm import R_world_palm, T_world_palm, keypoints_in_palm
 from beavr_sim.operator.retarget import human_keypoints_for
@@ -122,40 +130,115 @@ def test_slerp_endpoints_and_midpoint():
     assert d1 == pytest.approx(d2, abs=1e-9)
 
 
-def test_moving_average_and_complementary_filter():
-    smooth = KeypointSmoother(3)
-    for v, expected in ((3.0, 3.0), (6.0, 4.5), (9.0, 6.0), (12.0, 9.0)):
-        assert smooth(np.full((26, 3), v))[0, 0] == pytest.approx(expected)
-    with pytest.raises(ValueError, match="window"):
-        KeypointSmoother(0)
-    f = PoseSmoother(0.5, 0.5)
+def test_keypoint_filter_is_a_one_euro_filter_per_joint():
+    """At rest it is a low-pass of cutoff min_cutoff_hz; speed raises the cutoff."""
+    f = KeypointFilter(min_cutoff_hz=2.0, beta=0.0, d_cutoff_hz=1.0)
+    valid = np.ones(26, dtype=bool)
+    np.testing.assert_array_equal(f(np.full((26, 3), 3.0), valid, 0.0), 3.0)  # starts there
+    tau = 1 / (2 * np.pi * 2.0)
+    out = f(np.full((26, 3), 6.0), valid, 0.05)
+    np.testing.assert_allclose(out, 3.0 + 3.0 * 0.05 / (0.05 + tau))
+    assert f.lag_at_rest_s == pytest.approx(tau)
+    slow, fast = KeypointFilter(2.0, beta=0.0), KeypointFilter(2.0, beta=10.0)
+    for k in range(10):  # a joint moving at 1.7 m/s
+        x = np.full((26, 3), 0.01 * k)
+        lag_slow = x[0, 0] - slow(x, valid, k / 100)[0, 0]
+        lag_fast = x[0, 0] - fast(x, valid, k / 100)[0, 0]
+    assert 0 < lag_fast < 0.5 * lag_slow  # a fast joint follows more closely
+    for bad in ({"min_cutoff_hz": 0.0}, {"beta": -1.0}, {"d_cutoff_hz": float("nan")}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            KeypointFilter(**bad)
+    with pytest.raises(ValueError, match="shape"):
+        f(np.zeros((25, 3)), valid, 1.0)
+
+
+def test_keypoint_filter_averages_each_joint_over_its_valid_samples_only():
+    f = KeypointFilter()
+    valid = np.ones(26, dtype=bool)
+    x = np.tile(np.arange(26.0)[:, None], (1, 3)) * 0.01
+    f(x, valid, 0.0)
+    held = f(x, valid, 1 / 72)[10].copy()
+    gap = valid.copy()
+    gap[10] = False
+    bad = x.copy()
+    bad[10] = np.nan  # untracked: its value is meaningless
+    for k in range(6):
+        out = f(bad + 0.001 * k, gap, (2 + k) / 72)
+        np.testing.assert_array_equal(out[10], held)  # holds its last filtered value
+        assert np.isfinite(out).all()
+    out = f(x + 0.01, valid, 8 / 72)  # back: finite, moving towards the new value
+    assert np.isfinite(out).all() and (out[10] > held).all()
+    fresh = KeypointFilter()
+    never = valid.copy()
+    never[3] = False
+    assert np.isnan(fresh(bad, never, 0.0)[3]).all()  # never valid: NaN (flagged untracked)
+
+
+@pytest.mark.parametrize("stamps", [(0.0, 0.0), (0.1, 0.05), (0.1, float("nan"))])
+def test_filters_take_repeated_and_out_of_order_stamps_as_a_tiny_step(stamps):
+    f, g = KeypointFilter(), PoseFilter()
+    valid = np.ones(26, dtype=bool)
+    f(np.zeros((26, 3)), valid, stamps[0])
+    g(np.eye(4), stamps[0])
+    out = f(np.ones((26, 3)), valid, stamps[1])
+    assert np.isfinite(out).all() and 0.0 < out[0, 0] < 0.05  # a 72 Hz frame: 0.33
+    T = g(palm_down([1.0, 0.0, 0.0]), stamps[1])
+    assert np.isfinite(T).all() and 0.0 < T[0, 3] < 0.02
+    assert lowpass_gain(-1.0, 0.01) == pytest.approx(MIN_DT / (MIN_DT + 0.01))
+
+
+@pytest.mark.parametrize("rate_hz", [30.0, 60.0, 90.0])
+def test_filters_lag_a_ramp_by_their_time_constant_at_any_rate(rate_hz):
+    f, g = KeypointFilter(), PoseFilter()  # the defaults
+    valid = np.ones(26, dtype=bool)
+    speed = 0.2
+    for k in range(int(2.0 * rate_hz) + 1):
+        t = k / rate_hz
+        out = f(np.full((26, 3), speed * t), valid, t)
+        T = np.eye(4)
+        T[:3, 3] = speed * t
+        T_out = g(T, t)
+    # The lag at this speed (per coordinate: |v| = sqrt(3) * speed).
+    tau = 1 / (2 * np.pi * (f.min_cutoff_hz + f.beta * np.sqrt(3) * speed))
+    assert (speed * t - out[0, 0]) / speed == pytest.approx(tau, abs=2e-4)
+    assert (speed * t - T_out[0, 3]) / speed == pytest.approx(g.tau_position_s, abs=1e-9)
+
+
+def test_pose_filter_moves_by_its_time_constant():
+    with pytest.raises(ValueError, match="tau"):
+        PoseFilter(-0.1)
+    f = PoseFilter(0.05, 0.05)
     T0, T1 = np.eye(4), palm_down([1.0, 0, 0])
-    np.testing.assert_allclose(f(T0), T0)
-    half = f(T1)
+    np.testing.assert_allclose(f(T0, 0.0), T0)
+    half = f(T1, 0.05)  # dt = tau: half way
     assert half[0, 3] == pytest.approx(0.5)
-    for _ in range(60):
-        out = f(T1)
+    for k in range(60):
+        out = f(T1, 0.1 + k * 0.05)
     np.testing.assert_allclose(out, T1, atol=1e-9)
-    with pytest.raises(ValueError, match="alpha"):
-        PoseSmoother(0.0)
+    follow = PoseFilter(0.0, 0.0)  # tau 0: no filtering
+    follow(T0, 0.0)
+    np.testing.assert_allclose(follow(T1, 0.01), T1, atol=1e-12)
 
 
-def test_pose_smoother_is_lerp_and_slerp_of_each_measurement():
+def test_pose_filter_is_lerp_and_slerp_of_each_measurement():
     """The quaternion-state filter equals the matrix definition step by step."""
-    f = PoseSmoother(0.3, 0.7)
+    f = PoseFilter(0.02, 0.005)
     T_expected = None
+    t = 0.0
     for _ in range(20):
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = random_rotation(rng), rng.normal(size=3)
-        out = f(T)
+        dt = rng.uniform(0.005, 0.04)
+        t += dt
+        out = f(T, t)
         if T_expected is None:
             T_expected = T.copy()
         else:
-            T_expected[:3, 3] += 0.3 * (T[:3, 3] - T_expected[:3, 3])
-            T_expected[:3, :3] = slerp(T_expected[:3, :3], T[:3, :3], 0.7)
+            T_expected[:3, 3] += dt / (dt + 0.02) * (T[:3, 3] - T_expected[:3, 3])
+            T_expected[:3, :3] = slerp(T_expected[:3, :3], T[:3, :3], dt / (dt + 0.005))
         np.testing.assert_allclose(out, T_expected, atol=1e-9)
-    f.reset(T)
-    np.testing.assert_allclose(f(np.eye(4))[:3, 3], 0.7 * T[:3, 3], atol=1e-12)
+    f.reset(T, t)
+    np.testing.assert_allclose(f(np.eye(4), t + 0.02)[:3, 3], 0.5 * T[:3, 3], atol=1e-12)
 
 
 # ------------------------------------------------------------------------------- operator

@@ -151,6 +151,39 @@ def test_untracked_finger_holds_its_last_value(retargeter):
     assert np.abs(q[middle] - start[middle]).max() > 0.5
 
 
+def test_a_step_without_a_solution_holds_and_is_reported(retargeter, monkeypatch):
+    side = retargeter.side
+    retargeter.reset()
+    fist = human_keypoints_for(LEAP_HAND.mirrored(FIST, side), side)
+    q0 = retargeter.retarget(fist)
+    assert not retargeter.infeasible
+    before = retargeter.infeasible_steps
+    monkeypatch.setattr(retargeter._qp, "solve", lambda A, h: None)
+    np.testing.assert_array_equal(retargeter.retarget(fist), q0)  # held, not skipped silently
+    assert retargeter.infeasible and retargeter.infeasible_steps == before + 1
+    monkeypatch.undo()
+    assert np.abs(retargeter.retarget(fist) - q0).max() > 0.0
+    assert not retargeter.infeasible
+
+
+def test_each_frame_moves_a_joint_at_most_max_step(retargeter):
+    """Also the first frame after a reset, and a finger resuming after it was untracked."""
+    side = retargeter.side
+    open_hand = human_keypoints_for(np.zeros(16), side)
+    fist = human_keypoints_for(LEAP_HAND.mirrored(FIST, side), side)
+    limit = retargeter.config.max_step * retargeter.config.iterations + 1e-6
+    tracked = np.ones(N_JOINTS, dtype=bool)
+    tracked[JOINT_INDEX["index_tip"]] = False
+    for q_start in (None, LEAP_HAND.mirrored(FIST, side)):
+        retargeter.reset(q_start)
+        q_prev = retargeter.q
+        for k in range(40):
+            flags = tracked if 5 <= k < 15 else None
+            q = retargeter.retarget(fist if (k // 10) % 2 == 0 else open_hand, flags)
+            assert np.abs(q - q_prev).max() <= limit
+            q_prev = q
+
+
 @pytest.mark.parametrize("side", SIDES)
 def test_human_keypoints_for_is_in_its_own_palm_frame_and_ordered(side):
     for name, q in _shapes(side).items():

@@ -244,7 +244,8 @@ def test_live_session_shows_the_twin_in_the_headset():
         context.term()
     summary = result["summary"]
     assert summary.frames_received == 0 and summary.commands_applied == 0
-    assert summary.holds.get("waiting", 0) > 0
+    assert summary.holds["right"].get("waiting", 0) > 0
+    assert summary.listener_errors == {}
 
 
 def test_repeat_plays_the_trace_again_from_its_start(capsys):

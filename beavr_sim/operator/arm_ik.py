@@ -23,6 +23,7 @@ satisfy a collision constraint by moving fingers the hand will not move.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mink
@@ -32,6 +33,12 @@ import numpy as np
 from beavr_sim.envs.scene import build_scene_spec
 from beavr_sim.operator import kernels
 from beavr_sim.operator.collision import CollisionLimit
+from beavr_sim.operator.obstacles import (
+    Obstacle,
+    add_obstacles,
+    obstacle_geoms,
+    place_obstacles,
+)
 from beavr_sim.operator.qp import StepQP
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 
@@ -103,6 +110,14 @@ def _body_geoms(model: mujoco.MjModel, body: str) -> list[int]:
 class ArmIK:
     """Arm joint targets for one effector's hand pose target."""
 
+    #: Whether the last :meth:`step` made no progress: no iteration's QP had a solution (e.g.
+    #: the hand already closer to the table than the margin), so the arm holds this period.
+    infeasible: bool = False
+    #: QP iterations without a solution since construction (a partial step counts too).
+    infeasible_iterations: int = 0
+    #: DAQP's exit flag of the latest iteration without a solution (None before any).
+    last_exitflag: int | None = None
+
     def __init__(
         self, embodiment: Embodiment, effector: str, dt: float, config: ArmIKConfig | None = None
     ):
@@ -140,29 +155,66 @@ class ArmIK:
         self._qp = StepQP(self.n_arm)
         self._posture = self._configuration.q[self._arm_qpos].copy()
         self.collision: CollisionLimit | None = None
+        #: The task's fixtures the hand and forearm keep off (see :meth:`set_obstacles`).
+        self.obstacles: tuple[Obstacle, ...] = ()
         if self.config.collision_avoidance:
-            p = self.effector.name + "/"
-            hand = [g for b in HAND_BODIES for g in _body_geoms(self.model, p + b)]
-            palm = _body_geoms(self.model, p + "palm")
-            arm = spec_e.arm
-            forearm = [g for link in arm.forearm_links for g in _body_geoms(self.model, p + link)]
-            upper = [g for link in arm.upper_arm_links for g in _body_geoms(self.model, p + link)]
-            body = [
-                g
-                for g in range(self.model.ngeom)
-                if self.model.body(self.model.geom_bodyid[g]).name.startswith(BODY_PREFIX)
-                and (self.model.geom_contype[g] or self.model.geom_conaffinity[g])
-            ]
-            table = [self.model.geom("table_top").id]
-            self.collision = CollisionLimit(
-                self.model,
-                geom_pairs=[(hand + forearm, table), (palm, upper + body), (forearm, body)],
-                spec=build_scene_spec(self.single, 64, 64),
-                minimum_distance_from_collisions=self.config.collision_margin,
-                collision_detection_distance=self.config.collision_detection,
-                gain=self.config.collision_gain,
-            )
+            self.collision = self._collision_limit()
         self.reset(self.joints.home)
+
+    def _scene_spec(self) -> mujoco.MjSpec:
+        """A fresh spec of the IK's scene: this effector's robot, the table, the obstacles."""
+        spec = build_scene_spec(self.single, 64, 64)
+        add_obstacles(spec, self.obstacles)
+        return spec
+
+    def _collision_limit(self) -> CollisionLimit:
+        """The watched pairs: hand and forearm against the table and the task's fixtures, palm
+        against the upper arm and the body, forearm against the body."""
+        model, p = self.model, self.effector.name + "/"
+        arm = self.single.spec.effectors[0].arm
+        hand = [g for b in HAND_BODIES for g in _body_geoms(model, p + b)]
+        palm = _body_geoms(model, p + "palm")
+        forearm = [g for link in arm.forearm_links for g in _body_geoms(model, p + link)]
+        upper = [g for link in arm.upper_arm_links for g in _body_geoms(model, p + link)]
+        body = [
+            g
+            for g in range(model.ngeom)
+            if model.body(model.geom_bodyid[g]).name.startswith(BODY_PREFIX)
+            and (model.geom_contype[g] or model.geom_conaffinity[g])
+        ]
+        static = [model.geom("table_top").id, *obstacle_geoms(model, self.obstacles)]
+        return CollisionLimit(
+            model,
+            geom_pairs=[(hand + forearm, static), (palm, upper + body), (forearm, body)],
+            spec=self._scene_spec(),
+            minimum_distance_from_collisions=self.config.collision_margin,
+            collision_detection_distance=self.config.collision_detection,
+            gain=self.config.collision_gain,
+        )
+
+    def set_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
+        """The task's fixtures (:func:`~beavr_sim.operator.obstacles.fixture_obstacles` of the
+        env after each reset): the hand and forearm keep off them as off the table (fingertips
+        included: the twin's guard lets fingers only ``finger_tolerance`` into a fixture).
+
+        The IK's model is robot-only, so fixtures of other shapes than the last (another task)
+        build it again, with them as mocap bodies (tens of milliseconds); the same shapes are
+        only moved. The joints and the posture are kept."""
+        obstacles = tuple(obstacles)
+        rebuild = [o.shape for o in obstacles] != [o.shape for o in self.obstacles]
+        self.obstacles = obstacles
+        if not self.config.collision_avoidance:
+            return
+        if rebuild:
+            qpos = self._configuration.data.qpos.copy()
+            self.model = self._scene_spec().compile()
+            if self.model.body(f"{self.effector.name}/hand").id != self._hand_body:
+                raise RuntimeError("obstacles changed the robot's body ids")  # appended last
+            self._configuration = mink.Configuration(self.model)
+            self._configuration.data.qpos[:] = qpos
+            self.collision = self._collision_limit()
+        place_obstacles(self.model, self._configuration.data, obstacles)
+        self._stale = True  # kinematics (obstacle poses) updated when next needed
 
     def reset(self, q_effector: np.ndarray, posture: np.ndarray | None = None) -> None:
         """Start from this effector's joint positions (arm then hand, action order)."""
@@ -209,15 +261,25 @@ class ArmIK:
         return T
 
     def step(self, T_world_target: np.ndarray) -> np.ndarray:
-        """One control period towards ``T_world_target``; returns the arm joint positions."""
+        """One control period towards ``T_world_target``; returns the arm joint positions.
+
+        An iteration whose QP has no solution leaves the joints as they are; :attr:`infeasible`
+        says whether every iteration of this step failed (the arm did not move), and
+        :attr:`infeasible_iterations` counts them, so the caller can report the hold."""
         T_world_target = np.asarray(T_world_target, dtype=np.float64)
         if T_world_target.shape != (4, 4) or not np.isfinite(T_world_target).all():
             raise ValueError(f"step needs a finite 4x4 pose, got shape {T_world_target.shape}")
+        failed = 0
         for _ in range(self.config.iterations):
-            self._step(T_world_target, self.dt / self.config.iterations)
+            if not self._step(T_world_target, self.dt / self.config.iterations):
+                failed += 1
+                self.last_exitflag = getattr(self._qp, "last_exitflag", None)
+        self.infeasible = failed == self.config.iterations
+        self.infeasible_iterations += failed
         return self._configuration.data.qpos[self._arm_qpos]  # fancy index: a copy
 
-    def _step(self, T_world_target: np.ndarray, dt: float) -> None:
+    def _step(self, T_world_target: np.ndarray, dt: float) -> bool:
+        """One QP iteration; returns whether it had a solution (else the joints stay)."""
         cfg, model = self.configuration, self.model
         data, body = cfg.data, self._hand_body
         # Hand pose error in the world frame (position, and the rotation vector that takes the
@@ -238,7 +300,8 @@ class ArmIK:
             _, rows, h = self.collision.active_rows(cfg, 1.0)
             A = rows.take(self._arm_dofs, axis=1)  # a C-contiguous copy
         dq = qp.solve(A, h)
-        if dq is None:  # infeasible (e.g. already in collision): hold this tick
-            return
+        if dq is None:  # infeasible (e.g. already in collision): hold, reported by step
+            return False
         data.qpos[self._arm_qpos] += dq
         self._stale = True
+        return True

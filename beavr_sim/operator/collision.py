@@ -201,6 +201,9 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         """The distance model's data after one ``mj_collision`` at ``configuration``."""
         dmodel, ddata = self.distance_model, self._ddata
         ddata.qpos[:] = configuration.data.qpos
+        if dmodel.nmocap:  # static obstacles placed by the caller (see operator.obstacles)
+            ddata.mocap_pos[:] = configuration.data.mocap_pos
+            ddata.mocap_quat[:] = configuration.data.mocap_quat
         mujoco.mj_kinematics(dmodel, ddata)
         mujoco.mj_collision(dmodel, ddata)
         return ddata

@@ -225,46 +225,6 @@ def stack_bounds(lower, upper, h, bupper, blower, sense):
 
 
 @_jit
-def daqp_problem(H, c, A, lower, upper, h, bupper, blower, sense, x, lam, problem, result):
-    """Fill DAQP's ``DAQPProblem`` (``problem``: 10 int64 words) and ``DAQPResult``
-    (``result``: 8 words) for ``min 1/2 x^T H x + c^T x`` s.t. ``lower <= x <= upper``,
-    ``A x <= h`` (k rows), the bounds stacked into ``bupper``, ``blower`` and ``sense``
-    (:func:`stack_bounds`), the solution into ``x`` and the multipliers into ``lam``.
-    Layouts (DAQP 0.11, little-endian): problem ``{int n, m, ms; double *H, *f, *A,
-    *bupper, *blower; int *sense, *break_points; int nh, problem_type}``, result ``{double
-    *x, *lam; double fval, soft_slack; int exitflag, iter, nodes; double solve_time,
-    setup_time}``. Returns m, or -1 (nothing written) when ``A`` is not a C-contiguous
-    k x n array or the buffers are too short."""
-    n, k = lower.shape[0], h.shape[0]
-    if k > 0 and (A.shape[0] != k or A.shape[1] != n or A.strides[1] != 8 or A.strides[0] != 8 * n):
-        return -1
-    m = stack_bounds(lower, upper, h, bupper, blower, sense)
-    if m < 0 or lam.shape[0] < m or x.shape[0] < n:
-        return -1
-    problem[0] = n + (m << 32)
-    problem[1] = n  # ms: the first n constraints are simple bounds
-    problem[2] = H.ctypes.data
-    problem[3] = c.ctypes.data
-    problem[4] = A.ctypes.data if k > 0 else 0
-    problem[5] = bupper.ctypes.data
-    problem[6] = blower.ctypes.data
-    problem[7] = sense.ctypes.data
-    problem[8] = 0  # no break points (hierarchical QPs)
-    problem[9] = 0  # nh = 0, problem_type = 0 (QP)
-    result[:] = 0
-    result[0] = x.ctypes.data
-    result[1] = lam.ctypes.data
-    return m
-
-
-@_jit
-def daqp_exitflag(result):
-    """``DAQPResult.exitflag`` (the int at byte 32) of a result buffer of int64 words."""
-    flag = result[4] & 0xFFFFFFFF
-    return flag - (1 << 32) if flag >= (1 << 31) else flag
-
-
-@_jit
 def quat_from_matrix(R):
     """Unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` (3 x 3), by
     Shepperd's method (the largest of w, x, y, z computed first, for accuracy)."""
@@ -358,20 +318,6 @@ def pose_slerp(T, q, T_measured, alpha_position, alpha_rotation):
     T[2, 0] = 2.0 * (x * z - w * y)
     T[2, 1] = 2.0 * (y * z + w * x)
     T[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-
-
-@_jit
-def ring_average(buffer, slot, n, x, out):
-    """Write ``x`` (flat) into row ``slot`` of the ring ``buffer`` (window x size) and put
-    the mean of its first ``n`` rows into ``out``."""
-    size = x.shape[0]
-    for j in range(size):
-        buffer[slot, j] = x[j]
-    for j in range(size):
-        total = 0.0
-        for i in range(n):
-            total += buffer[i, j]
-        out[j] = total / n
 
 
 @_jit
@@ -539,3 +485,68 @@ def mapped_pose(R_left, R_right, P, p_anchor_robot, p_anchor_hand, scale, T_worl
     for a in range(3):
         out[a, 3] = p_anchor_robot[a] + scale * (P[a, 0] * dx + P[a, 1] * dy + P[a, 2] * dz)
     out[3, 0], out[3, 1], out[3, 2], out[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+
+@_jit
+def one_euro(x, valid, t, min_cutoff, beta, d_cutoff, min_dt, state, raw, speed, t_last, seen, out):
+    """One step of the One-Euro filter (Casiez et al. 2012) on points ``x`` (n x 3) sampled
+    at time ``t`` (s), per point, in place. Each point ``i`` with ``valid[i]``: ``dt`` =
+    ``t - t_last[i]`` (at least ``min_dt``: repeated or out-of-order stamps count as a tiny
+    step, never as zero or negative); its velocity from the previous *raw* sample (so a
+    ramp's is exact at any rate) is low-passed with cutoff ``d_cutoff`` (Hz) into ``speed``
+    (n x 3); the point itself with cutoff ``min_cutoff + beta |speed|`` (Hz, |.| the 3-D
+    norm) into ``state``; each low-pass is ``y += a (x - y)`` with ``a = dt / (dt + tau)``,
+    ``tau = 1 / (2 pi cutoff)``, whose lag on a ramp is exactly ``tau`` whatever ``dt``.
+    A point's first valid sample (``seen[i]`` False) starts it. Points not valid here keep
+    their state. ``out[i]``: ``state[i]`` once seen, else NaN."""
+    tau_d = 1.0 / (2.0 * np.pi * d_cutoff)
+    for i in range(x.shape[0]):
+        if not valid[i]:
+            for a in range(3):
+                out[i, a] = state[i, a] if seen[i] else np.nan
+            continue
+        if not seen[i]:
+            for a in range(3):
+                state[i, a] = raw[i, a] = out[i, a] = x[i, a]
+                speed[i, a] = 0.0
+            t_last[i] = t
+            seen[i] = True
+            continue
+        dt = t - t_last[i]
+        if not dt >= min_dt:  # NaN-safe
+            dt = min_dt
+        else:
+            t_last[i] = t
+        a_d = dt / (dt + tau_d)
+        s2 = 0.0
+        for a in range(3):
+            speed[i, a] += a_d * ((x[i, a] - raw[i, a]) / dt - speed[i, a])
+            s2 += speed[i, a] * speed[i, a]
+        tau = 1.0 / (2.0 * np.pi * (min_cutoff + beta * np.sqrt(s2)))
+        alpha = dt / (dt + tau)
+        for a in range(3):
+            state[i, a] += alpha * (x[i, a] - state[i, a])
+            raw[i, a] = x[i, a]
+            out[i, a] = state[i, a]
+
+
+@_jit
+def valid_joints(joints, tracked, required, valid):
+    """``valid[i] = tracked[i]`` and joint ``i`` (of ``joints``, n x 3) finite, in place.
+    Returns (how many joints are flagged tracked but not finite, whether every joint of
+    ``required`` is valid)."""
+    bad = 0
+    for i in range(joints.shape[0]):
+        ok = tracked[i]
+        if ok:
+            for a in range(3):
+                if not np.isfinite(joints[i, a]):
+                    ok = False
+            if not ok:
+                bad += 1
+        valid[i] = ok
+    complete = True
+    for i in required:
+        if not valid[i]:
+            complete = False
+    return bad, complete

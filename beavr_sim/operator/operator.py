@@ -6,6 +6,15 @@ side through an :class:`EffectorOperator`; nothing branches on left or right. Pe
 tracking jumps and filtered; per control tick (:meth:`Operator.command`) the arm IK steps
 towards the mapped target and the fingers are retargeted.
 
+Filtering (:mod:`beavr_sim.operator.filters`) is set in seconds, so its delay does not depend
+on the headset's frame rate: a One-Euro filter on each keypoint over its valid (tracked,
+finite) samples only, 33 ms of lag at rest (``keypoint_min_cutoff_hz`` 4.8 Hz), less as the
+joint moves faster (``keypoint_beta``), then an 11 ms first-order filter on the palm pose
+(``pose_tau_position_s``, ``pose_tau_rotation_s``): about 44 ms on a slow palm in all, as the
+former 5-frame average and 0.6 pose gain gave at 60 Hz (37 ms at 72 Hz, 89 ms at 30 Hz). A
+joint untracked in the newest frame is untracked: the retargeting holds a finger whose tip,
+distal or intermediate joint is, and resumes it when tracking returns.
+
 Session control:
 
 - pause: the source's pause stream (``HandFrame.paused``), a left-hand pinch (rising edge of
@@ -25,6 +34,28 @@ Session control:
 - resolution: switching between high (1.0) and low (0.6) motion scale re-anchors, so the new
   scale applies to motion from that instant and the robot does not jump.
 - reset (:meth:`Operator.reset`): re-home: IK state from the measured joints, mappings released.
+
+Nothing in the per-frame and per-tick path raises, and no tick holds silently. Every held
+tick is counted by reason in ``OperatorStats.holds`` (:data:`HOLD_REASONS`); the reasons
+beyond the session rules above:
+
+- ``"error"``: an exception while taking a frame or computing a command (a bug, a solver
+  failure). The command repeats the last command's positions, the IK and the retargeting
+  continue from them; a frame that failed holds the effector until a frame is used again.
+  Counted in ``OperatorStats.errors`` and logged (the 1st, 10th, 100th, then every 1000th).
+  Malformed frames (wrong shapes, stamps not finite, an unknown side, a degenerate palm) are
+  dropped and counted in ``malformed_frames``; joints flagged tracked but NaN/inf are used as
+  untracked ones.
+- ``"ik_infeasible"``: the arm IK's QP had no solution (e.g. already closer to the table than
+  the collision margin): the arm holds its previous joints (``hold=True``) while the fingers
+  still follow the hand in that tick. A consumer that skips held commands (the process
+  twin) then keeps the previous targets, fingers included, for that tick.
+- ``"retarget_infeasible"``: the LEAP retargeting's QP had no solution: the fingers hold their
+  previous joints while the arm moves, so the command is not a hold (``hold=False``) but
+  carries the reason; counted in ``holds`` like the others. A tick where both QPs failed
+  has reason ``"ik_infeasible"`` and counts under both.
+
+Infeasible ticks are logged at the same rate as errors, per reason.
 """
 
 from __future__ import annotations
@@ -32,6 +63,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,28 +72,68 @@ from beavr_sim.naming import check_name
 from beavr_sim.operator import kernels
 from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.operator.arm_mapping import RelativeMotionMapping, axis_map
-from beavr_sim.operator.filters import KeypointSmoother, PoseSmoother
+from beavr_sim.operator.filters import KeypointFilter, PoseFilter
+from beavr_sim.operator.obstacles import Obstacle
 from beavr_sim.operator.palm import T_world_palm
 from beavr_sim.operator.retarget import LeapRetargeter, RetargetConfig, human_template
 from beavr_sim.robots import Embodiment
-from beavr_sim.wire.hand import JOINT_INDEX, SIDES, HandFrame
+from beavr_sim.wire.hand import (
+    JOINT_INDEX,
+    N_JOINTS,
+    PALM_FRAME_JOINTS,
+    PALMAR_NORMAL_SIGN,
+    RESOLUTIONS,
+    SIDES,
+    HandFrame,
+)
 from beavr_sim.wire.records import JointCommand
 
 log = logging.getLogger("beavr_sim.operator.operator")
 
 WRIST = JOINT_INDEX["wrist"]
+_PALM_IDS = np.array([JOINT_INDEX[n] for n in PALM_FRAME_JOINTS], dtype=np.int64)
+_PALM_POSE_JOINTS = tuple(
+    JOINT_INDEX[n] for n in ("wrist", "middle_proximal", "index_proximal", "little_proximal")
+)
 
-HOLD_REASONS = ("", "waiting", "paused", "tracking_lost")
+#: ``JointCommand.reason`` values ("": tracking). All but ``"retarget_infeasible"`` come with
+#: ``hold=True`` (see the module docstring).
+HOLD_REASONS = (
+    "",
+    "waiting",
+    "paused",
+    "tracking_lost",
+    "error",
+    "ik_infeasible",
+    "retarget_infeasible",
+)
 GESTURES = ("record", "estop")
+
+
+def log_due(count: int) -> bool:
+    """Whether the ``count``-th occurrence of something is logged: the 1st, 10th, 100th and
+    every 1000th (a problem every tick stays visible without flooding the log)."""
+    return count in (1, 10, 100) or (count > 0 and count % 1000 == 0)
 
 
 @dataclass(frozen=True)
 class OperatorConfig:
-    """Filtering, safety and solver settings of the operator (see the module docstring)."""
+    """Filtering, safety and solver settings of the operator (see the module docstring).
 
-    keypoint_window: int = 5
-    alpha_position: float = 0.6
-    alpha_rotation: float = 0.6
+    Filter constants are in seconds (or Hz), so the smoothing delay does not depend on the
+    frame rate: keypoints lag ``1 / (2 pi keypoint_min_cutoff_hz)`` at rest (33 ms), less by
+    ``keypoint_beta`` Hz of cutoff per m/s of joint speed (27 ms at 0.5 m/s), whose estimate
+    is low-passed at ``keypoint_d_cutoff_hz``; the palm pose then lags ``pose_tau_*_s``
+    (11 ms): about 44 ms on a slow palm in all, 33 ms on the finger keypoints. These are the
+    former frame-count filters' delays at 60 Hz, the bundled traces' rate: those traces were
+    recorded closed loop through the operator, and their replays depend on its delay.
+    """
+
+    keypoint_min_cutoff_hz: float = 4.8  # Hz: 33 ms of lag at rest
+    keypoint_beta: float = 2.0  # Hz per m/s: 27 ms at 0.5 m/s
+    keypoint_d_cutoff_hz: float = 1.0  # Hz
+    pose_tau_position_s: float = 0.011  # s: 11 ms of lag
+    pose_tau_rotation_s: float = 0.011  # s
     tracking_timeout_s: float = 0.25
     max_hand_speed: float = 3.0  # m/s
     min_jump: float = 0.05  # m
@@ -72,11 +144,19 @@ class OperatorConfig:
     retarget: RetargetConfig = field(default_factory=RetargetConfig)
 
     def __post_init__(self) -> None:
-        if self.keypoint_window < 1:
-            raise ValueError(f"keypoint_window must be >= 1, got {self.keypoint_window}")
-        for name in ("tracking_timeout_s", "max_hand_speed", "min_jump", "long_pinch_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in (
+            "keypoint_min_cutoff_hz",
+            "keypoint_d_cutoff_hz",
+            "tracking_timeout_s",
+            "max_hand_speed",
+            "min_jump",
+            "long_pinch_s",
+        ):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be finite and positive, got {getattr(self, name)!r}")
+        for name in ("keypoint_beta", "pose_tau_position_s", "pose_tau_rotation_s"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {getattr(self, name)!r}")
         if self.reanchor_after < 1:
             raise ValueError(f"reanchor_after must be >= 1, got {self.reanchor_after}")
 
@@ -104,11 +184,22 @@ class EffectorTargets:
 
 @dataclass
 class OperatorStats:
+    """Counters of one effector since its operator was built (or the stats replaced).
+
+    ``malformed_frames``: frames dropped as unreadable (or used without their NaN joints);
+    ``errors``: exceptions caught in the per-frame and per-tick path; ``holds``: ticks per
+    reason of :data:`HOLD_REASONS` (``"error"``, ``"ik_infeasible"``, ...), the
+    ``"retarget_infeasible"`` ticks (fingers held, arm moving) included.
+    """
+
     frames: int = 0
     jumps_rejected: int = 0
     untracked_frames: int = 0
+    malformed_frames: int = 0
     reanchors: int = 0
     tracking_losses: int = 0
+    errors: int = 0
+    holds: dict[str, int] = field(default_factory=dict)
 
 
 class EffectorOperator:
@@ -121,9 +212,15 @@ class EffectorOperator:
         self.ik = ArmIK(embodiment, effector, dt, config.arm_ik)
         self.retargeter = LeapRetargeter(self.side, config.retarget)
         self.mapping = RelativeMotionMapping(axis_map(embodiment.name, self.side))
-        self.keypoints = KeypointSmoother(config.keypoint_window)
-        self.pose_filter = PoseSmoother(config.alpha_position, config.alpha_rotation)
+        self.keypoints = KeypointFilter(
+            config.keypoint_min_cutoff_hz, config.keypoint_beta, config.keypoint_d_cutoff_hz
+        )
+        self.pose_filter = PoseFilter(config.pose_tau_position_s, config.pose_tau_rotation_s)
+        self._sign = PALMAR_NORMAL_SIGN[self.side]
+        self._T_raw = np.empty((4, 4))  # the raw palm pose (checked, not used)
         self.stats = OperatorStats()
+        #: The latest exception caught (where, type, message), for logs and views.
+        self.last_error = ""
         self.n_arm = len(self.effector.arm_joints)
         self._warm_up(dt)
 
@@ -140,6 +237,8 @@ class EffectorOperator:
         for i in range(2):
             self.observe(HandFrame(self.side, i * dt, i * dt, joints))
         self.command(dt, paused=False)
+        if self.stats.errors:  # observe and command catch everything: surface it here
+            raise RuntimeError(f"{self.effector.name} operator warm-up failed: {self.last_error}")
         self.stats = OperatorStats()
         self.reset(self.ik.joints.home)
         elapsed = time.perf_counter() - t0
@@ -155,6 +254,8 @@ class EffectorOperator:
         self.keypoints.reset()
         self.pose_filter.reset()
         self._q_hand = q_effector[self.n_arm :].copy()
+        self._last_positions = self._clip(q_effector)  # what the last command sent
+        self._frame_failed = False  # the newest frame raised: hold until one is used
         self._T_palm: np.ndarray | None = None  # filtered palm pose
         self._smoothed: tuple[np.ndarray, np.ndarray] | None = None  # joints, palm pose
         self._keypoints_palm: np.ndarray | None = None
@@ -169,6 +270,10 @@ class EffectorOperator:
         self._fresh = False
         self._T_target: np.ndarray | None = None
         self._last_reason = "waiting"
+        self._last_hold = True
+
+    def _clip(self, q: np.ndarray) -> np.ndarray:
+        return np.minimum(np.maximum(q, self.ik.joints.lower), self.ik.joints.upper)
 
     def resync(self, q_effector: np.ndarray) -> None:
         """Continue from these joints (arm then hand): the guard held the effector there, so the
@@ -179,6 +284,7 @@ class EffectorOperator:
         self._q_hand = q_effector[self.n_arm :].copy()
         self.retargeter.reset(self._q_hand)
         self.ik.set_fingers(self._q_hand)
+        self._last_positions = self._clip(q_effector)
 
     def release(self) -> None:
         """Forget the anchor: the next tracked frame anchors again (resume)."""
@@ -188,31 +294,123 @@ class EffectorOperator:
         self._p_accepted = None
         self._jump_streak = []
 
+    # ----------------------------------------------------------------- errors
+    def _fail(self, where: str, exc: BaseException) -> None:
+        """Count and log (rate-limited) an exception caught in ``where``."""
+        self.stats.errors += 1
+        self.last_error = f"{where}: {type(exc).__name__}: {exc}"
+        n = self.stats.errors
+        if log_due(n):
+            log.warning(
+                "%s operator: %s (%d errors so far): holding",
+                self.effector.name,
+                self.last_error,
+                n,
+                exc_info=exc if n == 1 else None,
+            )
+
+    def _malformed(self, why: str) -> None:
+        """Count and log (rate-limited) a malformed frame."""
+        self.stats.malformed_frames += 1
+        n = self.stats.malformed_frames
+        if log_due(n):
+            log.warning("%s operator: malformed frame (%s), %d so far", self.effector.name, why, n)
+
+    def _count_hold(self, reason: str) -> None:
+        """Count a held tick; log the holds that are not session rules (rate-limited)."""
+        n = self.stats.holds[reason] = self.stats.holds.get(reason, 0) + 1
+        if reason in ("ik_infeasible", "retarget_infeasible") and log_due(n):
+            what = "arm IK" if reason == "ik_infeasible" else "finger retargeting"
+            solver = self.ik if reason == "ik_infeasible" else self.retargeter
+            log.warning(
+                "%s operator: the %s QP is infeasible (DAQP exit flag %s): holding the %s "
+                "(%d ticks so far)",
+                self.effector.name,
+                what,
+                getattr(solver, "last_exitflag", "?"),
+                "arm" if reason == "ik_infeasible" else "fingers",
+                n,
+            )
+
     # ----------------------------------------------------------------- per frame
     def observe(self, frame: HandFrame) -> bool:
-        """Take one hand frame of this side; returns whether it was used."""
+        """Take one hand frame of this side; returns whether it was used.
+
+        Never raises. A malformed frame is dropped (``stats.malformed_frames``); an exception
+        while using one is an error (``stats.errors``, logged): the filters start over and
+        the effector holds (``"error"``) until a frame is used."""
         self.stats.frames += 1
-        if not frame.palm_frame_tracked:
+        try:
+            return self._observe(frame)
+        except Exception as exc:
+            self._frame_failed = True
+            self.keypoints.reset()
+            self.pose_filter.reset()
+            self._fail("observe", exc)
+            return False
+
+    def _read(
+        self, frame: HandFrame
+    ) -> tuple[np.ndarray, np.ndarray, bool, float, float, str] | None:
+        """The frame's joints, valid joints (tracked and finite), whether the palm frame's are
+        valid, stamps and resolution, or None (counted, logged) when it is malformed."""
+        try:
+            side, resolution = frame.side, frame.resolution
+            joints = np.asarray(frame.joints, dtype=np.float64)
+            tracked = np.asarray(frame.tracked, dtype=bool)
+            t_source, t_receive = float(frame.t_source), float(frame.t_receive)
+        except (AttributeError, TypeError, ValueError) as exc:
+            self._malformed(f"unreadable: {type(exc).__name__}: {exc}")
+            return None
+        if side != self.side:
+            self._malformed(f"a {side!r} hand for the {self.side} effector")
+        elif joints.shape != (N_JOINTS, 3) or tracked.shape != (N_JOINTS,):
+            self._malformed(f"joints of shape {joints.shape}, tracked flags {tracked.shape}")
+        elif not (math.isfinite(t_source) and math.isfinite(t_receive)):
+            self._malformed(f"stamps {t_source!r}, {t_receive!r}")
+        elif resolution not in RESOLUTIONS:
+            self._malformed(f"resolution {resolution!r}")
+        else:
+            valid = np.empty(N_JOINTS, dtype=bool)
+            bad, palm_valid = kernels.valid_joints(joints, tracked, _PALM_IDS, valid)
+            if bad:
+                self._malformed("NaN/inf in joints flagged tracked: using them as untracked")
+            return joints, valid, palm_valid, t_source, t_receive, resolution
+        return None
+
+    def _observe(self, frame: HandFrame) -> bool:
+        read = self._read(frame)
+        if read is None:
+            return False
+        joints, valid, palm_valid, t_source, t_receive, resolution = read
+        if not palm_valid:
             self.stats.untracked_frames += 1
             return False
-        # The palm frame's origin is the wrist: the jump check needs no rotation.
-        p_wrist = frame.joints[WRIST]
-        if self._is_jump(p_wrist, frame.t_receive):
+        if kernels.palm_pose(joints, *_PALM_POSE_JOINTS, self._sign, self._T_raw):
+            self._malformed("degenerate palm (wrist, knuckles in line or coincident)")
             return False
-        self._p_accepted, self._t_accepted = p_wrist.copy(), frame.t_receive
-        joints = self.keypoints(frame.joints)
-        T_smooth = T_world_palm(joints, self.side)
-        self._T_palm = self.pose_filter(T_smooth)
+        # The palm frame's origin is the wrist: the jump check needs no rotation.
+        p_wrist = joints[WRIST]
+        if self._is_jump(p_wrist, t_receive):
+            return False
+        # Filters on the source's clock: the time the hand was where the frame says.
+        smoothed = self.keypoints(joints, valid, t_source)
+        T_smooth = T_world_palm(smoothed, self.side)
+        T_palm = self.pose_filter(T_smooth, t_source)
+        # Nothing below raises: the frame is used as a whole or not at all.
+        self._p_accepted, self._t_accepted = p_wrist.copy(), t_receive
+        self._T_palm = T_palm
         # Keypoints in the palm frame: computed when a tick uses them (the last frame's).
-        self._smoothed = joints, T_smooth
+        self._smoothed = smoothed, T_smooth
         self._keypoints_palm = None
-        self._tracked = frame.tracked
-        self._t_source, self._t_receive = frame.t_source, frame.t_receive
-        if frame.resolution != self._resolution and self.mapping.anchored:
+        self._tracked = valid  # untracked in the newest frame: untracked
+        self._t_source, self._t_receive = t_source, t_receive
+        if resolution != self._resolution and self.mapping.anchored:
             # A new motion scale applies from here: re-anchor so the robot does not jump.
             self.mapping.release()
-        self._resolution = frame.resolution
+        self._resolution = resolution
         self._fresh = True
+        self._frame_failed = False
         return True
 
     @property
@@ -256,10 +454,21 @@ class EffectorOperator:
 
     # ----------------------------------------------------------------- per tick
     def command(self, now: float, paused: bool) -> JointCommand:
-        """Joint targets for this control tick (time ``now``, the receive clock)."""
+        """Joint targets for this control tick (time ``now``, the receive clock).
+
+        Never raises: an exception is an ``"error"`` hold that repeats the last command's
+        positions (see the module docstring for every reason)."""
+        try:
+            return self._command(now, paused)
+        except Exception as exc:
+            return self._hold_on_error(exc)
+
+    def _command(self, now: float, paused: bool) -> JointCommand:
         reason = ""
         if paused:
             reason = "paused"
+        elif self._frame_failed:
+            reason = "error"
         elif self._T_palm is None:
             reason = "waiting"
         elif now - self._t_accepted > self.config.tracking_timeout_s:
@@ -273,6 +482,7 @@ class EffectorOperator:
             )
         self._lost = reason == "tracking_lost"
 
+        fingers_held = False
         if reason:
             q_arm = self.ik.q[: self.n_arm]
         else:
@@ -282,20 +492,53 @@ class EffectorOperator:
             target = self.mapping.robot_target(self._T_palm, self._resolution)
             self._T_target = target
             if self._fresh:
-                self._q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
-                self.ik.set_fingers(self._q_hand)
-                self._fresh = False
+                self._fresh = False  # a frame that fails here is not retried every tick
+                q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
+                fingers_held = self.retargeter.infeasible
+                self._q_hand = q_hand
+                self.ik.set_fingers(q_hand)
             q_arm = self.ik.step(target)
-        positions = np.concatenate([q_arm, self._q_hand])
-        positions = np.minimum(np.maximum(positions, self.ik.joints.lower), self.ik.joints.upper)
-        self._last_reason = reason
+            if self.ik.infeasible:
+                reason = "ik_infeasible"  # the arm did not move: its previous joints
+        positions = self._clip(np.concatenate([q_arm, self._q_hand]))
+        if not np.isfinite(positions).all():
+            raise FloatingPointError(f"non-finite joint targets {positions}")
+        if reason:
+            self._count_hold(reason)
+        if fingers_held:
+            self._count_hold("retarget_infeasible")
+        self._last_positions = positions
+        self._last_hold = bool(reason)
+        self._last_reason = reason or ("retarget_infeasible" if fingers_held else "")
         return JointCommand(
             effector=self.effector.name,
-            positions=positions,
+            positions=positions.copy(),
             t_source=self._t_source,
             t_receive=self._t_receive,
-            hold=bool(reason),
-            reason=reason,
+            hold=self._last_hold,
+            reason=self._last_reason,
+        )
+
+    def _hold_on_error(self, exc: BaseException) -> JointCommand:
+        """The ``"error"`` hold: the last command again; IK and retargeting continue from it."""
+        self._fail("command", exc)
+        self._count_hold("error")
+        positions = self._last_positions
+        try:
+            self.ik.reset(positions, posture=self.ik.posture)
+            self._q_hand = positions[self.n_arm :].copy()
+            self.retargeter.reset(self._q_hand)
+            self.ik.set_fingers(self._q_hand)
+        except Exception as again:  # the solvers' state is beyond repair: say so, hold anyway
+            self.last_error += f"; resuming from the last command failed: {again!r}"
+        self._last_hold, self._last_reason = True, "error"
+        return JointCommand(
+            effector=self.effector.name,
+            positions=positions.copy(),
+            t_source=self._t_source,
+            t_receive=self._t_receive,
+            hold=True,
+            reason="error",
         )
 
     def targets(self) -> EffectorTargets:
@@ -318,7 +561,7 @@ class EffectorOperator:
             T_world_hand=T_world_hand,
             finger_targets_world=fingers,
             keypoints_world=skeleton,
-            hold=bool(self._last_reason),
+            hold=self._last_hold,
             reason=self._last_reason,
         )
 
@@ -341,6 +584,11 @@ class Operator:
         self._pinch_start: float | None = None  # source time of the held pinch's press
         self._gestures: list[str] = []
         self._was_paused = False
+        #: Frames no effector could take (no side, or a side this embodiment does not know),
+        #: and exceptions caught in the session rules (pause, pinch); the effectors count
+        #: their own in their stats.
+        self.malformed_frames = 0
+        self.errors = 0
 
     @property
     def paused(self) -> bool:
@@ -356,20 +604,60 @@ class Operator:
             op.reset(np.asarray(q_measured)[joint_slices[name]])
         self._pinch_paused = False
 
+    def set_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
+        """The task's fixtures (after each env reset: :func:`fixture_obstacles`) for every
+        effector's IK: hands and forearms keep off them as off the table."""
+        obstacles = tuple(obstacles)
+        for op in self.effectors.values():
+            op.ik.set_obstacles(obstacles)
+
     def resync(self, effector: str, q_effector: np.ndarray) -> None:
         """Continue ``effector`` from the joints the guard held it at (see
         :meth:`EffectorOperator.resync`)."""
         self.effectors[check_name("effector", effector, self.effectors)].resync(q_effector)
 
     def observe(self, frame: HandFrame) -> None:
-        """Take one hand frame (any side)."""
-        self._stream_paused = frame.paused
+        """Take one hand frame (any side). Never raises: a frame without a known side is
+        counted (:attr:`malformed_frames`) and dropped; an exception in the session rules is
+        counted (:attr:`errors`) and logged, and the effectors still take the frame."""
+        try:
+            side = frame.side
+            effectors = self._by_side[side] if side in self._by_side else None
+        except Exception:  # not a frame at all, or an unhashable side
+            effectors = None
+        if effectors is None:
+            self.malformed_frames += 1
+            if log_due(self.malformed_frames):
+                log.warning(
+                    "operator: dropped a frame without a known side (%s), %d so far",
+                    type(frame).__name__,
+                    self.malformed_frames,
+                )
+            return
+        try:
+            self._session(frame)
+        except Exception as exc:
+            self.errors += 1
+            if log_due(self.errors):
+                log.warning(
+                    "operator: session rules failed on a %s frame: %r (%d errors so far)",
+                    side,
+                    exc,
+                    self.errors,
+                )
+        for op in effectors:
+            op.observe(frame)
+
+    def _session(self, frame: HandFrame) -> None:
+        """Pause stream, pinch pause, record and e-stop gestures."""
+        self._stream_paused = bool(frame.paused)
+        pinch = bool(frame.pinch)
         if self.config.pinch_pauses and frame.side == "left":
-            if frame.pinch and not self._last_pinch["left"]:
+            if pinch and not self._last_pinch["left"]:
                 self._pinch_paused = not self._pinch_paused
                 self._pinch_start = frame.t_source
                 log.info("left-hand pinch: %s", "pause" if self._pinch_paused else "resume")
-            elif not frame.pinch:
+            elif not pinch:
                 self._pinch_start = None
             elif (
                 self._pinch_start is not None
@@ -380,12 +668,10 @@ class Operator:
                 self._gestures.append("record")
                 log.info("left-hand long pinch: record gesture")
         both_before = all(self._last_pinch.values())
-        self._last_pinch[frame.side] = frame.pinch
+        self._last_pinch[frame.side] = pinch
         if all(self._last_pinch.values()) and not both_before:
             self._gestures.append("estop")
             log.warning("both hands pinch: emergency-stop gesture")
-        for op in self._by_side[frame.side]:
-            op.observe(frame)
 
     def take_gestures(self, *kinds: str) -> list[str]:
         """Gestures recognised since they were last taken, of ``kinds`` (default: all):
@@ -401,10 +687,14 @@ class Operator:
         return {name: op.targets() for name, op in self.effectors.items()}
 
     def command(self, now: float) -> dict[str, JointCommand]:
-        """One control tick: a command per effector."""
+        """One control tick: a command per effector. Never raises (see the module
+        docstring for the holds that take an exception's place)."""
         paused = self.paused
         if self._was_paused and not paused:
             for op in self.effectors.values():
-                op.release()  # re-anchor at resume: nothing jumps
+                try:
+                    op.release()  # re-anchor at resume: nothing jumps
+                except Exception as exc:
+                    op._fail("release", exc)
         self._was_paused = paused
         return {name: op.command(now, paused) for name, op in self.effectors.items()}

@@ -380,6 +380,13 @@ class LeapRetargeter:
         self._posture_weight2 = float(self.config.posture_weight**2)
         self._diagonal = float(self.config.damping) + self._posture_weight2
         self._qp = StepQP(model.nv)
+        #: Whether the last :meth:`retarget` made no progress: no step's QP had a solution,
+        #: so the fingers held their previous joints (the caller reports the hold).
+        self.infeasible = False
+        #: QP steps without a solution since construction (partial frames count too).
+        self.infeasible_steps = 0
+        #: DAQP's exit flag of the latest step without a solution (None before any).
+        self.last_exitflag: int | None = None
         self._limit_gain = float(self.joint_limit.gain)
         # Degrees of freedom (qvel addresses) and target points of each finger.
         self._finger_dofs = {
@@ -423,8 +430,12 @@ class LeapRetargeter:
 
         ``keypoints_palm``: the 26 canonical joints in the palm frame (wrist at the origin),
         as :func:`~beavr_sim.operator.palm.keypoints_in_palm` gives them. ``tracked``: per-joint
-        flags (None: all tracked); a finger whose tip or distal joint is untracked holds its
-        previous value.
+        flags (None: all tracked); a finger with an untracked target point (tip, distal or
+        intermediate joint) holds its previous value. A step whose QP has no solution leaves
+        the joints as they are (:attr:`infeasible`, :attr:`infeasible_steps`).
+
+        Raises ValueError for keypoints or flags of the wrong shape, and for NaN/inf in a
+        tracked target point (flag such joints untracked).
         """
         keypoints = np.asarray(keypoints_palm, dtype=float)
         if keypoints.shape != (N_JOINTS, 3):
@@ -459,16 +470,22 @@ class LeapRetargeter:
         elif self._held_any_before:
             self._held[:] = False
         self._held_any_before = self._any_held
+        failed = 0
         for _ in range(self.config.iterations):
-            self._step()
+            if not self._step():
+                failed += 1
+                self.last_exitflag = getattr(self._qp, "last_exitflag", None)
+        self.infeasible = failed == self.config.iterations
+        self.infeasible_steps += failed
         q16 = np.empty(self.map.qpos_adr.shape[0])
         kernels.gather_clip(
             self.configuration.data.qpos, self.map.qpos_adr, self._lower, self._upper, q16
         )
         return q16
 
-    def _step(self) -> None:
-        """One QP step (Gauss-Newton with damping) under joint limits and collision avoidance.
+    def _step(self) -> bool:
+        """One QP step (Gauss-Newton with damping) under joint limits and collision avoidance;
+        returns whether the QP had a solution (else the joints stay).
 
         Assembled here rather than by ``mink.solve_ik`` for speed: the tasks' weighted residuals
         are stacked, joint limits become simple bounds, and only active collision rows are kept.
@@ -487,11 +504,13 @@ class LeapRetargeter:
         )  # fmt: skip
         _, A, h = self.collision_limit.active_rows(cfg, 1.0)
         dq = qp.solve(A, h)
-        if dq is not None:  # dq = 0 is always feasible; on a solver failure, hold
-            if self._any_held:
-                dq[self._held] = 0.0
-            q += dq  # in place (data.qpos); hinges only: integrating is adding
-            cfg.update()
+        if dq is None:  # no solution (fingers already too close, a solver failure): hold
+            return False
+        if self._any_held:
+            dq[self._held] = 0.0
+        q += dq  # in place (data.qpos); hinges only: integrating is adding
+        cfg.update()
+        return True
 
     def retarget_converged(
         self, keypoints_palm: np.ndarray, iterations: int = 300, tolerance: float = 1e-7

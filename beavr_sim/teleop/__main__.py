@@ -129,6 +129,26 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def explain(report: dict) -> list[str]:
+    """Lines for a person, from the summary: why each effector held (reason: ticks, most
+    first), listeners that failed, ticks that started late."""
+    lines = []
+    for effector, by_reason in sorted(report.get("holds", {}).items()):
+        reasons = sorted(by_reason.items(), key=lambda kv: (-kv[1], kv[0]))
+        text = ", ".join(f"{reason} {n}" for reason, n in reasons)
+        lines.append(f"{effector} held (ticks by reason): {text}")
+    errors = report.get("listener_errors", {})
+    if errors:
+        text = ", ".join(f"{name} {n}" for name, n in sorted(errors.items()))
+        lines.append(f"tick listeners failed (the session went on): {text}")
+    if report.get("overruns"):
+        lines.append(
+            f"{report['overruns']} ticks started late; {report.get('missed_ticks', 0)} control "
+            "periods skipped (never caught up in a burst)"
+        )
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -154,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     report = summary.to_dict()
     report["wall_s"] = round(time.perf_counter() - start, 3)
+    if not args.quiet:
+        for line in explain(report):
+            print(line, file=sys.stderr)
     line = json.dumps(report)
     if args.summary_json is not None:
         args.summary_json.parent.mkdir(parents=True, exist_ok=True)

@@ -11,10 +11,21 @@ Latency is measured per applied (non-hold, not refused) command from the moment 
 entered the pipeline (received by the detector: ``t_receive`` in real time, the poll on the
 virtual clock) to the moment the command, past the collision guard, is handed to the twin's
 actuators.
+
+The loop keeps running whatever its parts do. A paced tick that starts late (a stall) runs at
+once and the wall deadlines it passed are skipped and counted (:class:`TickSchedule`), never
+run back to back; the virtual clock still advances one period per tick, so a paced replay is
+the same episode as an unpaced one. An exception in a tick listener is counted per listener
+and logged, rate-limited (:class:`StopTeleop` alone ends the run on purpose); pure viewers run
+on their own thread (:class:`ThreadedListener`). An exception from the operator holds every
+effector for that tick (reason ``"error"``). Holds are counted per effector and reason.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -23,9 +34,188 @@ import numpy as np
 
 from beavr_sim.headset.sources import HandSource
 from beavr_sim.headset.validation import StreamValidator
+from beavr_sim.operator.obstacles import fixture_obstacles
 from beavr_sim.operator.operator import Operator
 from beavr_sim.twin.twin import TwinInterface
-from beavr_sim.wire.records import Tick, TickListener
+from beavr_sim.wire.records import JointCommand, Tick, TickListener
+
+log = logging.getLogger(__name__)
+
+
+class StopTeleop(Exception):
+    """Raise it from a tick listener (or ``progress``) to end the run on purpose; any other
+    exception a listener raises is counted and logged, and the loop goes on."""
+
+
+def should_log(count: int) -> bool:
+    """Whether the ``count``-th repeat of one problem is worth a log line (1st, 10th, 100th,
+    then every 1000th): a failure every tick must not flood the log at the control rate."""
+    return count in (1, 10, 100) or count % 1000 == 0
+
+
+def count_hold(holds: dict[str, dict[str, int]], effector: str, reason: str, n: int = 1) -> None:
+    """Add ``n`` ticks of ``effector`` holding for ``reason`` to ``holds``
+    (effector -> reason -> ticks, the summary's shape)."""
+    by_reason = holds.setdefault(effector, {})
+    by_reason[reason or "hold"] = by_reason.get(reason or "hold", 0) + n
+
+
+def listener_name(listener: object) -> str:
+    """How a listener is named in the summary and the log: a function's name, else its class."""
+    name = getattr(listener, "__name__", None)
+    return name if isinstance(name, str) and name else type(listener).__name__
+
+
+class TickSchedule:
+    """Wall-clock tick deadlines, one per ``dt``, that never catch up in a burst.
+
+    ``next`` is the deadline of the next tick. A tick that starts after it (the one before
+    overran, a stall, a slow set-up) runs at once and the grid moves on from it: the deadlines
+    it passed are skipped and counted (``missed_ticks``), not run back to back; ``overruns``
+    counts the ticks that started more than ``tolerance_s`` (a tenth of a period) late. The
+    single-process loop and the operator process :meth:`wait` for each deadline; the twin
+    process steps as soon as its commands are in and uses ``next`` as the latest moment to
+    step without them, telling the schedule with :meth:`take`.
+    """
+
+    def __init__(self, dt: float, clock: Callable[[], float] = time.monotonic):
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ValueError(f"tick period must be positive and finite, got {dt}")
+        self.dt = float(dt)
+        self.tolerance_s = 0.1 * self.dt
+        self.clock = clock
+        self.next: float | None = None
+        self.overruns = 0
+        self.missed_ticks = 0
+
+    def restart(self, first: float | None = None) -> None:
+        """Start the grid over: the next tick is due at ``first`` (None: when it is asked)."""
+        self.next = first
+
+    def resume(self) -> None:
+        """Forget a deadline that has passed (time spent outside the loop, e.g. setting up
+        between two runs, is not an overrun); one still ahead is kept, so no two ticks run
+        back to back across runs."""
+        if self.next is not None and self.next < self.clock():
+            self.next = None
+
+    def take(self, now: float | None = None) -> float:
+        """A tick starts at ``now``: count it if late and move the deadline on from the later
+        of the deadline and ``now``. Returns the next deadline."""
+        now = self.clock() if now is None else now
+        if self.next is None:
+            self.next = now
+        late = now - self.next
+        if late > self.tolerance_s:
+            self.overruns += 1
+            self.missed_ticks += int(late // self.dt)
+        self.next = max(self.next, now) + self.dt
+        return self.next
+
+    def wait(self, sleep: Callable[[float], None] = time.sleep) -> float:
+        """Sleep until the next deadline (not at all when late), then :meth:`take` the tick;
+        returns its start on the grid."""
+        now = self.clock()
+        if self.next is not None and self.next > now:
+            sleep(self.next - now)
+            now = self.clock()
+            if now - self.next <= self.tolerance_s:
+                now = self.next  # on time: a sleep's usual overshoot does not move the grid
+        self.take(now)
+        return now
+
+
+_EMPTY = object()
+
+
+class ThreadedListener[T]:
+    """A tick listener run on its own thread, off the control tick: for pure viewers (the
+    headset images), whose time must never add to the control period.
+
+    On the control thread ``snapshot(tick)`` takes what the viewer needs - cheap copies, never
+    the env's live ``MjData``, which the control thread steps meanwhile - or returns None to
+    skip the tick (default: the tick itself). The worker thread gets the newest snapshot
+    through a queue of one that drops the oldest: a slow viewer shows fewer frames, never old
+    ones, and never slows the loop (``dropped`` counts what it skipped). ``target``'s
+    exceptions are counted (``errors``, reported in the loop's ``listener_errors``) and logged,
+    rate-limited. :meth:`close` stops the thread; ``target.close()``, if it has one, runs on
+    that thread (where a render context lives).
+    """
+
+    def __init__(
+        self,
+        target: Callable[[T], None],
+        *,
+        snapshot: Callable[[Tick], T | None] | None = None,
+        name: str | None = None,
+    ):
+        self.target = target
+        self.snapshot = snapshot
+        self.__name__ = name or listener_name(target)
+        self.errors = 0
+        self.dropped = 0
+        self.handled = 0
+        self._pending: object = _EMPTY
+        self._closed = False
+        self._wake = threading.Condition()
+        self._thread = threading.Thread(
+            target=self._work, name=f"listener-{self.__name__}", daemon=True
+        )
+        self._thread.start()
+
+    def __call__(self, tick: Tick) -> None:
+        item = tick if self.snapshot is None else self.snapshot(tick)
+        if item is None:
+            return
+        with self._wake:
+            if self._closed:
+                return
+            if self._pending is not _EMPTY:
+                self.dropped += 1
+            self._pending = item
+            self._wake.notify()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def _work(self) -> None:
+        try:
+            while True:
+                with self._wake:
+                    while self._pending is _EMPTY and not self._closed:
+                        self._wake.wait()
+                    if self._closed:
+                        return
+                    item, self._pending = self._pending, _EMPTY
+                try:
+                    self.target(item)  # type: ignore[arg-type]
+                    self.handled += 1
+                except Exception as exc:
+                    self.errors += 1
+                    if should_log(self.errors):
+                        log.warning(
+                            "tick listener %s failed (%d so far): %r",
+                            self.__name__,
+                            self.errors,
+                            exc,
+                            exc_info=self.errors == 1,
+                        )
+        finally:
+            close = getattr(self.target, "close", None)
+            if close is not None:
+                try:
+                    close()
+                except Exception as exc:
+                    log.warning("closing tick listener %s failed: %r", self.__name__, exc)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop after the item in hand (a pending one is dropped); idempotent."""
+        with self._wake:
+            self._closed = True
+            self._wake.notify()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
 
 
 @dataclass
@@ -39,6 +229,9 @@ class TeleopSummary:
     duration_s: float
     latency_ms: dict
     rejected_by_reason: dict = field(default_factory=dict)
+    #: Ticks each effector held, by reason: effector -> reason -> ticks (the operator's reasons,
+    #: e.g. "paused", "tracking_lost", "error"; "guard": the collision guard refused the
+    #: command; "step_limit": the twin clamped its step, where the twin counts that).
     holds: dict = field(default_factory=dict)
     operator: dict = field(default_factory=dict)
     ticks: int = 0
@@ -49,6 +242,12 @@ class TeleopSummary:
     #: Per mirrored device (teleop --mirror-hardware): connected, commands sent and refused,
     #: holds, largest divergence from the twin, errors.
     hardware: dict = field(default_factory=dict)
+    #: Exceptions raised by tick listeners, per listener (the loop went on).
+    listener_errors: dict = field(default_factory=dict)
+    #: Paced / real-time ticks that started late, and the control periods skipped after them
+    #: (in --multiprocess: the operator's and the twin's loops together).
+    overruns: int = 0
+    missed_ticks: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -88,9 +287,15 @@ class TeleopLoop:
         self.dt = 1.0 / twin.env.control_hz
         self.frames_received = 0
         self.latencies_ms: list[float] = []
-        self.holds: dict[str, int] = {}
+        #: Ticks each effector held, by reason (see :attr:`TeleopSummary.holds`).
+        self.holds: dict[str, dict[str, int]] = {}
+        #: Exceptions raised by (synchronous) tick listeners, per listener name.
+        self.listener_errors: dict[str, int] = {}
+        #: Exceptions raised by the operator (each one a tick of holds), per call.
+        self.operator_errors: dict[str, int] = {}
+        #: Wall deadlines of paced ticks (started when the loop first runs, not at reset).
+        self.schedule = TickSchedule(self.dt)
         self.ticks = 0
-        self._t0 = 0.0
         #: Seed of the current episode (reset with the same seed re-runs the same layout).
         self.seed: int | None = None
         #: How many times the loop was reset (a reset during :meth:`run` starts the wait for
@@ -105,8 +310,9 @@ class TeleopLoop:
         self.resets += 1
         q = self.twin.reset(seed, robot_qpos)
         self.operator.reset(q, self.twin.slices)
+        env = self.twin.env
+        self.operator.set_obstacles(fixture_obstacles(env.model, env.data))
         self.ticks = 0
-        self._t0 = time.monotonic()
 
     def replace_source(self, source: HandSource) -> None:
         """A new stream (e.g. a trace played again from its start): its timestamps start over,
@@ -119,21 +325,32 @@ class TeleopLoop:
 
     # ------------------------------------------------------------------ one tick
     def tick(self) -> Tick:
+        """One tick; paced, first waits for its wall deadline (at once when late: see
+        :class:`TickSchedule`)."""
+        if self.paced:
+            self.schedule.wait()
         now = self.now()
         poll_wall = time.perf_counter()
         used = []
+        ok = True
         for frame in self.source.poll(now):
             self.frames_received += 1
             if self.source.validates or self.validator.check(frame) is None:
-                self.operator.observe(frame)
+                ok = self._operator_call("observe", self.operator.observe, frame)[0] and ok
                 used.append(frame)
-        commands = self.operator.command(now)
-        for cmd in commands.values():
+        if ok:
+            ok, commands = self._operator_call("command", self.operator.command, now)
+        if not ok:  # the operator failed: every effector holds its last target this tick
+            commands = self._hold_all("error")
+        for name, cmd in commands.items():
             if cmd.hold:
-                self.holds[cmd.reason] = self.holds.get(cmd.reason, 0) + 1
+                count_hold(self.holds, name, cmd.reason)
         state = self.twin.apply(commands)
         for name in state.guard_blocked_effectors:  # continue from where the robot was held
-            self.operator.resync(name, state.action[self.twin.slices[name]])
+            count_hold(self.holds, name, "guard")
+            self._operator_call(
+                "resync", self.operator.resync, name, state.action[self.twin.slices[name]]
+            )
         if used:
             for cmd in commands.values():
                 if cmd.hold or cmd.effector in state.guard_blocked_effectors:
@@ -145,8 +362,57 @@ class TeleopLoop:
         self.ticks += 1
         tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
         for listener in self.listeners:
-            listener(tick)
+            try:
+                listener(tick)
+            except StopTeleop:
+                raise
+            except Exception as exc:
+                self.listener_error(listener_name(listener), exc)
         return tick
+
+    def _operator_call(self, what: str, fn: Callable, *args) -> tuple[bool, object]:
+        """``(True, fn(*args))``, or ``(False, None)`` when it raises (counted, logged
+        rate-limited): an operator error holds the robot for a tick, it never ends the session."""
+        try:
+            return True, fn(*args)
+        except Exception as exc:
+            n = self.operator_errors[what] = self.operator_errors.get(what, 0) + 1
+            if should_log(n):
+                log.error(
+                    "operator.%s failed (%d so far): %r; every effector holds this tick",
+                    what,
+                    n,
+                    exc,
+                    exc_info=n == 1,
+                )
+            return False, None
+
+    def _hold_all(self, reason: str) -> dict[str, JointCommand]:
+        """A hold of every effector at the twin's last target (nothing moves, nothing jumps)."""
+        nan = float("nan")
+        return {
+            name: JointCommand(
+                effector=name,
+                positions=self.twin.action[self.twin.slices[name]].copy(),
+                t_source=nan,
+                t_receive=nan,
+                hold=True,
+                reason=reason,
+            )
+            for name in self.operator.effectors
+        }
+
+    def listener_error(self, name: str, exc: BaseException) -> None:
+        """Count (and log, rate-limited) an exception a tick listener raised."""
+        n = self.listener_errors[name] = self.listener_errors.get(name, 0) + 1
+        if should_log(n):
+            log.warning(
+                "tick listener %s failed (%d so far): %r; teleoperation goes on",
+                name,
+                n,
+                exc,
+                exc_info=n == 1,
+            )
 
     # ------------------------------------------------------------------ episode
     def run(
@@ -161,15 +427,11 @@ class TeleopLoop:
         a finite source plus ``tail_seconds`` (objects settle) / ``stop_when()`` (asked after
         every tick)."""
         start_wall = time.perf_counter()
+        self.schedule.resume()  # the first tick now, not at a deadline from before set-up
         finished_at: float | None = None
         resets = self.resets
         success = False
         while True:
-            if self.paced:
-                target = self._t0 + self.ticks * self.dt
-                delay = target - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
             tick = self.tick()
             if progress is not None:
                 progress(tick)
@@ -192,6 +454,15 @@ class TeleopLoop:
     def summary(self, success: bool, wall_s: float | None = None) -> TeleopSummary:
         """The episode so far, as the CLI reports it."""
         env = self.twin.env
+        holds = {name: dict(by_reason) for name, by_reason in self.holds.items()}
+        for name, n in getattr(self.twin, "step_limited", {}).items():
+            if n:
+                count_hold(holds, name, "step_limit", int(n))
+        listener_errors = dict(self.listener_errors)
+        for listener in self.listeners:
+            if isinstance(listener, ThreadedListener) and listener.errors:
+                name = listener_name(listener)
+                listener_errors[name] = listener_errors.get(name, 0) + listener.errors
         return TeleopSummary(
             task=env.task.name,
             embodiment=env.embodiment.name,
@@ -202,9 +473,12 @@ class TeleopLoop:
             duration_s=self.ticks * self.dt,
             latency_ms=_percentiles(self.latencies_ms),
             rejected_by_reason=self.validator.rejected_by_reason,
-            holds=dict(self.holds),
+            holds=holds,
             operator={name: asdict(op.stats) for name, op in self.operator.effectors.items()},
             ticks=self.ticks,
             loop_rate_hz=self.ticks / wall_s if wall_s else None,
             guard_blocks=dict(getattr(self.twin, "guard_blocks", {})),
+            listener_errors=listener_errors,
+            overruns=self.schedule.overruns,
+            missed_ticks=self.schedule.missed_ticks,
         )

@@ -15,6 +15,13 @@ alive: the twin keeps the last targets (the robot holds) when commands stop, the
 holds when hand frames stop; the supervisor reports the death and stops on its own terms.
 Processes are started with the ``spawn`` method (no state inherited from the parent) and
 report their final counters to the supervisor as JSON over a pipe.
+
+Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
+of an older one; the operator re-homes from the first state of a newer epoch only, and after
+a reset request holds until that state comes (:class:`OperatorRehome`). The operator and the
+twin tick on a :class:`~beavr_sim.teleop.pipeline.TickSchedule` (after a stall: no catch-up
+burst, the skipped periods counted); an operator exception holds every effector for a tick
+(reason ``"error"``), it never ends the process.
 """
 
 from __future__ import annotations
@@ -28,7 +35,13 @@ from dataclasses import asdict
 
 import numpy as np
 
-from beavr_sim.teleop.pipeline import TeleopSummary, _percentiles
+from beavr_sim.teleop.pipeline import (
+    TeleopSummary,
+    TickSchedule,
+    _percentiles,
+    count_hold,
+    should_log,
+)
 from beavr_sim.wire.ports import TransportConfig
 
 log = logging.getLogger("beavr_sim.teleop.processes")
@@ -156,13 +169,52 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     for e in embodiment.effectors:
         slices[e.name] = slice(start, start + len(e.joints))
         start += len(e.joints)
+    rehome = OperatorRehome(operator, slices)
     if first is not None:
-        operator.reset(np.asarray(first.positions), slices)
+        rehome.on_state(first)
     conn.send_bytes(b"ready")
     compute_ms: list[float] = []
-    next_tick = time.monotonic()
+    holds: dict[str, dict[str, int]] = {}
+    errors: dict[str, int] = {}
+    schedule = TickSchedule(dt)
+
+    def guarded(what: str, fn, *args) -> tuple[bool, object]:
+        """``(True, fn(*args))``, or ``(False, None)`` when the operator raises (counted and
+        logged, rate-limited): an operator error holds the robot, it never ends the process."""
+        try:
+            return True, fn(*args)
+        except Exception as exc:
+            n = errors[what] = errors.get(what, 0) + 1
+            if should_log(n):
+                log.error(
+                    "operator.%s failed (%d so far): %r; every effector holds this tick",
+                    what,
+                    n,
+                    exc,
+                    exc_info=n == 1,
+                )
+            return False, None
+
+    def send_hold(now: float, reason: str) -> None:
+        """Every effector holds (the twin keeps its last targets)."""
+        for name in slices:
+            count_hold(holds, name, reason)
+            commands.send(
+                name.encode(),
+                JointCommandMsg(
+                    effector=name,
+                    t_source=0.0,
+                    t_command=now,
+                    positions=[],
+                    hold=True,
+                    reason=reason,
+                    epoch=rehome.epoch,
+                ),
+            )
+
     try:
         while True:
+            schedule.wait()
             msg = session.recv(0.0)
             if msg is not None:
                 if msg.command == "stop":
@@ -170,20 +222,31 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                 if msg.command in ("pause", "resume"):
                     operator.set_paused(msg.command == "pause")
                 if msg.command == "reset":
-                    latest = state.recv_latest(1.0)
-                    if latest is not None:
-                        operator.reset(np.asarray(latest.positions), slices)
-            held = state.recv(0.0)
-            if held is not None and held.guard_blocked_effectors:  # continue where held
-                for name in held.guard_blocked_effectors:
-                    if name in slices:
-                        operator.resync(name, np.asarray(held.action)[slices[name]])
+                    rehome.expect(msg.epoch)
+            latest = state.recv(0.0)
+            if latest is not None:
+                guarded("reset", rehome.on_state, latest)
             t0 = time.perf_counter()
+            ok = True
             for sub in hands.values():
                 while (frame_msg := sub.recv(0.0)) is not None:
-                    operator.observe(frame_msg.to_frame())
+                    if not rehome.waiting:  # frames from before the reset are dropped
+                        ok = guarded("observe", operator.observe, frame_msg.to_frame())[0] and ok
             now = time.monotonic()
-            for name, cmd in operator.command(now).items():
+            if rehome.waiting:
+                # Hold until the twin's state after the reset comes: re-homing to a state from
+                # before it would drive the robot back where it was.
+                rehome.warn_if_late(now)
+                send_hold(now, "resetting")
+                continue
+            if ok:
+                ok, out = guarded("command", operator.command, now)
+            if not ok:
+                send_hold(now, "error")
+                continue
+            for name, cmd in out.items():
+                if cmd.hold:
+                    count_hold(holds, name, cmd.reason)
                 t_source = cmd.t_source if np.isfinite(cmd.t_source) else 0.0
                 commands.send(
                     name.encode(),
@@ -194,23 +257,130 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                         positions=cmd.positions.tolist(),
                         hold=cmd.hold,
                         reason=cmd.reason,
+                        epoch=rehome.epoch,
                     ),
                 )
             compute_ms.append((time.perf_counter() - t0) * 1e3)
-            next_tick += dt
-            time.sleep(max(0.0, next_tick - time.monotonic()))
     finally:
         conn.send_bytes(
             json.dumps(
                 {
                     "compute_ms": _percentiles(compute_ms),
                     "operator": {n: asdict(op.stats) for n, op in operator.effectors.items()},
+                    "holds": holds,
+                    "errors": errors,
+                    "reset_epoch": rehome.epoch,
+                    "overruns": schedule.overruns,
+                    "missed_ticks": schedule.missed_ticks,
                 }
             ).encode()
         )
         for s in (*hands.values(), state, session, commands):
             s.close()
         context.term()
+
+
+#: The twin's states carry the task's fixtures for this long after each reset (episode time,
+#: s): the operator takes them from the first such state of the epoch, and the states after
+#: stay small.
+FIXTURES_FOR_S = 2.0
+
+
+def fixtures_to_wire(env) -> list:
+    """The env's fixtures as its reset placed them, for the robot state messages."""
+    from beavr_sim.operator.obstacles import fixture_obstacles
+    from beavr_sim.wire.messages import FixtureMsg
+
+    return [
+        FixtureMsg(
+            name=o.name,
+            pos=list(o.pos),
+            quat=list(o.quat),
+            geoms=[[float(g.type), *g.size, *g.pos, *g.quat] for g in o.geoms],
+        )
+        for o in fixture_obstacles(env.model, env.data)
+    ]
+
+
+def obstacles_from_wire(fixtures) -> tuple:
+    """:func:`fixtures_to_wire`'s messages back as the operator's obstacles."""
+    from beavr_sim.operator.obstacles import Obstacle, ObstacleGeom
+
+    return tuple(
+        Obstacle(
+            f.name,
+            tuple(ObstacleGeom(int(g[0]), g[1:4], g[4:7], g[7:11]) for g in f.geoms),
+            tuple(f.pos),
+            tuple(f.quat),
+        )
+        for f in fixtures
+    )
+
+
+class OperatorRehome:
+    """The operator process's side of reset epochs.
+
+    The twin stamps every robot state with its reset epoch (how many resets it has done).
+    The operator re-homes from the first state of every newer epoch (a reset from the
+    supervisor or the twin's own browser view) and ignores older ones. A reset request
+    (:meth:`expect`) names the epoch the twin's states will carry at least after it; until
+    one comes the operator holds (:attr:`waiting`), so it never re-homes to a state published
+    before the reset, which the latest-only state stream can still hand it.
+    """
+
+    #: Seconds after a reset request without the twin's new state before a warning.
+    WARN_AFTER_S = 1.0
+
+    def __init__(self, operator, slices: dict[str, slice], clock=time.monotonic):
+        self.operator = operator
+        self.slices = slices
+        self.clock = clock
+        #: Epoch of the state the operator last re-homed from.
+        self.epoch = 0
+        self.homed = False  # no state yet: hold
+        self.expected = 0
+        self._since: float | None = None
+        self._warned = False
+        self._fixtures_epoch = -1  # the epoch whose fixtures the IK has
+
+    @property
+    def waiting(self) -> bool:
+        """Holding: no state yet, or none since the reset requested last."""
+        return not self.homed or self.epoch < self.expected
+
+    def expect(self, epoch: int) -> None:
+        """A reset was requested: hold until a state of ``epoch`` (0: the next epoch)."""
+        self.expected = max(self.expected, epoch if epoch > 0 else self.epoch + 1)
+        self._since, self._warned = self.clock(), False
+
+    def on_state(self, msg) -> None:
+        """Take a robot state: re-home on a newer epoch, continue from the guard's held
+        action within the current one, ignore an older one."""
+        if msg.epoch > self.epoch or not self.homed:
+            self.operator.reset(np.asarray(msg.positions), self.slices)
+            self._fixtures_epoch = -1
+            self.epoch, self.homed = msg.epoch, True
+            if not self.waiting:
+                self._since = None
+        if msg.epoch == self.epoch and msg.fixtures and self._fixtures_epoch != msg.epoch:
+            self._fixtures_epoch = msg.epoch  # tried once per epoch
+            try:
+                self.operator.set_obstacles(obstacles_from_wire(msg.fixtures))
+            except (ValueError, RuntimeError) as exc:  # the guard still keeps the robot off
+                log.warning("fixtures of epoch %d not usable by the IK: %s", msg.epoch, exc)
+        if msg.epoch == self.epoch and msg.guard_blocked_effectors:  # continue where held
+            for name in msg.guard_blocked_effectors:
+                if name in self.slices:
+                    self.operator.resync(name, np.asarray(msg.action)[self.slices[name]])
+
+    def warn_if_late(self, now: float) -> None:
+        if self._since is not None and not self._warned and now - self._since > self.WARN_AFTER_S:
+            self._warned = True
+            log.warning(
+                "no robot state after the reset (epoch %d) for %.1f s: holding until it comes",
+                self.expected,
+                now - self._since,
+            )
 
 
 # ---------------------------------------------------------------------------- twin
@@ -247,6 +417,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
             return
         twin.reset(options["seed"], q_measured)  # the twin starts where the robot stands
         mirror.start(twin.action)
+    fixtures = fixtures_to_wire(env)
     subs = {
         e.name: Subscriber(
             context,
@@ -294,15 +465,23 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     success = False
     details: dict = {}
     dt = 1.0 / env.control_hz
-    next_tick = time.monotonic()
+    # ``next``: the latest moment of the next step (the operator's commands usually come
+    # first); a step after it (a stall) moves the grid on from that step: no catch-up steps.
+    schedule = TickSchedule(dt)
+    schedule.restart(time.monotonic() + dt)
     last_t_source: dict[str, float] = {}
+    epoch = 0  # resets done: stamped on every state; commands of an older epoch are dropped
+    stale: dict[str, int] = {}
     try:
         while True:
             msg = session.recv(0.0)
             if msg is not None and msg.command == "stop":
                 break
-            if msg is not None and msg.command == "reset":
+            reset = msg is not None and msg.command == "reset"
+            if reset or (view is not None and view.take_reset()):  # supervisor or browser
                 twin.reset(options["seed"])
+                epoch = max(epoch + 1, msg.epoch if reset else 0)
+                fixtures = fixtures_to_wire(env)
             if msg is not None and mirror is not None and msg.command == "estop":
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
@@ -311,7 +490,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
             # twin: least latency), or at the control period's end without it (the operator
             # is slow or dead: the robot holds its last targets).
             commands: dict = {}
-            deadline = next_tick + dt
+            deadline = schedule.next
             while len(commands) < len(subs):
                 for name, sub in subs.items():
                     cmd = sub.recv_latest(0.0)
@@ -323,8 +502,12 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 poller_events = dict(poller.poll(max(1, int(remaining * 1000))))
                 if not poller_events:
                     break
+            schedule.take(time.monotonic())
             applied = {}
             for name, cmd in commands.items():
+                if cmd.epoch < epoch:  # computed from the pose before a reset: hold
+                    stale[name] = stale.get(name, 0) + 1
+                    continue
                 if cmd.hold or not cmd.positions:
                     continue  # holding: keep the last targets
                 applied[name] = JointCommand(
@@ -354,6 +537,8 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     guard_blocked=st.guard_blocked,
                     guard_blocked_effectors=list(st.guard_blocked_effectors),
                     action=st.action.tolist() if st.guard_blocked_effectors else [],
+                    epoch=epoch,
+                    fixtures=fixtures if st.t < FIXTURES_FOR_S else [],
                 ),
             )
             if view is not None:
@@ -367,7 +552,6 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                         success=success,
                     )
                     blocked = set()
-            next_tick = max(next_tick + dt, time.monotonic() - dt)
     finally:
         hardware = {}
         if mirror is not None:
@@ -388,6 +572,14 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                         k: v for k, v in details.items() if isinstance(v, (bool, int, float, str))
                     },
                     "commands_applied": twin.commands_applied,
+                    "guard_blocks": dict(twin.guard_blocks),
+                    "step_limited": {
+                        n: int(v) for n, v in getattr(twin, "step_limited", {}).items()
+                    },
+                    "stale_commands": stale,
+                    "reset_epoch": epoch,
+                    "overruns": schedule.overruns,
+                    "missed_ticks": schedule.missed_ticks,
                     "latency_ms": _percentiles(latencies),
                     "duration_s": env.elapsed_seconds,
                     "task": env.task.name,
@@ -433,6 +625,8 @@ class MultiprocessSession:
         self.pipes: dict[str, object] = {}
         self.results: dict[str, dict] = {}
         self.exits: dict[str, int | None] = {}
+        #: Resets requested (each names the reset epoch the operator waits for).
+        self.resets = 0
 
     def start(self) -> None:
         import zmq
@@ -474,7 +668,15 @@ class MultiprocessSession:
         self.send("resume")  # everyone is ready: the detector starts a trace now
 
     def send(self, command: str) -> None:
-        self.session_pub.send(b"session", self._session_type(command=command, t=time.monotonic()))
+        """Send a session command; a ``"reset"`` names the epoch the twin will be in after it
+        (at least: a reset from the twin's browser view counts too)."""
+        epoch = 0
+        if command == "reset":
+            self.resets += 1
+            epoch = self.resets
+        self.session_pub.send(
+            b"session", self._session_type(command=command, t=time.monotonic(), epoch=epoch)
+        )
 
     def dead(self) -> list[str]:
         return [n for n, p in self.processes.items() if not p.is_alive()]
@@ -538,6 +740,7 @@ class MultiprocessSession:
         finally:
             self.stop()
         det, twin = self.results.get("detector", {}), self.results.get("twin", {})
+        op = self.results.get("operator", {})
         return TeleopSummary(
             task=twin.get("task", self.options["task"]),
             embodiment=twin.get("embodiment", self.options["embodiment"]),
@@ -548,10 +751,30 @@ class MultiprocessSession:
             duration_s=twin.get("duration_s", 0.0),
             latency_ms=twin.get("latency_ms", _percentiles([])),
             rejected_by_reason=det.get("rejected_by_reason", {}),
-            operator=self.results.get("operator", {}).get("operator", {}),
+            holds=merged_holds(op, twin),
+            operator=op.get("operator", {}),
             processes={n: ("died" if n in reported else "ok") for n in self.processes},
+            guard_blocks=twin.get("guard_blocks", {}),
             hardware=twin.get("hardware", {}),
+            overruns=op.get("overruns", 0) + twin.get("overruns", 0),
+            missed_ticks=op.get("missed_ticks", 0) + twin.get("missed_ticks", 0),
         )
+
+
+def merged_holds(operator: dict, twin: dict) -> dict[str, dict[str, int]]:
+    """The summary's holds (effector -> reason -> ticks) from the processes' reports: the
+    operator's hold reasons, and the twin's guard refusals, step clamps and commands dropped
+    as computed before a reset."""
+    holds = {name: dict(by_reason) for name, by_reason in operator.get("holds", {}).items()}
+    for key, reason in (
+        ("guard_blocks", "guard"),
+        ("step_limited", "step_limit"),
+        ("stale_commands", "stale_after_reset"),
+    ):
+        for name, n in twin.get(key, {}).items():
+            if n:
+                count_hold(holds, name, reason, int(n))
+    return holds
 
 
 def run_multiprocess(options) -> TeleopSummary:

@@ -11,9 +11,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
-from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary
+from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, ThreadedListener
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
 
@@ -321,11 +323,11 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 rate_hz=options.headset_image_hz,
             )
             closers.append(publisher.close)
-            loop.listeners.append(
-                _HeadsetListener(
-                    publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz
-                )
+            images = headset_listener(
+                publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz
             )
+            closers.append(images.close)  # before the publisher: its thread sends
+            loop.listeners.append(images)
         if options.record is not None:
             summary = record_episodes(
                 options,
@@ -509,25 +511,66 @@ def headset_camera(embodiment) -> str:
     return embodiment.cameras[0] if embodiment.cameras else "front"
 
 
-class _HeadsetListener:
-    """Rendered twin images to the headset at a limited rate."""
+@dataclass(frozen=True)
+class ScenePose:
+    """What a render of the scene needs of the env's state, copied on the control thread."""
 
-    def __init__(self, publisher, loop: TeleopLoop, size: tuple[int, int], period_s: float):
+    qpos: np.ndarray
+    mocap_pos: np.ndarray
+    mocap_quat: np.ndarray
+
+    @classmethod
+    def of(cls, data) -> ScenePose:
+        return cls(data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy())
+
+
+class HeadsetRenderer:
+    """Renders the headset camera from a :class:`ScenePose` into its own ``MjData`` and
+    publishes the image; it runs on a :class:`ThreadedListener`'s thread, so it never reads the
+    env's ``MjData`` while the control thread steps it."""
+
+    def __init__(self, publisher, model, camera: str, size: tuple[int, int]):
+        import mujoco
+
         from beavr_sim.envs.cameras import OffscreenCameras
 
         self.publisher = publisher
-        self.env = loop.twin.env
-        self.camera = headset_camera(self.env.embodiment)
-        self.cameras = OffscreenCameras(self.env.model, size[1], size[0])
-        self.period = period_s
-        self._next = 0.0
+        self.model = model
+        self.camera = camera
+        self.data = mujoco.MjData(model)
+        self.cameras = OffscreenCameras(model, size[1], size[0])
 
-    def __call__(self, tick: Tick) -> None:
+    def __call__(self, pose: ScenePose) -> None:
+        import mujoco
+
+        self.data.qpos[:] = pose.qpos
+        self.data.mocap_pos[:] = pose.mocap_pos
+        self.data.mocap_quat[:] = pose.mocap_quat
+        mujoco.mj_forward(self.model, self.data)
+        self.publisher.publish(self.cameras.render(self.data, self.camera))
+
+    def close(self) -> None:
+        self.cameras.close()
+
+
+def headset_listener(
+    publisher, loop: TeleopLoop, size: tuple[int, int], period_s: float
+) -> ThreadedListener:
+    """Rendered twin images to the headset at most every ``period_s`` (wall), off the control
+    thread: the tick only copies the pose (when an image is due); the render, the JPEG and the
+    send happen on the listener's thread. Close it before the publisher."""
+    env = loop.twin.env
+    renderer = HeadsetRenderer(publisher, env.model, headset_camera(env.embodiment), size)
+    next_due = [0.0]
+
+    def snapshot(tick: Tick) -> ScenePose | None:
         now = time.monotonic()
-        if now < self._next:
-            return
-        self._next = now + self.period
-        self.publisher.publish(self.cameras.render(self.env.data, self.camera))
+        if now < next_due[0]:
+            return None
+        next_due[0] = now + period_s
+        return ScenePose.of(env.data)
+
+    return ThreadedListener(renderer, snapshot=snapshot, name="headset_images")
 
 
 def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):

@@ -7,13 +7,20 @@ Rules, per effector, cheapest first (a command fails on the first rule it breaks
 1. ``non-finite``: a NaN or inf target.
 2. ``joint limit``: a target outside the model's range shrunk by ``limit_margin``.
 3. ``velocity`` / ``acceleration``: against the last accepted command, one control period
-   ago (only when the guard knows it: streaming, not a configuration checked alone).
+   ago (only when the guard knows it: streaming, not a configuration checked alone). The
+   twin limits every joint's step to the speed cap before its guard checks, so there the
+   velocity rule is a second line; other callers (the mirror's catch-up, the hardware guard
+   CLI) meet it first.
 4. ``workspace``: a moving robot geom leaves its effector's box (default: the volume over the
    table). The table top is the box's floor, checked on each geom's exact world bounding box:
    unlike a contact depth, it does not depend on how far a link has passed into a thin table.
-5. ``contact``: a robot geom penetrates the static scene (table, fixtures on the world body)
-   or another robot geom (another link, the other arm) by more than its tolerance. Contacts
-   with the task's objects are the point of manipulation and never block.
+5. ``contact``: a robot geom penetrates the static scene or another robot geom (another
+   link, the other arm) by more than its tolerance. The static scene is what the robot cannot
+   push: the table, anything welded to the world, the task's fixtures (mocap bodies, e.g. the
+   box tape and lantern go onto, and bodies welded to them; posed as the twin has them) and a
+   humanoid's body. Finger links get ``finger_tolerance`` against all of it: a task may need
+   the fingers on a fixture. Contacts with the task's free objects are the point of
+   manipulation and never block.
 
 Rules 4 and 5 hold along the whole path from the last accepted command, not only at its end:
 the path is sampled so that no robot geom moves more than ``path_resolution`` between two
@@ -132,6 +139,22 @@ class GuardConfig:
                 raise ValueError(f"workspaces[{name!r}] must be a Workspace, got {box!r}")
 
 
+def hand_joints(embodiment: Embodiment, joints: JointIndex) -> np.ndarray:
+    """Per action index: whether it is a hand joint (else an arm joint, or the body's)."""
+    hand = np.zeros(joints.size, dtype=bool)
+    for e in embodiment.effectors:
+        sl = joints.slices[e.name]
+        hand[sl.start + len(e.arm_joints) : sl.stop] = True
+    return hand
+
+
+def max_velocity(embodiment: Embodiment, joints: JointIndex, config: GuardConfig) -> np.ndarray:
+    """Per action index: the joint's speed cap (rad/s), the hand's or the arm's. The guard's
+    velocity rule uses it and the twin's per-tick step limit too (with the guard off as well)."""
+    hand = hand_joints(embodiment, joints)
+    return np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
+
+
 @dataclass(frozen=True)
 class GuardVerdict:
     """Which effectors' commands are refused, why, and the contacts that refused them."""
@@ -176,22 +199,21 @@ class CollisionGuard:
         self.slices = dict(joints.slices)
         # Per action index: effector, joint name, limits, speed and acceleration caps.
         self._effector_of = np.empty(joints.size, dtype=object)
-        #: Per action index: a hand joint (else an arm joint).
-        self.hand_joints = hand = np.zeros(joints.size, dtype=bool)
         for e in embodiment.effectors:
-            sl = self.slices[e.name]
-            self._effector_of[sl] = e.name
-            hand[sl.start + len(e.arm_joints) : sl.stop] = True
+            self._effector_of[self.slices[e.name]] = e.name
+        #: Per action index: a hand joint (else an arm joint).
+        self.hand_joints = hand = hand_joints(embodiment, joints)
         self._lower = joints.lower + config.limit_margin
         self._upper = joints.upper - config.limit_margin
         #: Per action index: the speed (rad/s) and acceleration (rad/s^2) caps.
-        self.max_velocity = np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
+        self.max_velocity = max_velocity(embodiment, joints, config)
         self.max_acceleration = np.where(
             hand, config.hand_max_acceleration, config.arm_max_acceleration
         )
 
         # Owner of each geom: the effector whose subtree it is in; "static" for bodies welded
-        # to the world (table, fixtures) and the robot's body; None for objects (bodies that move freely, never
+        # to the world (table), the fixtures (mocap bodies and bodies welded to them: static
+        # within an episode) and the robot's body; None for objects (free bodies, never
         # guarded).
         self._owner: list[str | None] = []
         self._geom_names: list[str] = []
@@ -209,11 +231,13 @@ class CollisionGuard:
             body = int(model.geom_bodyid[g])
             body_name = model.body(body).name
             owner = next((e for e in names if body_name.startswith(e + "/")), None)
+            weld = int(model.body_weldid[body])
             if owner is None and (
-                int(model.body_weldid[body]) == 0 or body_name.startswith(BODY_PREFIX)
+                weld == 0 or model.body_mocapid[weld] >= 0 or body_name.startswith(BODY_PREFIX)
             ):
-                # Welded to the world, or the robot's body (torso, head), which holds its pose:
-                # an obstacle for every arm (placed where the commanded action puts it).
+                # Welded to the world or to a fixture, or the robot's body (torso, head), which
+                # holds its pose: an obstacle for every arm (the body placed where the
+                # commanded action puts it).
                 owner = "static"
             self._owner.append(owner)
             if body in finger_bodies:
@@ -283,6 +307,12 @@ class CollisionGuard:
         """Forget the motion history (after an env reset: the robot stands still)."""
         self._velocity[:] = 0.0
         self._cached = False
+
+    def set_fixtures(self, mocap_pos: np.ndarray, mocap_quat: np.ndarray) -> None:
+        """Where the fixtures (the twin's mocap bodies) stand: a reset places them anew."""
+        if self.model.nmocap:
+            self.data.mocap_pos[:] = mocap_pos
+            self.data.mocap_quat[:] = mocap_quat
 
     def still(self) -> None:
         """No new command this tick: the robot holds (its commanded velocity is zero)."""

@@ -2,10 +2,12 @@
 
 It owns the env. Each control tick it composes the newest command of every effector into
 one action (an effector with no command yet, or whose commands stopped, holds its last
-target: the robot never goes limp and never jumps), lets the safety guard
-(:mod:`beavr_sim.twin.guard`) refuse what is unsafe (that effector holds its last safe
-target), and steps the env one control period. A malformed command (unknown effector, wrong
-shape) is logged and counted, never raised: that effector holds.
+target: the robot never goes limp and never jumps), limits every joint's step to what its
+speed cap allows in one control period (the last line against a jump, whatever produced it;
+on with the guard off too), lets the safety guard (:mod:`beavr_sim.twin.guard`) refuse what
+is unsafe along that step (that effector holds its last safe target), and steps the env one
+control period. A malformed command (unknown effector, wrong shape) is logged and counted,
+never raised: that effector holds.
 """
 
 from __future__ import annotations
@@ -16,7 +18,13 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from beavr_sim.twin.guard import CollisionGuard, GuardConfig, GuardVerdict
+from beavr_sim.twin.guard import (
+    CollisionGuard,
+    GuardConfig,
+    GuardVerdict,
+    hand_joints,
+    max_velocity,
+)
 from beavr_sim.wire.records import JointCommand, TwinState
 
 log = logging.getLogger(__name__)
@@ -28,14 +36,21 @@ class TwinInterface:
         self.slices = self.env.joints.slices
         self.action = self.env.joints.home.astype(np.float64).copy()
         self.commands_applied = 0
+        config = guard or GuardConfig()
+        #: The control period (s).
+        self.dt = 1.0 / self.env.control_hz
+        #: Per action index: the speed cap (rad/s) of the step limit (the guard's: arm or hand),
+        #: and whether it is a hand joint.
+        self.max_velocity = max_velocity(self.env.embodiment, self.env.joints, config)
+        self.hand_joints = hand_joints(self.env.embodiment, self.env.joints)
+        self._step_cap = self.max_velocity * self.dt
+        self._joint_lower, self._joint_upper = self.env.joints.lower, self.env.joints.upper
+        #: Ticks on which the step limit shortened an effector's command, per effector name.
+        self.step_limited: dict[str, int] = {}
         self.guard: CollisionGuard | None = None
         if use_guard:
             self.guard = CollisionGuard(
-                self.env.model,
-                self.env.embodiment,
-                self.env.joints,
-                guard or GuardConfig(),
-                dt=1.0 / self.env.control_hz,
+                self.env.model, self.env.embodiment, self.env.joints, config, dt=self.dt
             )
         #: The guard's last refusal (None until one happens).
         self.last_refusal: GuardVerdict | None = None
@@ -70,14 +85,52 @@ class TwinInterface:
             )
         return False
 
+    def _limit_steps(self, previous: np.ndarray, names) -> None:
+        """Clamp each joint target to ``previous`` (the last applied action) +- one period at
+        its speed cap; count and log (rate-limited) the effectors of ``names`` it shortened.
+
+        With the guard on, a non-finite target or one outside the joint's range passes
+        unchanged: that is a corrupt command, not a fast one, and the guard refuses it whole
+        (``non-finite``, ``joint limit``) rather than the robot moving towards it. With the
+        guard off a non-finite target holds that joint."""
+        action = self.action
+        if self.guard is None:  # nothing else would stop a NaN: that joint holds
+            np.copyto(action, previous, where=~np.isfinite(action))
+        low, high = previous - self._step_cap, previous + self._step_cap
+        over = (action < low) | (action > high)
+        if self.guard is not None:
+            over &= (action >= self._joint_lower) & (action <= self._joint_upper)
+        if not over.any():
+            return
+        np.copyto(action, np.clip(action, low, high), where=over)
+        for name in names:
+            sl = self.slices[name]
+            if not over[sl].any():
+                continue
+            n = self.step_limited[name] = self.step_limited.get(name, 0) + 1
+            if n in (1, 10, 100) or n % 1000 == 0:
+                i = sl.start + int(np.argmax(over[sl]))
+                log.warning(
+                    "step limit: %s's command moved %s faster than %.3g rad/s; clamped "
+                    "(%d ticks so far)",
+                    name,
+                    self.env.joints.names[i],
+                    self.max_velocity[i],
+                    n,
+                )
+
     def apply(self, commands: Mapping[str, JointCommand]) -> TwinState:
-        """Write the commands into the action, step one control period."""
+        """Write the commands into the action, limit each joint's step to its speed cap, let
+        the guard refuse what is unsafe along the step, step one control period."""
         commands = {n: c for n, c in commands.items() if self._well_formed(n, c)}
         previous = self.action.copy()
         for name, cmd in commands.items():
             self.action[self.slices[name]] = cmd.positions
+        self._limit_steps(previous, commands)
         blocked: tuple[str, ...] = ()
         if self.guard is not None and commands:
+            data = self.env.data
+            self.guard.set_fixtures(data.mocap_pos, data.mocap_quat)
             self.action, verdict = self.guard.filter(
                 self.action, previous, self.env.data.qpos, self.slices
             )

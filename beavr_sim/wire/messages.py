@@ -60,6 +60,11 @@ def _check_finite(name: str, values: Any) -> None:
         raise ValueError(f"{name} must be finite, got NaN/inf at index {bad[:5]}")
 
 
+def _check_epoch(value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"epoch must be an integer >= 0, got {value!r}")
+
+
 def _check_length(name: str, values: list, expected: int) -> None:
     if len(values) != expected:
         raise ValueError(f"{name} needs {expected} values, got {len(values)}")
@@ -128,6 +133,8 @@ class JointCommandMsg(msgspec.Struct, tag="joint_command", kw_only=True, frozen=
     ``t_source``: ``t_source`` of the hand frame the targets came from; ``t_command``: when the
     operator produced them. ``hold``: keep the robot where it is (``positions`` are then the
     last targets, possibly empty); ``reason`` says why (e.g. ``"paused"``, ``"hand lost"``).
+    ``epoch``: the twin's reset epoch the operator was homed in; the twin drops a command of
+    an older epoch (computed from the robot's pose before a reset).
     """
 
     effector: str
@@ -136,9 +143,11 @@ class JointCommandMsg(msgspec.Struct, tag="joint_command", kw_only=True, frozen=
     positions: list[float]
     hold: bool = False
     reason: str = ""
+    epoch: int = 0
 
     def __post_init__(self) -> None:
         _coerce(self, ("t_source", "t_command"), ("positions",))
+        _check_epoch(self.epoch)
         if not self.effector or "/" in self.effector:
             raise ValueError(
                 f"effector must be a non-empty name without '/', got {self.effector!r}"
@@ -150,8 +159,45 @@ class JointCommandMsg(msgspec.Struct, tag="joint_command", kw_only=True, frozen=
         _check_finite("positions", self.positions)
 
 
+#: Numbers per fixture shape on the wire: MuJoCo geom type, size (3), pos (3), quat (4).
+FIXTURE_GEOM_LENGTH = 11
+
+
+class FixtureMsg(msgspec.Struct, kw_only=True, frozen=True):
+    """A task fixture (a static obstacle placed at reset: Tape's box, Pour's cup) as the
+    operator's IK needs it: its world pose (``pos``, ``quat`` w x y z) and its collision
+    shapes, each ``[type, size x3, pos x3, quat x4]`` in the fixture's frame."""
+
+    name: str
+    pos: list[float]
+    quat: list[float]
+    geoms: list[list[float]]
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            raise ValueError("a fixture needs a name")
+        _check_length("pos", self.pos, 3)
+        _check_length("quat", self.quat, 4)
+        _check_finite("pos", self.pos)
+        _check_finite("quat", self.quat)
+        try:  # one array check rather than a Python loop per number (every state has them)
+            geoms = np.array(self.geoms, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"fixture {self.name!r}: shapes of unequal length ({exc})") from None
+        if geoms.ndim != 2 or geoms.shape[0] < 1 or geoms.shape[1] != FIXTURE_GEOM_LENGTH:
+            raise ValueError(
+                f"fixture {self.name!r} needs shapes of {FIXTURE_GEOM_LENGTH} numbers each, "
+                f"got an array of shape {geoms.shape}"
+            )
+        if not np.isfinite(geoms).all():
+            raise ValueError(f"fixture {self.name!r}: shapes must be finite")
+
+
 class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True):
-    """Twin state in action order, published every control tick (also the twin's heartbeat)."""
+    """Twin state in action order, published every control tick (also the twin's heartbeat).
+
+    ``epoch``: how many times the twin was reset; the operator re-homes from the first state
+    of a newer epoch and never from an older one."""
 
     t: float
     positions: list[float]
@@ -162,9 +208,14 @@ class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True
     #: continues from it); ``action`` may be empty when nothing was held.
     guard_blocked_effectors: list[str] = []
     action: list[float] = []
+    epoch: int = 0
+    #: The task's fixtures as this epoch's reset placed them (the operator's IK keeps the
+    #: hands off them); every state carries them, so a conflated stream cannot lose them.
+    fixtures: list[FixtureMsg] = []
 
     def __post_init__(self) -> None:
         _coerce(self, ("t",), ("positions", "velocities", "action"))
+        _check_epoch(self.epoch)
         _check_finite("t", self.t)
         _check_length("velocities", self.velocities, len(self.positions))
         if self.action:
@@ -177,13 +228,18 @@ class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True
 
 
 class SessionMsg(msgspec.Struct, tag="session", kw_only=True, frozen=True):
-    """A session command from the UI."""
+    """A session command from the UI.
+
+    ``epoch`` (``"reset"``): the reset epoch the twin's states carry at least once it has
+    done this reset (0: one more than now); the operator holds until such a state comes."""
 
     command: str
     t: float = 0.0
+    epoch: int = 0
 
     def __post_init__(self) -> None:
         _coerce(self, ("t",), ())
+        _check_epoch(self.epoch)
         check_name("session command", self.command, SESSION_COMMANDS)
         _check_finite("t", self.t)
 
