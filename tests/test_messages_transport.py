@@ -425,3 +425,31 @@ def test_numpy_inputs_become_plain_lists():
         RobotStateMsg(t=0.0, positions=np.zeros((2, 2)), velocities=[0.0] * 4)
     with pytest.raises(TypeError, match="number"):
         SessionMsg(command="stop", t="now")
+
+
+def test_fixtures_travel_to_the_operator_process_unchanged():
+    """--multiprocess: the operator's IK gets the task's fixtures from the twin's states, the
+    same obstacles the in-process loop reads from the env, through msgpack."""
+    import gymnasium as gym
+
+    from beavr_sim.operator.obstacles import fixture_obstacles
+    from beavr_sim.teleop.processes import fixtures_to_wire, obstacles_from_wire
+    from beavr_sim.wire.messages import FixtureMsg, RobotStateMsg
+
+    env = gym.make("beavr_sim/Pour-v0").unwrapped
+    try:
+        env.reset(seed=3)
+        fixtures = fixtures_to_wire(env)
+        assert fixtures, "Pour has a target cup"
+        msg = RobotStateMsg(t=0.0, positions=[0.0], velocities=[0.0], fixtures=fixtures)
+        back = msgspec.msgpack.decode(msgspec.msgpack.encode(msg), type=RobotStateMsg)
+        assert obstacles_from_wire(back.fixtures) == fixture_obstacles(env.model, env.data)
+    finally:
+        env.close()
+    shape = [6.0, 0.1, 0.1, 0.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="11 numbers"):
+        FixtureMsg(name="box", pos=[0, 0, 0], quat=[1, 0, 0, 0], geoms=[shape[:-1]])
+    with pytest.raises(ValueError, match="finite"):
+        FixtureMsg(name="box", pos=[0, 0, 0], quat=[1, 0, 0, 0], geoms=[[*shape[:-1], np.nan]])
+    with pytest.raises(ValueError, match="finite"):
+        FixtureMsg(name="box", pos=[0, np.inf, 0], quat=[1, 0, 0, 0], geoms=[shape])

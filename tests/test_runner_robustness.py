@@ -525,3 +525,26 @@ def test_the_cli_says_why_each_effector_held():
     assert lines[1] == "right held (ticks by reason): paused 12, guard 3"
     assert "headset_images 2" in lines[2] and "9 control periods skipped" in lines[3]
     assert explain({"holds": {}}) == []
+
+
+def test_every_reset_gives_the_operators_ik_the_tasks_fixtures():
+    """The in-process loop hands the fixtures the reset placed (Tape's box) to every arm IK,
+    anew at each reset (the box moves with the seed)."""
+    from beavr_sim.operator.obstacles import fixture_obstacles
+
+    options = SessionOptions(task="Tape", source="trace", viser=False, headless=True)
+    loop = build_loop(options)
+    try:
+        env = loop.twin.env
+        poses = []
+        for seed in (0, 1):
+            loop.reset(seed)
+            expected = fixture_obstacles(env.model, env.data)
+            assert expected, "Tape has a box"
+            for op in loop.operator.effectors.values():
+                assert op.ik.obstacles == expected
+            poses.append(expected[0].pos)
+        assert poses[0] != poses[1]
+    finally:
+        loop.source.close()
+        loop.twin.env.close()

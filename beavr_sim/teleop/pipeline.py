@@ -53,6 +53,25 @@ def should_log(count: int) -> bool:
     return count in (1, 10, 100) or count % 1000 == 0
 
 
+def operator_call(errors: dict[str, int], what: str, fn: Callable, *args) -> tuple[bool, object]:
+    """``(True, fn(*args))``, or ``(False, None)`` when it raises, counted in ``errors[what]``
+    and logged (rate-limited): an operator error holds the robot for a tick, it never ends the
+    session (either runner)."""
+    try:
+        return True, fn(*args)
+    except Exception as exc:
+        n = errors[what] = errors.get(what, 0) + 1
+        if should_log(n):
+            log.error(
+                "operator.%s failed (%d so far): %r; every effector holds this tick",
+                what,
+                n,
+                exc,
+                exc_info=n == 1,
+            )
+        return False, None
+
+
 def count_hold(holds: dict[str, dict[str, int]], effector: str, reason: str, n: int = 1) -> None:
     """Add ``n`` ticks of ``effector`` holding for ``reason`` to ``holds``
     (effector -> reason -> ticks, the summary's shape)."""
@@ -371,21 +390,7 @@ class TeleopLoop:
         return tick
 
     def _operator_call(self, what: str, fn: Callable, *args) -> tuple[bool, object]:
-        """``(True, fn(*args))``, or ``(False, None)`` when it raises (counted, logged
-        rate-limited): an operator error holds the robot for a tick, it never ends the session."""
-        try:
-            return True, fn(*args)
-        except Exception as exc:
-            n = self.operator_errors[what] = self.operator_errors.get(what, 0) + 1
-            if should_log(n):
-                log.error(
-                    "operator.%s failed (%d so far): %r; every effector holds this tick",
-                    what,
-                    n,
-                    exc,
-                    exc_info=n == 1,
-                )
-            return False, None
+        return operator_call(self.operator_errors, what, fn, *args)
 
     def _hold_all(self, reason: str) -> dict[str, JointCommand]:
         """A hold of every effector at the twin's last target (nothing moves, nothing jumps)."""

@@ -40,7 +40,7 @@ from beavr_sim.teleop.pipeline import (
     TickSchedule,
     _percentiles,
     count_hold,
-    should_log,
+    operator_call,
 )
 from beavr_sim.wire.ports import TransportConfig
 
@@ -179,21 +179,7 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     schedule = TickSchedule(dt)
 
     def guarded(what: str, fn, *args) -> tuple[bool, object]:
-        """``(True, fn(*args))``, or ``(False, None)`` when the operator raises (counted and
-        logged, rate-limited): an operator error holds the robot, it never ends the process."""
-        try:
-            return True, fn(*args)
-        except Exception as exc:
-            n = errors[what] = errors.get(what, 0) + 1
-            if should_log(n):
-                log.error(
-                    "operator.%s failed (%d so far): %r; every effector holds this tick",
-                    what,
-                    n,
-                    exc,
-                    exc_info=n == 1,
-                )
-            return False, None
+        return operator_call(errors, what, fn, *args)
 
     def send_hold(now: float, reason: str) -> None:
         """Every effector holds (the twin keeps its last targets)."""
