@@ -10,8 +10,14 @@ error of the ``hand`` body, weighted by their costs, plus a small pull to the po
   limits (``ArmIKConfig.max_joint_speed``), both as simple bounds on the step;
 - collision avoidance (:class:`~beavr_sim.operator.collision.CollisionLimit`, mink's rows): hand
   and forearm against the table, palm against the upper arm and the base (self-collision), palm
-  and forearm against the body (a humanoid's torso and head), as a velocity damper: one step closes at most
-  ``collision_gain`` of the gap above the margin.
+  and forearm against the body (a humanoid's torso and head), every pair of arm links the twin's
+  guard checks against each other (MuJoCo's collision filter: not welded together, not parent
+  and child, not excluded by the MJCF; less pairs within the margin at home), and the arm's
+  moving links against the back face of the guard's workspace box, as a velocity damper: one
+  step closes at most ``collision_gain`` of the gap above the margin. Without the arm-link
+  pairs and the wall, the IK could step into a pose the guard refuses (forearm on the
+  shoulder, elbow behind the box) and, resynced to the held action, take the same step again
+  every tick.
 
 The QP is assembled here and solved with DAQP directly: ``mink.solve_ik`` builds the same
 problem over all 23 joints through generic task and limit objects, which took most of the
@@ -41,10 +47,16 @@ from beavr_sim.operator.obstacles import (
 )
 from beavr_sim.operator.qp import StepQP
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
+from beavr_sim.workcell import TABLE_WORKSPACE_BOX
 
 #: Hand bodies whose geoms are checked: the palm and the four fingertips (the parts that
 #: reach furthest; fewer pairs keep the IK well under a millisecond).
 HAND_BODIES = ("palm", "thumb_distal", "index_distal", "middle_distal", "ring_distal")
+
+#: Name of the IK scene's wall on the back face of the twin guard's workspace box.
+BACK_WALL = "ik_back_wall"
+#: Half thickness (m) of that wall.
+_WALL_HALF = 0.05
 
 
 @dataclass(frozen=True)
@@ -107,6 +119,48 @@ def _body_geoms(model: mujoco.MjModel, body: str) -> list[int]:
     return [g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(body).id]
 
 
+def _colliding_geoms(model: mujoco.MjModel, body: int) -> list[int]:
+    return [
+        g
+        for g in range(model.ngeom)
+        if model.geom_bodyid[g] == body and (model.geom_contype[g] or model.geom_conaffinity[g])
+    ]
+
+
+def _in_subtree(model: mujoco.MjModel, body: int, root: int) -> bool:
+    while body > 0:
+        if body == root:
+            return True
+        body = int(model.body_parentid[body])
+    return False
+
+
+def checked_link_pairs(model: mujoco.MjModel, root: str, hand: str) -> list[tuple[int, int]]:
+    """Pairs of arm links (bodies from ``root`` down to, not including, ``hand``'s subtree)
+    that MuJoCo's collision filter lets collide, as the twin's guard checks them: bodies not
+    welded together, not a weld parent and child (unless the model turns that filter off) and
+    not excluded by the MJCF. Only bodies with colliding geoms are listed."""
+    r, h = model.body(root).id, model.body(hand).id
+    links = [
+        b
+        for b in range(model.nbody)
+        if _in_subtree(model, b, r) and not _in_subtree(model, b, h) and _colliding_geoms(model, b)
+    ]
+    excluded = {int(s) for s in model.exclude_signature}
+    filter_parent = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FILTERPARENT
+    weld, parent = model.body_weldid, model.body_parentid
+    pairs = []
+    for i, b1 in enumerate(links):
+        for b2 in links[i + 1 :]:
+            w1, w2 = int(weld[b1]), int(weld[b2])
+            if w1 == w2 or ((min(b1, b2) << 16) + max(b1, b2)) in excluded:
+                continue
+            if filter_parent and w1 and w2 and (w1 == weld[parent[w2]] or w2 == weld[parent[w1]]):
+                continue
+            pairs.append((b1, b2))
+    return pairs
+
+
 class ArmIK:
     """Arm joint targets for one effector's hand pose target."""
 
@@ -131,7 +185,13 @@ class ArmIK:
             )
         )
         self.effector = self.single.effectors[0]
-        self.model = build_scene_spec(self.single, 64, 64).compile()
+        lower, upper = embodiment.spec.guard_box or TABLE_WORKSPACE_BOX
+        #: The guard's workspace box (its default for this embodiment): the arm's moving links
+        #: keep in front of its back face, a wall in the IK's scene.
+        self.guard_box = (tuple(map(float, lower)), tuple(map(float, upper)))
+        #: The task's fixtures the hand and forearm keep off (see :meth:`set_obstacles`).
+        self.obstacles: tuple[Obstacle, ...] = ()
+        self.model = self._scene_spec().compile()
         if self.model.nq != self.model.nv:
             raise ValueError("ArmIK expects a robot-only model (hinge and slide joints)")
         every = self.single.bind(self.model)
@@ -154,9 +214,11 @@ class ArmIK:
         self._no_rows = (np.zeros((0, self.n_arm)), np.zeros(0))
         self._qp = StepQP(self.n_arm)
         self._posture = self._configuration.q[self._arm_qpos].copy()
+        #: Geom pairs of this arm's links that the twin's guard checks against each other and
+        #: the IK keeps apart (:func:`checked_link_pairs`, less those within the margin at home).
+        #: And the arm's moving link geoms against the back wall of the guard's box.
+        self.self_collision_pairs, self.wall_pairs = self._arm_pairs()
         self.collision: CollisionLimit | None = None
-        #: The task's fixtures the hand and forearm keep off (see :meth:`set_obstacles`).
-        self.obstacles: tuple[Obstacle, ...] = ()
         if self.config.collision_avoidance:
             self.collision = self._collision_limit()
         self.reset(self.joints.home)
@@ -164,12 +226,55 @@ class ArmIK:
     def _scene_spec(self) -> mujoco.MjSpec:
         """A fresh spec of the IK's scene: this effector's robot, the table, the obstacles."""
         spec = build_scene_spec(self.single, 64, 64)
+        (x0, y0, z0), (_, y1, z1) = self.guard_box
+        spec.worldbody.add_geom(
+            name=BACK_WALL,
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[_WALL_HALF, (y1 - y0) / 2, (z1 - z0) / 2],
+            pos=[x0 - _WALL_HALF, (y0 + y1) / 2, (z0 + z1) / 2],
+            group=5,
+            rgba=[0, 0, 0, 0],
+        )
         add_obstacles(spec, self.obstacles)
         return spec
 
+    def _arm_pairs(self) -> tuple[tuple[tuple[int, int], ...], tuple[tuple[int, int], ...]]:
+        """The arm's link pairs the guard would refuse contact between, and its moving links
+        against the back wall, geom by geom, without the geom pairs that touch or lie within
+        the margin at the home pose (by design, e.g. overlapping shells of neighbouring links:
+        the IK could not keep them apart)."""
+        model, p = self.model, self.effector.name + "/"
+        arm = self.single.spec.effectors[0].arm
+        data = mujoco.MjData(model)
+        data.qpos[:] = self._configuration.q
+        data.qpos[self.joints.qpos_adr] = self.joints.home
+        mujoco.mj_kinematics(model, data)
+        clear = self.config.collision_margin
+
+        def apart(g1: int, g2: int) -> bool:
+            return mujoco.mj_geomDistance(model, data, g1, g2, 1.0, None) > clear
+
+        links = checked_link_pairs(model, p + arm.root_body, p + "hand")
+        pairs = [
+            (g1, g2)
+            for b1, b2 in links
+            for g1 in _colliding_geoms(model, b1)
+            for g2 in _colliding_geoms(model, b2)
+            if apart(g1, g2)
+        ]
+        root = model.body(p + arm.root_body).id
+        fixed = model.body_weldid[root]  # links that do not move with the arm's joints
+        moving = {b for pair in links for b in pair if model.body_weldid[b] != fixed}
+        wall = model.geom(BACK_WALL).id
+        walls = [
+            (g, wall) for b in sorted(moving) for g in _colliding_geoms(model, b) if apart(g, wall)
+        ]
+        return tuple(pairs), tuple(walls)
+
     def _collision_limit(self) -> CollisionLimit:
         """The watched pairs: hand and forearm against the table and the task's fixtures, palm
-        against the upper arm and the body, forearm against the body."""
+        against the upper arm and the body, forearm against the body, the arm's links against
+        each other and against the back wall (:meth:`_arm_pairs`)."""
         model, p = self.model, self.effector.name + "/"
         arm = self.single.spec.effectors[0].arm
         hand = [g for b in HAND_BODIES for g in _body_geoms(model, p + b)]
@@ -185,7 +290,12 @@ class ArmIK:
         static = [model.geom("table_top").id, *obstacle_geoms(model, self.obstacles)]
         return CollisionLimit(
             model,
-            geom_pairs=[(hand + forearm, static), (palm, upper + body), (forearm, body)],
+            geom_pairs=[
+                (hand + forearm, static),
+                (palm, upper + body),
+                (forearm, body),
+                *(([a], [b]) for a, b in self.self_collision_pairs + self.wall_pairs),
+            ],
             spec=self._scene_spec(),
             minimum_distance_from_collisions=self.config.collision_margin,
             collision_detection_distance=self.config.collision_detection,

@@ -47,7 +47,7 @@ from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 from beavr_sim.twin import kernels
 from beavr_sim.twin.extents import GeomExtents
-from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
+from beavr_sim.workcell import TABLE_WORKSPACE_BOX
 
 _ROBOT, _STATIC = 1, 2  # contype / conaffinity bits of the guard's private model
 RULES = ("non-finite", "joint limit", "velocity", "acceleration", "workspace", "contact")
@@ -68,11 +68,8 @@ class Workspace:
             )
 
 
-#: The volume over the table, up to 1.2 m above it (the xArm7's links reach ~0.65 m up).
-TABLE_WORKSPACE = Workspace(
-    lower=(TABLE_X[0], -TABLE_HALF_Y, TABLE_TOP_Z),
-    upper=(TABLE_X[1], TABLE_HALF_Y, TABLE_TOP_Z + 1.2),
-)
+#: The volume over the table (:data:`beavr_sim.workcell.TABLE_WORKSPACE_BOX`).
+TABLE_WORKSPACE = Workspace(*TABLE_WORKSPACE_BOX)
 
 
 @dataclass(frozen=True)
