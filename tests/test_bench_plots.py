@@ -95,6 +95,14 @@ def test_writers_use_the_documented_file_names(tmp_path):
         {"env_step_ms": {"xarm7_leap_right": rng.random(30)}, "render_ms": [1, 2]},
         tmp_path / "out",
     )
+    latency = {
+        "latency_twin_ms_right": rng.random(30),
+        "latency_driver_ms_right_arm": rng.random(30),
+    }
+    written += [
+        str(p)
+        for p in plots.write_latency({**latency, "floor_ms": rng.random(30)}, tmp_path / "out")
+    ]
     names = sorted(p.rsplit("/", 1)[-1] for p in written)
     assert names == sorted(plots.FILES)
     for path in written:

@@ -1,5 +1,10 @@
 """``python -m beavr_sim.bench {sim,retarget,teleop,view,hardware} [--seconds S] [--frames N] [--plot DIR]``:
-prints JSON; ``--plot DIR`` also writes latency / timing histograms (PNG) into DIR."""
+prints JSON; ``--plot DIR`` also writes latency / timing histograms (PNG) into DIR.
+
+``python -m beavr_sim.bench latency [--config 1|2|3|4] [--seconds S] [--json] [--no-mirror]
+[--plot DIR]``: end-to-end latency of the ``--multiprocess`` pipeline fed the Quest app's
+protocol (``bench/latency.py``): a table on stderr (not with ``--json``), JSON on the last
+stdout line."""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim", "retarget", "teleop", "view", "hardware")
+BENCHMARKS = ("sim", "retarget", "teleop", "view", "hardware", "latency")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +42,25 @@ def main(argv: list[str] | None = None) -> int:
         help="write histograms of the measured samples (PNG) into DIR (created); see "
         "docs/benchmarks.md for the file names",
     )
+    parser.add_argument(
+        "--config",
+        type=int,
+        choices=(1, 2, 3, 4),
+        default=1,
+        help="latency: 1 = xArm7+LEAP at 30 Hz, 2 = the same at 90 Hz, 3 = bimanual at 30 Hz, "
+        "4 = RX-1 at 90 Hz (headset stream rate)",
+    )
+    parser.add_argument(
+        "--json", action="store_true", help="latency: JSON only (no table on stderr)"
+    )
+    parser.add_argument(
+        "--no-mirror",
+        action="store_true",
+        help="latency: without mirroring to the emulated hardware",
+    )
     args = parser.parse_args(argv)
+    if args.benchmark == "latency":
+        return _latency(args)
     if args.seconds is None:
         args.seconds = 5.0 if args.benchmark == "teleop" else 2.0
     samples: dict = {}
@@ -81,6 +104,24 @@ def main(argv: list[str] | None = None) -> int:
         result["plots"] = write_plots(args.benchmark, samples, args.plot, result)
         print(f"plots: {len(result['plots'])} PNG files in {args.plot}", file=sys.stderr)
     print(json.dumps(result, indent=2))
+    return 0
+
+
+def _latency(args) -> int:
+    from beavr_sim.bench.latency import run, table
+
+    seconds = 10.0 if args.seconds is None else args.seconds
+    if not args.json:
+        print(f"benchmarking latency, config {args.config} ({seconds:g} s)...", file=sys.stderr)
+    samples: dict = {}
+    result = run(args.config, seconds, mirror=not args.no_mirror, samples=samples)
+    if args.plot is not None:
+        from beavr_sim.bench.plots import write_latency
+
+        result["plots"] = [str(p) for p in write_latency(samples, args.plot, result)]
+    if not args.json:
+        print(table(result), file=sys.stderr)
+    print(json.dumps(result))
     return 0
 
 

@@ -26,6 +26,8 @@ FILES = {
     "retarget_time.png": "LEAP retargeting time per frame, ours and dex-retargeting",
     "sim_env_step.png": "env.step time per embodiment (30 Hz control, no rendering)",
     "sim_render.png": "time per rendered 480x640 camera frame",
+    "latency_send_to_twin.png": "latency harness: generator send -> command at the twin's actuators",
+    "latency_send_to_driver.png": "latency harness: generator send -> emulated driver write",
 }
 
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown")
@@ -243,6 +245,33 @@ def write_sim(samples: Mapping[str, object], out: Path, result: Mapping | None =
             xlabel="time per frame (ms)",
         )
         written.append(out / "sim_render.png")
+    return written
+
+
+def write_latency(samples: Mapping[str, object], out: str | Path, result: Mapping | None = None):
+    """The latency harness's figures (one series per effector / device, and the floor)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = f" (config {result['config']})" if result else ""
+    written = []
+    for key, name, what in (
+        ("latency_twin_ms_", "latency_send_to_twin.png", "command at the twin's actuators"),
+        ("latency_driver_ms_", "latency_send_to_driver.png", "emulated driver write"),
+    ):
+        series = {
+            k.removeprefix(key): v for k, v in samples.items() if k.startswith(key) and len(v)
+        }
+        if not series:
+            continue
+        if len(samples.get("floor_ms", [])):
+            series["bare ZMQ hop (floor)"] = samples["floor_ms"]
+        histogram(
+            series,
+            out / name,
+            title=f"Quest-protocol send -> {what}{config}",
+            xlabel="latency (ms)",
+        )
+        written.append(out / name)
     return written
 
 

@@ -109,12 +109,17 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
                     pubs[frame.side].send(frame.side.encode(), HandFrameMsg.from_frame(frame))
             time.sleep(0.002)
     finally:
+        receiver = getattr(source, "receiver", None)
         conn.send_bytes(
             json.dumps(
                 {
                     "frames_received": received,
                     "frames_rejected": validator.rejected,
                     "rejected_by_reason": validator.rejected_by_reason,
+                    # Quest source: payloads per stream, and frames replaced by a newer one
+                    # in the same poll (never passed on)
+                    "quest_received": dict(receiver.received) if receiver else {},
+                    "frames_superseded": dict(receiver.superseded) if receiver else {},
                 }
             ).encode()
         )
@@ -456,6 +461,13 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     schedule = TickSchedule(dt)
     schedule.restart(time.monotonic() + dt)
     last_t_source: dict[str, float] = {}
+    # Optional timing log for ``python -m beavr_sim.bench latency`` (off unless the option
+    # names a file): every command applied, (t_apply, t_source) per effector, and every tick
+    # handed to the hardware mirror, (t_submit, {effector: t_source in effect}).
+    latency_log = options.get("latency_log")
+    applied_log: dict[str, list] = {e.name: [] for e in env.embodiment.effectors}
+    submit_log: list = []
+    in_effect: dict[str, float] = {}
     epoch = 0  # resets done: stamped on every state; commands of an older epoch are dropped
     stale: dict[str, int] = {}
     try:
@@ -506,7 +518,14 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     latencies.append((time.monotonic() - cmd.t_source) * 1e3)
                     last_t_source[name] = cmd.t_source
             commands = applied
+            if latency_log:
+                t_apply = time.monotonic()
+                for name, cmd in applied.items():
+                    applied_log[name].append((t_apply, cmd.t_source))
+                    in_effect[name] = cmd.t_source
             st = twin.apply(commands)
+            if mirror is not None and latency_log:
+                submit_log.append((time.monotonic(), dict(in_effect)))
             if mirror is not None:  # the same guarded action, the same tick
                 mirror.submit(st.action, st.positions, st.guard_blocked_effectors)
                 if browser_estop is not None:
@@ -543,6 +562,8 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         if mirror is not None:
             mirror.close()
             hardware = mirror.summary()
+        if latency_log:
+            _write_latency_log(latency_log, env.control_hz, applied_log, submit_log, mirror)
         for close in reversed(closers):
             close()
         conn.send_bytes(
@@ -580,6 +601,33 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
             s.close()
         env.close()
         context.term()
+
+
+def _write_latency_log(path, control_hz, applied_log, submit_log, mirror) -> None:
+    """The twin's timing log (``options["latency_log"]``) as JSON: see ``bench/latency.py``."""
+    links = []
+    if mirror is not None:
+        for link, effector in zip(mirror.links, mirror._link_effector, strict=True):
+            links.append(
+                {
+                    "name": link.name,
+                    "effector": effector,
+                    # monotonic time the writer took the tick, and ms from the tick's
+                    # hand-off to the first write having left the driver
+                    "write_times": list(link.stats.write_times),
+                    "write_latency_ms": list(link.stats.write_latency_ms),
+                }
+            )
+    with open(path, "w") as f:
+        json.dump(
+            {
+                "control_hz": control_hz,
+                "applied": applied_log,
+                "submits": submit_log,
+                "links": links,
+            },
+            f,
+        )
 
 
 TARGETS = {"detector": detector_main, "operator": operator_main, "twin": twin_main}
