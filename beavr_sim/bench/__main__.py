@@ -1,6 +1,10 @@
 """``python -m beavr_sim.bench {sim,retarget,teleop,view,hardware} [--seconds S] [--frames N] [--plot DIR]``:
 prints JSON; ``--plot DIR`` also writes latency / timing histograms (PNG) into DIR.
 
+``python -m beavr_sim.bench tracking [--frames N]``: motion-to-motion lag and tracking error
+per stage (raw hand -> filtered target -> IK hand -> simulated hand) on bundled traces, on
+the virtual clock, and joint ramp lags of the xArm twin (``bench/tracking.py``); JSON.
+
 ``python -m beavr_sim.bench latency [--config 1|2|3|4] [--seconds S] [--json] [--no-mirror]
 [--plot DIR]``: end-to-end latency of the ``--multiprocess`` pipeline fed the Quest app's
 protocol (``bench/latency.py``): a table on stderr (not with ``--json``), JSON on the last
@@ -15,7 +19,7 @@ from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim", "retarget", "teleop", "view", "hardware", "latency")
+BENCHMARKS = ("sim", "retarget", "teleop", "view", "hardware", "latency", "tracking")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=None,
         help="sim: rendered frames to time (default 20); retarget: trace frames (default all); "
-        "teleop: control ticks per trace on the virtual clock (default: the whole trace)",
+        "teleop, tracking: control ticks per trace on the virtual clock (default: the whole trace)",
     )
     parser.add_argument(
         "--plot",
@@ -61,6 +65,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.benchmark == "latency":
         return _latency(args)
+    if args.benchmark == "tracking":
+        from beavr_sim.bench.tracking import run as run_tracking
+
+        print("benchmarking motion-to-motion lag and tracking error...", file=sys.stderr)
+        print(json.dumps(run_tracking(max_ticks=args.frames), indent=2))
+        return 0
     if args.seconds is None:
         args.seconds = 5.0 if args.benchmark == "teleop" else 2.0
     samples: dict = {}
