@@ -19,3 +19,47 @@ def reference_dir() -> Path:
             "(or $BEAVR_REFERENCE_DIR) is absent"
         )
     return found
+
+
+@pytest.fixture
+def pickup_box_with_forced_hold():
+    """``make(t0, t1) -> (loop, refusals)``: the bundled PickupBox trace in the in-process
+    loop, its guard also refusing the right effector from ``t0`` to ``t1`` (episode seconds);
+    ``refusals`` collects the guard's own refusal reasons after ``t1``. Envs closed after."""
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.twin.guard import GuardVerdict
+
+    loops = []
+
+    def make(t0: float, t1: float):
+        options = SessionOptions(
+            task="PickupBox",
+            source="trace",
+            trace=bundled_trace("PickupBox"),
+            viser=False,
+            headless=True,
+            progress=False,
+        )
+        loop = build_loop(options)
+        loops.append(loop)
+        twin, guard = loop.twin, loop.twin.guard
+        check = guard.check
+        refusals: list[str] = []
+
+        def forced(action, qpos_now, previous=None):
+            verdict = check(action, qpos_now, previous)
+            elapsed = twin.env.elapsed_seconds
+            if previous is not None and t0 <= elapsed < t1:
+                reasons = {**verdict.reasons, "right": "forced: test hold"}
+                return GuardVerdict(tuple(sorted(reasons)), verdict.contacts, reasons)
+            if elapsed >= t1:
+                refusals.extend(verdict.reasons.values())
+            return verdict
+
+        guard.check = forced
+        return loop, refusals
+
+    yield make
+    for loop in loops:
+        loop.twin.env.close()

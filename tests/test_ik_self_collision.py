@@ -9,49 +9,14 @@ import pytest
 
 from beavr_sim.operator.arm_ik import ArmIK
 from beavr_sim.robots.embodiment import EMBODIMENTS, Embodiment
-from beavr_sim.twin.guard import GuardVerdict
-
-
-def _replay_with_hold(t0: float, duration: float = 1.0):
-    from beavr_sim.assets import bundled_trace
-    from beavr_sim.teleop.session import SessionOptions, build_loop
-
-    options = SessionOptions(
-        task="PickupBox",
-        source="trace",
-        trace=bundled_trace("PickupBox"),
-        viser=False,
-        headless=True,
-        progress=False,
-    )
-    loop = build_loop(options)
-    twin, guard = loop.twin, loop.twin.guard
-    check = guard.check
-    refusals: list[str] = []
-
-    def forced(action, qpos_now, previous=None):
-        verdict = check(action, qpos_now, previous)
-        elapsed = twin.env.elapsed_seconds
-        if previous is not None and t0 <= elapsed < t0 + duration:
-            reasons = {**verdict.reasons, "right": "forced: test hold"}
-            return GuardVerdict(tuple(sorted(reasons)), verdict.contacts, reasons)
-        if elapsed >= t0 + duration:
-            refusals.extend(verdict.reasons.values())
-        return verdict
-
-    guard.check = forced
-    held: list[bool] = []
-    loop.listeners.append(lambda tick: held.append("right" in tick.state.guard_blocked_effectors))
-    try:
-        summary = loop.run()
-    finally:
-        twin.env.close()
-    return summary, held, refusals
 
 
 @pytest.mark.parametrize("t0", [0.5, 1.0, 1.5, 2.0])
-def test_the_arm_is_not_stuck_after_a_forced_hold(t0):
-    summary, held, refusals = _replay_with_hold(t0)
+def test_the_arm_is_not_stuck_after_a_forced_hold(t0, pickup_box_with_forced_hold):
+    loop, refusals = pickup_box_with_forced_hold(t0, t0 + 1.0)
+    held: list[bool] = []
+    loop.listeners.append(lambda tick: held.append("right" in tick.state.guard_blocked_effectors))
+    summary = loop.run()
     first = held.index(True)
     assert sum(held[first : first + 30]) >= 29, "the forced hold did not last 1 s"
     after = sum(held[first + 30 :])

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.twin.guard import GuardVerdict
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
 
@@ -84,35 +83,14 @@ def test_the_step_limit_leaves_corrupt_targets_to_the_guard(env):
     assert unguarded.step_limited == {"right": 1}
 
 
-def test_release_after_a_forced_guard_hold_does_not_jump():
+def test_release_after_a_forced_guard_hold_does_not_jump(pickup_box_with_forced_hold):
     """Issue 25 item 2: the PickupBox trace with the guard refusing the right effector for
     1 s mid-grasp. While held, the operator is resynced to the held action, so when the hold
     ends no command (what the operator sends, before the twin's step limit) moves any joint
     further than its speed cap allows in one tick, and the step limit never has to act."""
-    from beavr_sim.assets import bundled_trace
-    from beavr_sim.teleop.session import SessionOptions, build_loop
-
-    options = SessionOptions(
-        task="PickupBox",
-        source="trace",
-        trace=bundled_trace("PickupBox"),
-        viser=False,
-        headless=True,
-        progress=False,
-    )
-    loop = build_loop(options)
-    twin, guard = loop.twin, loop.twin.guard
     t0, t1 = 2.5, 3.5  # the hand closes on the box, the arm moving
-    check = guard.check
-
-    def forced(action, qpos_now, previous=None):
-        verdict = check(action, qpos_now, previous)
-        if previous is not None and t0 <= twin.env.elapsed_seconds < t1:
-            reasons = {**verdict.reasons, "right": "forced: test hold"}
-            return GuardVerdict(tuple(sorted(reasons)), verdict.contacts, reasons)
-        return verdict
-
-    guard.check = forced
+    loop, _ = pickup_box_with_forced_hold(t0, t1)
+    twin, guard = loop.twin, loop.twin.guard
     sl = twin.slices["right"]
     cap = guard.max_velocity[sl] * guard.dt * (1 + 1e-9)
     jumps, held = [], []
@@ -127,10 +105,7 @@ def test_release_after_a_forced_guard_hold_does_not_jump():
         previous = tick.state.action.copy()
 
     loop.listeners.append(watch)
-    try:
-        summary = loop.run()
-    finally:
-        twin.env.close()
+    summary = loop.run()
     assert sum(held) == pytest.approx(30, abs=1), "the forced hold did not last 1 s"
     release = held.index(True) + sum(held)
     assert not held[release]
