@@ -41,6 +41,16 @@ def _finite(values, n: int, what: str) -> tuple[float, ...]:
     return out
 
 
+def _set_pose(obj) -> None:
+    """Validate and store a frozen dataclass's ``pos`` (3 finite) and ``quat`` (4 finite,
+    non-zero) as tuples of floats."""
+    object.__setattr__(obj, "pos", _finite(obj.pos, 3, "pos"))
+    quat = _finite(obj.quat, 4, "quat")
+    if not np.linalg.norm(quat) > 0:
+        raise ValueError(f"quat must be non-zero, got {obj.quat!r}")
+    object.__setattr__(obj, "quat", quat)
+
+
 @dataclass(frozen=True)
 class ObstacleGeom:
     """One collision shape of an obstacle: a MuJoCo primitive (``type``, ``size`` as MuJoCo
@@ -59,11 +69,7 @@ class ObstacleGeom:
         if min(size) < 0:
             raise ValueError(f"size must be >= 0, got {self.size!r}")
         object.__setattr__(self, "size", size)
-        object.__setattr__(self, "pos", _finite(self.pos, 3, "pos"))
-        quat = _finite(self.quat, 4, "quat")
-        if not np.linalg.norm(quat) > 0:
-            raise ValueError(f"quat must be non-zero, got {self.quat!r}")
-        object.__setattr__(self, "quat", quat)
+        _set_pose(self)
 
 
 @dataclass(frozen=True)
@@ -83,11 +89,7 @@ class Obstacle:
         if not geoms or not all(isinstance(g, ObstacleGeom) for g in geoms):
             raise ValueError(f"obstacle {self.name!r} needs ObstacleGeoms, got {self.geoms!r}")
         object.__setattr__(self, "geoms", geoms)
-        object.__setattr__(self, "pos", _finite(self.pos, 3, "pos"))
-        quat = _finite(self.quat, 4, "quat")
-        if not np.linalg.norm(quat) > 0:
-            raise ValueError(f"quat must be non-zero, got {self.quat!r}")
-        object.__setattr__(self, "quat", quat)
+        _set_pose(self)
 
     @property
     def shape(self) -> tuple:
