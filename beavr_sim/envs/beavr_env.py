@@ -19,6 +19,7 @@ import numpy as np
 from gymnasium import spaces
 
 from beavr_sim.envs.cameras import OffscreenCameras
+from beavr_sim.envs.drive import InterpolatedServo
 from beavr_sim.envs.scene import build_scene_spec, camera_names
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment, make_embodiment
@@ -79,6 +80,21 @@ class BeavrEnv(gym.Env):
         self.data = mujoco.MjData(self.model)
         self.joints = self.embodiment.bind(self.model)
         self.task.bind(self.model)
+        # The arm joints that follow targets as a servo-mode arm does (envs/drive.py); the
+        # other joints get each target straight on their position actuators.
+        servo_index, v_max, a_max = self.embodiment.servo_joints()
+        self._servo_index = servo_index
+        self._servo: InterpolatedServo | None = None
+        if len(servo_index):
+            self._servo = InterpolatedServo(
+                self.model,
+                self.joints.actuator_ids[servo_index],
+                self.joints.qvel_adr[servo_index],
+                v_max,
+                a_max,
+                period=1.0 / self.control_hz,
+                n_substeps=self.n_substeps,
+            )
         self.metadata = {**self.metadata, "render_fps": self.control_hz}
 
         n = self.joints.size
@@ -125,6 +141,8 @@ class BeavrEnv(gym.Env):
             start = np.clip(start, self.joints.lower, self.joints.upper)
         self.data.qpos[self.joints.qpos_adr] = start
         self.data.ctrl[self.joints.actuator_ids] = start
+        if self._servo is not None:
+            self._servo.reset(start[self._servo_index])
         self.task.initialize_episode(self.model, self.data, self.np_random)
         mujoco.mj_forward(self.model, self.data)
         self._elapsed_steps = 0
@@ -136,7 +154,16 @@ class BeavrEnv(gym.Env):
         clipped_target = np.clip(target, self.joints.lower, self.joints.upper)
         clipped = tuple(self.joints.names[i] for i in np.flatnonzero(clipped_target != target))
         self.data.ctrl[self.joints.actuator_ids] = clipped_target
-        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        servo = self._servo
+        if servo is not None:
+            servo.begin_period(clipped_target[self._servo_index])
+        if servo is None or servo.at_rest:
+            mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        else:
+            ctrl, ids = self.data.ctrl, servo.actuator_ids
+            for _ in range(self.n_substeps):
+                ctrl[ids] = servo.substep()
+                mujoco.mj_step(self.model, self.data)
         self._elapsed_steps += 1
         self._status = self.task.evaluate(self.model, self.data)
         terminated = bool(self._status.success or self._status.failure)

@@ -300,6 +300,19 @@ class Embodiment:
             [np.r_[s.arm.home(s.side), s.hand.home] for s in self.spec.effectors] + [body]
         ).astype(np.float64)
 
+    def servo_joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The action indices of the arm joints whose arm has an :class:`ArmServo` (followed
+        by interpolation in the twin), with each one's speed and acceleration cap."""
+        index, v_max, a_max, start = [], [], [], 0
+        for spec in self.spec.effectors:
+            n_arm, n = len(spec.arm.joints), len(spec.arm.joints) + len(spec.hand.joints)
+            if spec.arm.servo is not None:
+                index.extend(range(start, start + n_arm))
+                v_max.extend([spec.arm.servo.max_velocity] * n_arm)
+                a_max.extend([spec.arm.servo.max_acceleration] * n_arm)
+            start += n
+        return np.array(index, dtype=np.int64), np.array(v_max), np.array(a_max)
+
     def bind(self, model: mujoco.MjModel) -> JointIndex:
         names = self.joint_names
         qpos_adr, qvel_adr, act_ids, lower, upper = [], [], [], [], []

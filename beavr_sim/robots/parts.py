@@ -24,6 +24,27 @@ def _deg(values: tuple[float, ...]) -> tuple[float, ...]:
 
 
 @dataclass(frozen=True)
+class ArmServo:
+    """How an arm's controller follows a stream of joint targets, as the twin models it
+    (:class:`beavr_sim.envs.drive.InterpolatedServo`): interpolated between targets with
+    velocity feed-forward, under these joint caps (rad/s, rad/s^2)."""
+
+    max_velocity: float
+    max_acceleration: float
+
+    def __post_init__(self) -> None:
+        if not (self.max_velocity > 0 and self.max_acceleration > 0):
+            raise ValueError(
+                f"ArmServo caps must be positive, got {self.max_velocity}, {self.max_acceleration}"
+            )
+
+
+#: The xArm in servo mode (``set_servo_angle_j``): the SDK caps joint speed at pi rad/s and
+#: acceleration at 20 rad/s^2 (xarm-python-sdk 1.18.4; ``../shared/reference``).
+XARM7_SERVO = ArmServo(max_velocity=float(np.pi), max_acceleration=20.0)
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """An arm: its MJCF, joints in hardware (SDK) order, the flange site and home poses.
 
@@ -52,6 +73,9 @@ class ArmModel:
     #: Whether the arm holds the hand where it is when a fingertip pushes on the table (an
     #: industrial arm does; a servo-driven one gives way a few mm, and the fingertip slips).
     holds_against_fingertips: bool = True
+    #: How the arm follows joint targets in the twin: interpolated with velocity feed-forward
+    #: (an :class:`ArmServo`), or ``None``: each target goes straight to the position servos.
+    servo: ArmServo | None = None
 
     def __post_init__(self) -> None:
         for side in (
@@ -197,6 +221,7 @@ XARM7 = ArmModel(
         "right": _deg((0, -25, -1, 26, 0, 50, 0)),
         "left": _deg((0, -25, 1, 26, 0, 50, 0)),
     },
+    servo=XARM7_SERVO,
 )
 
 LEAP_HAND = HandModel(
