@@ -161,8 +161,8 @@ class BeavrEnv(gym.Env):
             mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
         else:
             ctrl, ids = self.data.ctrl, servo.actuator_ids
-            for _ in range(self.n_substeps):
-                ctrl[ids] = servo.substep()
+            for row in servo.period_controls():
+                ctrl[ids] = row
                 mujoco.mj_step(self.model, self.data)
         self._elapsed_steps += 1
         self._status = self.task.evaluate(self.model, self.data)

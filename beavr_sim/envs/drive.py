@@ -73,6 +73,8 @@ class InterpolatedServo:
         self.n_substeps = int(n_substeps)
         self.h = self.period / self.n_substeps
         self._dv = self.max_acceleration * self.h  # the largest change of speed in one step
+        self._inv_h, self._half_h = 1.0 / self.h, 0.5 * self.h
+        self._quarter_h2, self._two_over_a = 0.25 * self.h**2, 2.0 / self.max_acceleration
         self.reference = np.zeros(n)
         self.velocity = np.zeros(n)
         self.target = np.zeros(n)
@@ -110,20 +112,42 @@ class InterpolatedServo:
         )
         self._t = 0.0
 
+    def period_controls(self) -> np.ndarray:
+        """The controls of every physics step of this period (``n_substeps`` x joints),
+        advancing the reference to the period's end. When the line is within the caps from
+        where the reference stands (the usual case: smooth motion), in closed form; else step
+        by step (:meth:`substep`)."""
+        n, v_line = self.n_substeps, self._line_velocity
+        on_line = np.max(np.abs(self.reference - self._line_start), initial=0.0) <= 1e-9
+        reaches = np.all(np.abs(self.target - self._line_start - v_line * self.period) <= 1e-12)
+        if (
+            self._t == 0.0
+            and on_line
+            and reaches
+            and np.all(np.abs(v_line - self.velocity) <= self._dv)
+        ):
+            steps = np.arange(1, n + 1, dtype=np.float64)[:, None] * self.h
+            references = self._line_start + v_line * steps
+            references[-1] = self.target
+            self.reference = self.target.copy()
+            self.velocity = v_line.copy()
+            self._t = self.period
+            return references + self.lead * v_line
+        return np.array([self.substep() for _ in range(n)])
+
     def substep(self) -> np.ndarray:
         """Advance the reference one physics step; the controls for that step."""
-        line = self._line_start + self._line_velocity * self._t
-        error = line - self.reference
+        minimum, maximum = np.minimum, np.maximum
+        error = self._line_start + self._line_velocity * self._t - self.reference
         distance = np.abs(error)
         # The fastest approach that can still brake in time, in whole physics steps: moving
         # v now and slowing by a h each step after covers v^2 / 2a + v h / 2.
-        a, h = self.max_acceleration, self.h
-        brake = a * (np.sqrt(0.25 * h * h + 2.0 * distance / a) - 0.5 * h)
-        catch_up = np.sign(error) * np.minimum(distance / h, brake)
-        v = np.clip(
-            self._line_velocity + catch_up, self.velocity - self._dv, self.velocity + self._dv
+        brake = self.max_acceleration * (
+            np.sqrt(self._quarter_h2 + distance * self._two_over_a) - self._half_h
         )
-        v = np.clip(v, -self.max_velocity, self.max_velocity)
+        v = self._line_velocity + np.sign(error) * minimum(distance * self._inv_h, brake)
+        v = minimum(maximum(v, self.velocity - self._dv), self.velocity + self._dv)
+        v = minimum(maximum(v, -self.max_velocity), self.max_velocity)
         self.velocity = v
         self.reference = self.reference + v * self.h
         self._t = min(self._t + self.h, self.period)
