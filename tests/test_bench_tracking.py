@@ -55,9 +55,13 @@ def test_benchmark_on_one_trace_and_the_ramps():
     block = result["effectors"]["right"]
     assert block["ticks"] > 100
     lags = block["lag_ms"]
+    half_tick_ms = 0.5e3 / result["control_hz"]
     for name in ("raw_to_filtered", "ik_to_sim", "raw_to_sim"):
-        assert math.isfinite(lags[name]) and 0 < lags[name] <= tracking.MAX_LAG_S * 1e3, name
+        assert math.isfinite(lags[name]), name
+        assert -half_tick_ms <= lags[name] <= tracking.MAX_LAG_S * 1e3, name
     assert lags["raw_to_sim"] >= lags["ik_to_sim"]
+    for name, wall in block["lag_wall_ms"].items():
+        assert wall == pytest.approx(lags[name] + 2 * half_tick_ms, abs=0.11), name
     for stats in block["error_mm"].values():
         assert 0 < stats["p50"] <= stats["p95"] <= stats["max"] < 1e3
 
@@ -65,6 +69,10 @@ def test_benchmark_on_one_trace_and_the_ramps():
     for joint in ("arm", "finger"):
         r = ramp[joint]
         assert r["guard_blocked_ticks"] == 0
-        assert math.isfinite(r["lag_end_mrad"]) and r["lag_end_mrad"] > 0
+        assert math.isfinite(r["lag_end_mrad"])
         assert abs(r["lag_at_rest_mrad"]) < 5.0
+    # The xArm follows a ramp (servo model with velocity feed-forward, issue 26); the LEAP
+    # finger is a plain position servo and trails it.
+    assert abs(ramp["arm"]["lag_end_mrad"]) < 20.0
+    assert ramp["finger"]["lag_end_mrad"] > 0
     assert ramp["arm"]["joint"].endswith("joint1")

@@ -10,7 +10,8 @@ positions in the robot's world frame (positions only, no orientation):
   after the keypoint and pose filters);
 - C ``ik``: the hand frame the arm IK reached (``EffectorTargets.T_world_hand``), what the
   joint command sent to the twin stands for;
-- D ``sim``: the simulated hand (body ``{effector}/hand``) after the twin's step of that tick.
+- D ``sim``: the simulated hand (body ``{effector}/hand``) after the twin's step of that tick,
+  i.e. one control period after A-C in wall-clock time (``lag_wall_ms`` adds that period).
 
 Lags (ms) between consecutive stages and end to end (A -> D) by cross-correlation of the
 velocities (:func:`lag_s`), tracking errors (mm) ``|C - D|`` and ``|B - C|`` per tick
@@ -191,6 +192,12 @@ def analyse(a: np.ndarray, dt: float) -> dict:
             "raw_to_ik": _ms(lag_s(raw, ik, dt)),
             "raw_to_sim": _ms(lag_s(raw, sim, dt)),
         },
+        # In wall-clock time the sim sample comes one control period after the tick's
+        # command (it is taken at the end of that tick's physics step): these add it.
+        "lag_wall_ms": {
+            "ik_to_sim": _ms(lag_s(ik, sim, dt) + dt),
+            "raw_to_sim": _ms(lag_s(raw, sim, dt) + dt),
+        },
         "error_mm": {
             "ik_to_sim": _err_stats(np.linalg.norm(ik - sim, axis=1) * 1e3),
             "filtered_to_ik": _err_stats(np.linalg.norm(filtered - ik, axis=1) * 1e3),
@@ -306,6 +313,8 @@ _DEFINITIONS = {
     "stages": "raw: mapping(raw palm); filtered: mapped target; ik: IK hand; sim: twin hand body",
     "lag": "velocity cross-correlation peak over 0..300 ms, sub-tick by a cosine fit",
     "error": "|position difference| per control tick",
+    "lag_wall_ms": "the lag plus one control period: the sim stage is sampled at the end of "
+    "the tick's physics step, the others at its start",
 }
 _TARGETS = {
     "raw_to_sim_lag_ms": 50,
