@@ -124,6 +124,9 @@ def test_bench_teleop_plot_end_to_end(tmp_path, monkeypatch, capsys):
     assert result["operator_compute_ms_per_effector"]["n"] == 30
     assert result["target_operator_p99_ms"] == 1.0
     assert set(result["latency_in_process_ms"]) == {"p50", "p99", "mean", "n"}
+    (trace,) = result["traces"].values()
+    lag = trace["motion_lag_ms"]["right"]  # issue 26: motion-to-motion lag beside latency
+    assert set(lag) == {"ik_to_sim", "raw_to_sim", "tick"} and lag["raw_to_sim"] is not None
     real_time = result["real_time"]
     assert real_time["seconds"] == pytest.approx(1.0)
     assert real_time["control_jitter_ms"]["n"] == 19  # 30 ticks, 10 warm-up, periods between

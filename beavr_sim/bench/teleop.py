@@ -5,6 +5,8 @@ clock and times, per control tick:
 
 - operator compute per effector: ``observe`` of that side's new frames plus the effector's
   ``command`` (palm frame, filters, mapping, arm IK, LEAP retargeting). Target p99 <= 1 ms.
+- motion-to-motion lag per effector (raw hand -> simulated hand, IK hand -> simulated hand, by
+  cross-correlation; :mod:`beavr_sim.bench.tracking` defines them), next to the latencies;
 - end-to-end latency: from the frame's delivery by the detector source to the command handed
   to the twin's actuators (``TeleopLoop`` measures it). Target p50 <= 1 ms.
 
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from beavr_sim.assets import bundled_trace
+from beavr_sim.bench.tracking import StageRecorder, analyse
 
 DEFAULT_TASKS = ("PickupBox", "Pour")
 #: Ticks at the start of each run left out of the stats (first QPs, caches).
@@ -169,6 +172,8 @@ def run(
     for path in paths:
         task, loop = _build_loop(path, "virtual")
         timers = {name: _TimedEffector(op) for name, op in loop.operator.effectors.items()}
+        stages = StageRecorder(loop)  # after each tick, outside the timed calls
+        loop.listeners.append(stages)
         summary = loop.run(max_seconds=None if max_ticks is None else max_ticks * loop.dt)
         loop.twin.env.close()
         compute = [s for t in timers.values() for s in t.samples]
@@ -186,6 +191,13 @@ def run(
             "first_tick_ms": round(compute[0], 3) if compute else None,
             "latency_ms": _stats(loop.latencies_ms[WARMUP_TICKS:]),
             "loop_rate_hz_virtual_clock": round(summary.loop_rate_hz or 0.0, 1),
+            # Motion to motion (issue 26): raw hand -> IK hand -> simulated hand, per effector
+            # (``bench tracking`` has the full breakdown and the definitions).
+            "motion_lag_ms": {
+                name: {**(b := analyse(a, loop.dt))["lag_wall_ms"], "tick": b["lag_ms"]}
+                for name, a in stages.arrays().items()
+                if len(a) > 2
+            },
         }
     result = {
         "machine": f"{platform.machine()}, {platform.python_version()}",
