@@ -20,7 +20,12 @@ from gymnasium import spaces
 
 from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.envs.drive import InterpolatedServo
-from beavr_sim.envs.scene import build_scene_spec, camera_names
+from beavr_sim.envs.scene import (
+    DEFAULT_HAND_VARIANT,
+    build_scene_spec,
+    camera_names,
+    check_hand_variant,
+)
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment, make_embodiment
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
@@ -45,12 +50,16 @@ class BeavrEnv(gym.Env):
         max_episode_seconds: float | None = None,
         camera_height: int = 480,
         camera_width: int = 640,
+        hand_variant: str = DEFAULT_HAND_VARIANT,
     ):
+        """``hand_variant``: the hands' hardware variant (LEAP: ``"full"`` or ``"lite"``); it
+        sets their finger joints' torque cap (docs/models.md, "LEAP servos")."""
         super().__init__()
         if render_mode is not None:
             check_name("render_mode", render_mode, RENDER_MODES)
         self.render_mode = render_mode
         self.embodiment: Embodiment = make_embodiment(embodiment)
+        self.hand_variant = check_hand_variant(self.embodiment, hand_variant)
         valid_cameras = camera_names(self.embodiment)
         self.cameras = tuple(
             check_name("camera", c, valid_cameras, f"for embodiment {embodiment}")
@@ -71,7 +80,9 @@ class BeavrEnv(gym.Env):
         if not self.max_episode_seconds > 0:
             raise ValueError(f"max_episode_seconds must be positive, got {max_episode_seconds!r}")
 
-        spec = build_scene_spec(self.embodiment, self.camera_height, self.camera_width)
+        spec = build_scene_spec(
+            self.embodiment, self.camera_height, self.camera_width, self.hand_variant
+        )
         self.task.build(spec)
         self.control_hz = float(control_hz)
         self.n_substeps = max(1, math.ceil(1.0 / (self.control_hz * MAX_PHYSICS_DT)))

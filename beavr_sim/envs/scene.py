@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from beavr_sim.naming import check_name
 from beavr_sim.robots import EMBODIMENTS, Embodiment
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_THICKNESS, TABLE_TOP_Z, TABLE_X
 
@@ -22,6 +23,50 @@ ALL_CAMERA_NAMES = CAMERA_NAMES + tuple(
 def camera_names(embodiment: Embodiment) -> tuple[str, ...]:
     """The cameras of ``embodiment``'s scene: the fixed ones, then the robot's own."""
     return CAMERA_NAMES + embodiment.cameras
+
+
+#: The hands' hardware variant unless one is chosen (the LEAP hand: the full hand, not the Lite).
+DEFAULT_HAND_VARIANT = "full"
+
+
+def hand_variants(embodiment: Embodiment) -> tuple[str, ...]:
+    """The hardware variants every hand of ``embodiment`` comes in (LEAP: full, lite); just
+    the default where no hand has variants."""
+    hands = [e.hand for e in embodiment.spec.effectors if e.hand.variants]
+    if not hands:
+        return (DEFAULT_HAND_VARIANT,)
+    return tuple(v for v in hands[0].variants if all(v in h.variants for h in hands))
+
+
+def check_hand_variant(embodiment: Embodiment, variant: str) -> str:
+    """``variant`` if every hand of ``embodiment`` comes in it, else an error listing those."""
+    return check_name(
+        "hand variant", variant, hand_variants(embodiment), f"for embodiment {embodiment.name}"
+    )
+
+
+def apply_hand_variant(spec: mujoco.MjSpec, embodiment: Embodiment, variant: str) -> None:
+    """Cap every finger joint of ``embodiment``'s hands at the torque cap of ``variant``
+    (``HandModel.torque_cap``): its actuator's force range and the joint's actuator force
+    range. Hands without variants keep their file's limits."""
+    check_hand_variant(embodiment, variant)
+    for effector in embodiment.spec.effectors:
+        hand = effector.hand
+        if not hand.variants:
+            continue
+        cap = hand.torque_cap(variant)
+        joints = {effector.prefix + j for j in hand.joints}
+        capped = set()
+        for actuator in spec.actuators:
+            if actuator.target in joints:
+                actuator.forcerange = [-cap, cap]
+                capped.add(actuator.target)
+        if capped != joints:
+            raise ValueError(
+                f"{effector.name}: no actuator on hand joints {sorted(joints - capped)}"
+            )
+        for name in joints:
+            spec.joint(name).actfrcrange = [-cap, cap]
 
 
 @dataclass(frozen=True)
@@ -57,8 +102,12 @@ def _look_at_quat(pos: np.ndarray, target: np.ndarray) -> np.ndarray:
     return quat
 
 
-def build_scene_spec(embodiment: Embodiment, height: int, width: int) -> mujoco.MjSpec:
-    """The scene without task objects: everything every task shares."""
+def build_scene_spec(
+    embodiment: Embodiment, height: int, width: int, hand_variant: str = DEFAULT_HAND_VARIANT
+) -> mujoco.MjSpec:
+    """The scene without task objects: everything every task shares. The hands are the
+    ``hand_variant`` of their hardware (their torque cap: :func:`apply_hand_variant`)."""
+    check_hand_variant(embodiment, hand_variant)
     spec = mujoco.MjSpec()
     spec.modelname = f"beavr_sim_{embodiment.name}"
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
@@ -136,6 +185,7 @@ def build_scene_spec(embodiment: Embodiment, height: int, width: int) -> mujoco.
             pos=[x, y, z / 2],
         )
     embodiment.attach_to(spec)
+    apply_hand_variant(spec, embodiment, hand_variant)
     if embodiment.spec.body is None:
         for effector in embodiment.spec.effectors:
             # The base bolts onto the table; their primitives overlap by construction.

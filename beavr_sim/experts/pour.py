@@ -57,8 +57,16 @@ LIP_OFFSET = 0.0
 BOTTOM_CLEARANCE = 0.02
 TILT_SECONDS = 2.5
 POUR_HOLD = 1.5
-#: A firmer pinch than grasps.PINCH_CLOSED: the tipped cup must not turn in the fingers.
-PINCH_FIRM = grasps.finger_shape(1.0, 1.0, 0.5, (1.6, 0.6, 1.2, 0.8))
+#: A firmer pinch than grasps.PINCH_CLOSED, per hand side: the tipped cup must not turn in the
+#: fingers. The thumb's third joint (motor 14) closes to 0.8 rad on the right, 1.0 on the left
+#: (1.2 before the hand got the real servos' torque cap, docs/models.md "LEAP servos"): with
+#: the thumb as strong as each finger, a thumb aimed at 1.2 pushes the cup out along the fingers,
+#: away from the palm, and the tipped cup pours onto the hand (right hand: 0/10 episodes). The
+#: left hand's pinch (see GRASP_SHIFT) holds the cup best at 1.0.
+PINCH_FIRM = {
+    side: grasps.finger_shape(1.0, 1.0, 0.5, (1.6, 0.6, thumb, 0.8))
+    for side, thumb in (("right", 0.8), ("left", 1.0))
+}
 #: Where the pinch centre is aimed, along the fingers from the cup's axis (m), per hand side.
 GRASP_SHIFT = {"right": 0.0, "left": -0.02}
 #: The thumb closes first, a backstop on the near side, then the fingers. Its tip rests on the
@@ -66,9 +74,10 @@ GRASP_SHIFT = {"right": 0.0, "left": -0.02}
 #: hand still; where the arm gives way (:attr:`ArmModel.holds_against_fingertips`), the tip
 #: slips in under the cup and shoves it along the fingers, so its joint stays open in that
 #: step (THUMB_FIRST_TIP_OPEN).
-THUMB_FIRST = np.concatenate([grasps.PINCH_OPEN[:12], PINCH_FIRM[12:]])
-THUMB_FIRST_TIP_OPEN = np.concatenate([THUMB_FIRST[:15], grasps.PINCH_OPEN[15:]])
-CLOSE_SEQUENCE = (THUMB_FIRST, PINCH_FIRM)
+THUMB_FIRST = {s: np.concatenate([grasps.PINCH_OPEN[:12], f[12:]]) for s, f in PINCH_FIRM.items()}
+THUMB_FIRST_TIP_OPEN = {
+    s: np.concatenate([f[:15], grasps.PINCH_OPEN[15:]]) for s, f in THUMB_FIRST.items()
+}
 #: Each closing step takes this long: slow enough for the thumb to land on the cup.
 CLOSE_SECONDS = 1.0
 #: The open pinch's fingertips reach this far past the cup's axis (along the fingers) and
@@ -207,9 +216,9 @@ class PourExpert(ScriptedExpert):
 
     def close_sequence(self, effector: str) -> tuple[np.ndarray, ...]:
         """The finger shapes that close ``effector``'s hand on the cup, in turn."""
-        if self.effector_spec(effector).arm.holds_against_fingertips:
-            return CLOSE_SEQUENCE
-        return (THUMB_FIRST_TIP_OPEN, PINCH_FIRM)
+        spec = self.effector_spec(effector)
+        first = THUMB_FIRST if spec.arm.holds_against_fingertips else THUMB_FIRST_TIP_OPEN
+        return (first[spec.side], PINCH_FIRM[spec.side])
 
     def pour_heading(self, effector: str) -> float:
         """The hand heading (rad, world) to pinch the cup with: the one from which the arm

@@ -38,6 +38,7 @@ from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PacketHandler, PortHand
 from dynamixel_sdk.robotis_def import COMM_SUCCESS
 
 from beavr_sim.hardware.device import Device, DeviceError
+from beavr_sim.robots.parts import LEAP_VARIANT_CURRENT_MA
 
 # --- unit conversions (the one place) --------------------------------------------------------
 
@@ -90,7 +91,9 @@ ADDR_PRESENT_POSITION = 132
 CURRENT_BASED_POSITION_MODE = 5
 MAX_GAIN = 16383
 MAX_CURRENT_MA = 2352  # XC330-M288 Current Limit (38) maximum
-VARIANT_CURRENT_MA = {"full": 550, "lite": 350}
+# The current limit per variant (550 mA full, 350 mA Lite) lives with the hand model: the
+# simulated hand's torque cap is derived from it (robots/parts.py, docs/models.md).
+VARIANT_CURRENT_MA = LEAP_VARIANT_CURRENT_MA
 # Baud rates the SDK's PortHandler accepts (getCFlagBaud).
 SDK_BAUDRATES = (
     9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,

@@ -190,6 +190,20 @@ class RigConfig:
             raise ValueError(f"rig file {path}: {exc}") from None
         return cls.from_dict(data, str(path))
 
+    def leap_variant(self) -> str | None:
+        """The variant (``LeapHandConfig.variant``) of the rig's LEAP hands, None without any.
+        The twin models its hands as one variant (their torque cap, docs/models.md), so the
+        hands of a mirrored rig must agree: raises if they do not."""
+        hands = [d for d in self.devices if d.kind == "leap"]
+        variants = {d.config.variant for d in hands}
+        if len(variants) > 1:
+            each = ", ".join(f"{d.name} {d.config.variant!r}" for d in hands)
+            raise ValueError(
+                f"rig {self.source}: the LEAP hands are of different variants ({each}); the "
+                "twin simulates one variant for all hands: make them all 'full' or all 'lite'"
+            )
+        return variants.pop() if variants else None
+
     def check_embodiment(self, embodiment: Embodiment) -> None:
         """Every device serves an effector (or the body) of ``embodiment``, with the servo group
         of that effector's side."""
@@ -267,7 +281,11 @@ class EmulatedRig:
     """
 
     def __init__(
-        self, embodiment: Embodiment, joints: JointIndex, q_start: np.ndarray | None = None
+        self,
+        embodiment: Embodiment,
+        joints: JointIndex,
+        q_start: np.ndarray | None = None,
+        leap_variant: str = "full",
     ):
         import json
         import subprocess
@@ -313,7 +331,9 @@ class EmulatedRig:
                     port=where[name], group=groups[name], speed_rad_s=None, reply_timeout_s=0.25
                 )
             else:
-                config = LeapHandConfig(port=where[name], reply_timeout_s=0.25)
+                config = LeapHandConfig(
+                    port=where[name], variant=leap_variant, reply_timeout_s=0.25
+                )
             devices.append(DeviceEntry(name, kind, effector, config))
         # Emulated fingers close on nothing; the twin's stop on the objects they grasp.
         self.config = RigConfig(tuple(devices), MirrorConfig(hand_divergence_rad=2.5), "emulated")

@@ -116,7 +116,13 @@ class ArmModel:
 
 @dataclass(frozen=True)
 class HandModel:
-    """A hand: one MJCF per side, joints in motor-id order, palm and fingertip-pad sites."""
+    """A hand: one MJCF per side, joints in motor-id order, palm and fingertip-pad sites.
+
+    ``current_limit_ma_by_variant``: per hardware variant of the hand (the LEAP hand's
+    ``"full"`` and ``"lite"``), the current limit (mA) its servos run under; with
+    ``torque_constant`` (N m/A) it sets each finger joint's torque cap (:meth:`torque_cap`),
+    which the scene applies to the hand's actuators. Empty: the hand file's limits stand.
+    """
 
     name: str
     mjcf_by_side: dict[str, str]
@@ -128,10 +134,21 @@ class HandModel:
     #: Per side, the sign that maps a right-hand joint value to this side's joint value for
     #: the mirror-image finger shape (sides not listed: all +1).
     mirror_signs_by_side: dict[str, tuple[float, ...]] = field(default_factory=dict)
+    current_limit_ma_by_variant: dict[str, float] = field(default_factory=dict)
+    torque_constant: float = 0.0
 
     def __post_init__(self) -> None:
         for side in self.mjcf_by_side:
             check_name("side", side, SIDES)
+        if self.current_limit_ma_by_variant and not (
+            self.torque_constant > 0
+            and all(ma > 0 for ma in self.current_limit_ma_by_variant.values())
+        ):
+            raise ValueError(
+                f"{self.name}: current limits per variant need a positive torque_constant "
+                f"(N m/A) and positive limits (mA), got {self.torque_constant!r} and "
+                f"{self.current_limit_ma_by_variant!r}"
+            )
         if self.home and len(self.home) != len(self.joints):
             raise ValueError(
                 f"{self.name}: home has {len(self.home)} values, expected {len(self.joints)}"
@@ -141,6 +158,18 @@ class HandModel:
 
     def mjcf(self, side: str) -> str:
         return self.mjcf_by_side[check_name("side", side, self.mjcf_by_side)]
+
+    @property
+    def variants(self) -> tuple[str, ...]:
+        """The hardware variants this hand comes in (empty: one, its file's)."""
+        return tuple(self.current_limit_ma_by_variant)
+
+    def torque_cap(self, variant: str) -> float:
+        """The finger joints' torque cap (N m) of ``variant``: torque constant x current limit."""
+        ma = self.current_limit_ma_by_variant[
+            check_name(f"{self.name} hand variant", variant, self.current_limit_ma_by_variant)
+        ]
+        return self.torque_constant * ma / 1000.0
 
     def mirrored(self, q_right, side: str) -> np.ndarray:
         """Joint values on ``side`` that make the mirror image of right-hand shape ``q_right``."""
@@ -224,6 +253,23 @@ XARM7 = ArmModel(
     servo=XARM7_SERVO,
 )
 
+#: The LEAP hand's current limit per variant (mA): what the LEAP API writes to every motor's
+#: Goal Current (102) in current-based position mode (leap-hand/LEAP_Hand_API). The one place
+#: these live: the driver (``hardware/leap.py``) imports them.
+LEAP_VARIANT_CURRENT_MA = {"full": 550, "lite": 350}
+#: The LEAP hand's motors, Dynamixel XC330-M288-T: stall torque 0.93 N m at 1.80 A at 5.0 V
+#: (ROBOTIS e-manual; the hand runs on 5 V), as a torque constant (N m/A): a linear estimate
+#: through zero (docs/models.md, "LEAP servos").
+XC330_M288_TORQUE_CONSTANT = 0.93 / 1.80
+
+
+def dynamixel_position_kp(p_gain: float, torque_constant: float) -> float:
+    """A Dynamixel X's Position P Gain (84) in current-based position mode as a joint stiffness
+    (N m/rad): the e-manual's KPP = P / 128, read as Goal Current units (1 mA) per count of
+    position error (4096 counts per turn), times the torque constant (docs/models.md)."""
+    return p_gain / 128 * 1e-3 * 4096 / (2 * np.pi) * torque_constant
+
+
 LEAP_HAND = HandModel(
     name="leap",
     mjcf_by_side={"right": "xarm7_leap/leap_right.xml", "left": "xarm7_leap/leap_left.xml"},
@@ -233,6 +279,8 @@ LEAP_HAND = HandModel(
     # The left hand's thumb CMC joints (12, 13) turn the other way: their ranges are the
     # right hand's negated (see the hand MJCF).
     mirror_signs_by_side={"left": (1.0,) * 12 + (-1.0, -1.0, 1.0, 1.0)},
+    current_limit_ma_by_variant=LEAP_VARIANT_CURRENT_MA,
+    torque_constant=XC330_M288_TORQUE_CONSTANT,
 )
 
 # The hand bolts to the flange through the adapter plate that is part of the hand model;

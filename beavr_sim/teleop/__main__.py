@@ -2,7 +2,7 @@
 
     python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace] [--trace F]
         [--headless] [--no-viser] [--multiprocess] [--max-seconds N] [--summary-json F]
-        [--rerun F.rrd [--rerun-image-hz 5]]
+        [--rerun F.rrd [--rerun-image-hz 5]] [--leap-variant full|lite]
         [--record DIR --repo-id NAME --episodes N --episode-seconds S --fps 30
          --cameras front,overhead --image-size 480x640]
 
@@ -30,6 +30,7 @@ import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.datasets.cli import add_recording_args
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.robots.parts import LEAP_HAND
 
 SOURCES = ("quest", "trace")
 CLOCKS = ("real", "virtual", "paced")
@@ -106,6 +107,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     hw.add_argument(
         "--dry-run", action="store_true", help="mirror everything but the final device write"
+    )
+    p.add_argument(
+        "--leap-variant",
+        choices=LEAP_HAND.variants,
+        default=None,
+        help="the twin's LEAP hands: full (550 mA current limit) or lite (350 mA), which sets "
+        "their torque cap; default full, or with --mirror-hardware the rig's hands' variant",
     )
     rec = p.add_argument_group("recording a LeRobot dataset")
     rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")

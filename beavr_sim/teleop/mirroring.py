@@ -20,11 +20,17 @@ def connect_mirror(options, env, closers: list):
 
     get = options.get if isinstance(options, dict) else lambda k: getattr(options, k)
     if get("hardware_config") == "emulated":
-        rig = EmulatedRig(env.embodiment, env.joints, env.joints.home)
+        rig = EmulatedRig(env.embodiment, env.joints, env.joints.home, env.hand_variant)
         closers.append(rig.close)
         config = rig.config
     else:
         config = RigConfig.from_toml(get("hardware_config"))
+    variant = config.leap_variant()
+    if variant is not None and variant != env.hand_variant:
+        raise ValueError(
+            f"the rig's LEAP hands are {variant!r} but the twin's are {env.hand_variant!r}: "
+            "the twin must simulate the rig's hands (--leap-variant follows the rig)"
+        )
     mirror = HardwareMirror(
         config, env.embodiment, env.joints, env.model, env.control_hz, dry_run=get("dry_run")
     )

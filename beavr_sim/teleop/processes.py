@@ -387,6 +387,8 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
 
     context = zmq.Context()
     kwargs = {} if options["source"] == "trace" else {"max_episode_seconds": 1e9}
+    if options.get("leap_variant"):
+        kwargs["hand_variant"] = options["leap_variant"]
     env = gym.make(
         f"beavr_sim/{options['task']}-v0", embodiment=options["embodiment"], **kwargs
     ).unwrapped

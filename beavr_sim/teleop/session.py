@@ -67,6 +67,10 @@ class SessionOptions:
     hardware_config: str | None = None
     #: Mirror everything but the final write to the devices.
     dry_run: bool = False
+    #: The twin's LEAP hands: "full" or "lite" (their torque cap). With ``mirror_hardware``
+    #: the rig's hands decide (``LeapHandConfig.variant``; giving another is an error); else
+    #: default "full".
+    leap_variant: str | None = None
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -106,6 +110,7 @@ class SessionOptions:
                 self.hardware_config = "rig.toml"
         elif self.dry_run or self.hardware_config is not None:
             raise ValueError("--dry-run and --hardware-config need --mirror-hardware")
+        self.leap_variant = self._twin_leap_variant()
         if self.clock is None:
             self.clock = "virtual" if self.source == "trace" and not self.viser else "real"
         check_name("clock", self.clock, ("real", "virtual", "paced"))
@@ -139,6 +144,28 @@ class SessionOptions:
                 raise ValueError("--rerun runs in one process; leave out --multiprocess")
         if not 0 <= self.rerun_image_hz < float("inf"):
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
+
+    def _twin_leap_variant(self) -> str:
+        """The twin's LEAP variant: the mirrored rig's hands', else the chosen one, else full."""
+        from beavr_sim.envs.scene import DEFAULT_HAND_VARIANT
+        from beavr_sim.robots.parts import LEAP_HAND
+
+        chosen = self.leap_variant
+        if chosen is not None:
+            check_name("LEAP variant", chosen, LEAP_HAND.variants)
+        if self.mirror_hardware and self.hardware_config != "emulated":
+            from beavr_sim.hardware.rig import RigConfig
+
+            rig = RigConfig.from_toml(self.hardware_config).leap_variant()
+            if rig is not None:
+                if chosen not in (None, rig):
+                    raise ValueError(
+                        f"--leap-variant {chosen} but the rig's LEAP hands ({self.hardware_config})"
+                        f" are {rig!r}: with --mirror-hardware the twin simulates the rig's hands;"
+                        " leave out --leap-variant"
+                    )
+                return rig
+        return chosen or DEFAULT_HAND_VARIANT
 
     @classmethod
     def from_args(cls, args) -> SessionOptions:
@@ -177,6 +204,7 @@ class SessionOptions:
             rerun_image_hz=getattr(args, "rerun_image_hz", 5.0),
             mirror_hardware=getattr(args, "mirror_hardware", False),
             hardware_config=getattr(args, "hardware_config", None),
+            leap_variant=getattr(args, "leap_variant", None),
             dry_run=getattr(args, "dry_run", False),
         )
 
@@ -240,6 +268,8 @@ def build_loop(options: SessionOptions, context=None):
     kwargs = {}
     if options.source == "quest":
         kwargs["max_episode_seconds"] = 1e9  # live: episodes end by the operator, not a timer
+    if options.leap_variant:
+        kwargs["hand_variant"] = options.leap_variant
     env = gym.make(f"beavr_sim/{options.task}-v0", embodiment=embodiment, **kwargs).unwrapped
     operator = Operator(env.embodiment, 1.0 / env.control_hz)
     loop = TeleopLoop(
