@@ -174,10 +174,18 @@ def test_bad_actions_raise_and_out_of_range_is_clipped():
     action = obs["agent_pos"].copy()
     _, _, _, _, info = env.step(action)
     assert info["action_clipped"] is False
+    action_before_jump = action.copy()
     action[1] = 10.0  # joint2 upper limit is 2.0944
     _, _, _, _, info = env.step(action)
     assert info["action_clipped"] is True and info["clipped_joints"] == ("right/joint2",)
-    assert env.unwrapped.data.ctrl[env.unwrapped.joints.actuator_ids[1]] == pytest.approx(2.0944)
+    # The clipped target is what the joint's servo follows (the xArm's interpolated servo,
+    # envs/drive.py, moves its reference towards it at most at its speed cap).
+    assert env.unwrapped.target[1] == pytest.approx(2.0944)
+    servo = env.unwrapped._servo
+    assert servo.target[1] == pytest.approx(2.0944)
+    assert (
+        abs(servo.reference[1] - action_before_jump[1]) <= np.pi / env.unwrapped.control_hz + 1e-9
+    )
 
 
 def _rollout(seed: int, steps: int = 40) -> np.ndarray:

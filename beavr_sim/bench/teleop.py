@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from beavr_sim.assets import bundled_trace
-from beavr_sim.bench.tracking import StageRecorder, analyse
+from beavr_sim.bench.tracking import StageRecorder, analyse, build_trace_loop
 
 DEFAULT_TASKS = ("PickupBox", "Pour")
 #: Ticks at the start of each run left out of the stats (first QPs, caches).
@@ -74,23 +74,6 @@ def _stats(ms) -> dict:
     }
 
 
-def _build_loop(path: Path, clock: str):
-    from beavr_sim.teleop.session import SessionOptions, build_loop
-    from beavr_sim.traces.format import TraceReader
-
-    task = TraceReader(path).metadata.task
-    options = SessionOptions(
-        task=task,
-        source="trace",
-        trace=Path(path),
-        viser=False,
-        headless=True,
-        progress=False,
-        clock=clock,
-    )
-    return task, build_loop(options)
-
-
 def run_real_time(path: Path, seconds: float) -> tuple[dict, dict]:
     """Replay ``path`` in real time at the control rate for ``seconds`` (the trace again
     from its start on a fresh episode if it ends first). Returns (stats, samples in ms)."""
@@ -98,7 +81,7 @@ def run_real_time(path: Path, seconds: float) -> tuple[dict, dict]:
 
     if not seconds > 0:
         raise ValueError(f"seconds must be positive, got {seconds}")
-    _, loop = _build_loop(path, "real")
+    _, loop = build_trace_loop(path, "real")
     dt = loop.dt
     # Per tick: its start (tick.t is time.monotonic() at the start of the tick in real time)
     # and the number of latencies measured so far (the listener runs after the tick).
@@ -170,7 +153,7 @@ def run(
     all_latency: list[float] = []
     per_effector: dict[str, list[float]] = {}
     for path in paths:
-        task, loop = _build_loop(path, "virtual")
+        task, loop = build_trace_loop(path, "virtual")
         timers = {name: _TimedEffector(op) for name, op in loop.operator.effectors.items()}
         stages = StageRecorder(loop)  # after each tick, outside the timed calls
         loop.listeners.append(stages)

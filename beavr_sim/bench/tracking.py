@@ -208,11 +208,28 @@ def analyse(a: np.ndarray, dt: float) -> dict:
     }
 
 
+def build_trace_loop(path: Path, clock: str):
+    """(task name, the in-process teleop loop replaying the trace at ``path`` headless on
+    ``clock``), as the benchmarks replay bundled traces."""
+    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.traces.format import TraceReader
+
+    task = TraceReader(path).metadata.task
+    options = SessionOptions(
+        task=task,
+        source="trace",
+        trace=Path(path),
+        viser=False,
+        headless=True,
+        progress=False,
+        clock=clock,
+    )
+    return task, build_loop(options)
+
+
 def run_trace(path: Path, max_ticks: int | None = None) -> dict:
     """The tracking block of one trace: per effector, :func:`analyse` of its stages."""
-    from beavr_sim.bench.teleop import _build_loop
-
-    task, loop = _build_loop(path, "virtual")
+    task, loop = build_trace_loop(path, "virtual")
     recorder = StageRecorder(loop)
     loop.listeners.append(recorder)
     try:

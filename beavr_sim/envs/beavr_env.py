@@ -135,6 +135,7 @@ class BeavrEnv(gym.Env):
         self._renderer: OffscreenCameras | None = None
         self._elapsed_steps = 0
         self._status = TaskStatus()
+        self.target = self.joints.home.astype(np.float64).copy()
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -152,6 +153,8 @@ class BeavrEnv(gym.Env):
             start = np.clip(start, self.joints.lower, self.joints.upper)
         self.data.qpos[self.joints.qpos_adr] = start
         self.data.ctrl[self.joints.actuator_ids] = start
+        #: The joint targets of the last step, clipped to the joint ranges (action order).
+        self.target = np.array(start, dtype=np.float64)
         if self._servo is not None:
             self._servo.reset(start[self._servo_index])
         self.task.initialize_episode(self.model, self.data, self.np_random)
@@ -165,6 +168,7 @@ class BeavrEnv(gym.Env):
         clipped_target = np.clip(target, self.joints.lower, self.joints.upper)
         clipped = tuple(self.joints.names[i] for i in np.flatnonzero(clipped_target != target))
         self.data.ctrl[self.joints.actuator_ids] = clipped_target
+        self.target = clipped_target
         servo = self._servo
         if servo is not None:
             servo.begin_period(clipped_target[self._servo_index])
