@@ -13,6 +13,7 @@ import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.envs.drive import InterpolatedServo
 from beavr_sim.robots import make_embodiment
 from beavr_sim.robots.parts import XARM7_SERVO
+from beavr_sim.twin.guard import GuardConfig
 
 _TWO_JOINTS = """
 <mujoco>
@@ -112,7 +113,11 @@ def test_the_xarm_arms_are_servo_joints_and_the_hands_are_not():
     index, v_max, a_max = emb.servo_joints()
     names = [emb.joint_names[i] for i in index]
     assert len(names) == 14 and all("joint" in n and "leap" not in n for n in names)
-    assert np.all(v_max == XARM7_SERVO.max_velocity) and np.all(a_max == 20.0)
+    assert np.all(v_max == XARM7_SERVO.max_velocity) and np.all(a_max == 150.0)
+    # The reference can follow whatever the guard accepts (the same caps).
+    guard = GuardConfig()
+    assert XARM7_SERVO.max_velocity == guard.arm_max_velocity
+    assert XARM7_SERVO.max_acceleration == guard.arm_max_acceleration
     assert len(make_embodiment("rx1").servo_joints()[0]) == 0  # RX-1: step servos
 
 

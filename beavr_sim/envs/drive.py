@@ -21,8 +21,9 @@ relative to the line is at most what lets it brake in time over a distance ``e``
 (``v^2 / 2a + v h / 2 <= |e|``) and at most ``|e| / h`` (no overshoot within a physics step ``h``).
 
 What this models and what it does not: the real xArm's servo-mode controller is closed
-firmware; we know the SDK caps speed at pi rad/s and acceleration at 20 rad/s^2 and that the
-controller tracks the latest target. Interpolation over the control period is our choice of a
+firmware; we know the joints' speed (pi rad/s) and that the controller tracks the latest
+target (the SDK's 20 rad/s^2 caps planned moves, not servo-mode streams; the cap used here is
+the guard's, see :data:`beavr_sim.robots.parts.XARM7_SERVO`). Interpolation over the control period is our choice of a
 smooth, consistent reference (the guard checks exactly this straight segment), not a fact about
 the firmware. ``docs/models.md`` (xArm servo model) gives the numbers.
 """

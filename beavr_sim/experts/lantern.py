@@ -52,7 +52,9 @@ class LanternExpert(ScriptedExpert):
         yield Move(poses={effector: bar_at(bar, 0.08)}, fingers={effector: OPEN}, settle=0.2)
         yield Move(poses={effector: bar_at(bar)}, settle=0.3)
         yield Move(fingers={effector: HOOK_DISTAL}, duration=0.4, settle=0.1)
-        yield Move(fingers={effector: HOOK}, duration=0.6, settle=0.3)
+        # Hold still until the hook has closed: the fingers close at the LEAP servos' torque
+        # cap (docs/models.md), and a hand that lifts early slides off the bar.
+        yield Move(fingers={effector: HOOK}, duration=0.6, settle=0.8)
         yield Move(poses={effector: bar_at(bar, 0.10)}, settle=0.5)
 
         # Carry: aim with where the lantern really hangs (it may swing a little in the hook).

@@ -39,9 +39,14 @@ class ArmServo:
             )
 
 
-#: The xArm in servo mode (``set_servo_angle_j``): the SDK caps joint speed at pi rad/s and
-#: acceleration at 20 rad/s^2 (xarm-python-sdk 1.18.4; ``../shared/reference``).
-XARM7_SERVO = ArmServo(max_velocity=float(np.pi), max_acceleration=20.0)
+#: The xArm in servo mode (``set_servo_angle_j``). Speed: pi rad/s (180 deg/s, the xArm7's
+#: joint speed and the SDK's cap). Acceleration: the SDK's 20 rad/s^2 caps *planned* moves
+#: (``mvacc``); servo-mode streams are not planned, so the reference is capped at the guard's
+#: acceleration rule (``GuardConfig.arm_max_acceleration``, 150 rad/s^2) instead: the twin then
+#: follows every command the guard accepted along the segment the guard checked (a tighter cap
+#: made the joints fall behind unevenly and the hand leave that segment), and the links'
+#: accelerations are bounded by the joint torque limits in the physics.
+XARM7_SERVO = ArmServo(max_velocity=float(np.pi), max_acceleration=150.0)
 
 
 @dataclass(frozen=True)
