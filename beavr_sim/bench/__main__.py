@@ -8,7 +8,11 @@ the virtual clock, and joint ramp lags of the xArm twin (``bench/tracking.py``);
 ``python -m beavr_sim.bench latency [--config 1|2|3|4] [--seconds S] [--json] [--no-mirror]
 [--plot DIR]``: end-to-end latency of the ``--multiprocess`` pipeline fed the Quest app's
 protocol (``bench/latency.py``): a table on stderr (not with ``--json``), JSON on the last
-stdout line."""
+stdout line.
+
+``python -m beavr_sim.bench contact [--contact CONE:IMPRATIO,...] [--tasks T,...]
+[--episodes N]``: contact settings compared on the grasping experts (success, slip of the held
+object in the hand, ms per env step; ``bench/contact.py``); JSON."""
 
 from __future__ import annotations
 
@@ -19,7 +23,16 @@ from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
 
-BENCHMARKS = ("sim", "retarget", "teleop", "view", "hardware", "latency", "tracking")
+BENCHMARKS = (
+    "sim",
+    "retarget",
+    "teleop",
+    "view",
+    "hardware",
+    "latency",
+    "tracking",
+    "contact",
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,7 +75,37 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="latency: without mirroring to the emulated hardware",
     )
+    parser.add_argument(
+        "--episodes", type=int, default=16, help="contact: expert episodes per task and setting"
+    )
+    parser.add_argument(
+        "--contact",
+        default=None,
+        metavar="CONE:IMPRATIO,...",
+        help="contact: the settings to compare (default pyramidal:1,elliptic:10,pyramidal:10)",
+    )
+    parser.add_argument(
+        "--tasks",
+        default=None,
+        help="contact: comma-separated tasks (default PickupBox,PickPlace,StackBlocks,Pour)",
+    )
     args = parser.parse_args(argv)
+    if args.benchmark == "contact":
+        from beavr_sim.bench import contact
+
+        try:
+            settings = contact.parse_settings(args.contact) if args.contact else None
+        except ValueError as exc:
+            parser.error(str(exc))
+        tasks = tuple(t.strip() for t in args.tasks.split(",")) if args.tasks else None
+        print("comparing contact settings on the grasping experts...", file=sys.stderr)
+        result = contact.run(
+            settings or contact.DEFAULT_SETTINGS,
+            tasks or contact.DEFAULT_TASKS,
+            episodes=args.episodes,
+        )
+        print(json.dumps(result, indent=2))
+        return 0
     if args.benchmark == "latency":
         return _latency(args)
     if args.benchmark == "tracking":

@@ -21,7 +21,9 @@ from gymnasium import spaces
 from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.envs.drive import InterpolatedServo
 from beavr_sim.envs.scene import (
+    DEFAULT_CONTACT,
     DEFAULT_HAND_VARIANT,
+    ContactSettings,
     build_scene_spec,
     camera_names,
     check_hand_variant,
@@ -51,9 +53,11 @@ class BeavrEnv(gym.Env):
         camera_height: int = 480,
         camera_width: int = 640,
         hand_variant: str = DEFAULT_HAND_VARIANT,
+        contact: ContactSettings | None = None,
     ):
         """``hand_variant``: the hands' hardware variant (LEAP: ``"full"`` or ``"lite"``); it
-        sets their finger joints' torque cap (docs/models.md, "LEAP servos")."""
+        sets their finger joints' torque cap (docs/models.md, "LEAP servos"). ``contact``: the
+        scene's contact options (friction cone, impratio; default :data:`DEFAULT_CONTACT`)."""
         super().__init__()
         if render_mode is not None:
             check_name("render_mode", render_mode, RENDER_MODES)
@@ -81,7 +85,11 @@ class BeavrEnv(gym.Env):
             raise ValueError(f"max_episode_seconds must be positive, got {max_episode_seconds!r}")
 
         spec = build_scene_spec(
-            self.embodiment, self.camera_height, self.camera_width, self.hand_variant
+            self.embodiment,
+            self.camera_height,
+            self.camera_width,
+            self.hand_variant,
+            DEFAULT_CONTACT if contact is None else contact,
         )
         self.task.build(spec)
         self.control_hz = float(control_hz)

@@ -69,6 +69,32 @@ def apply_hand_variant(spec: mujoco.MjSpec, embodiment: Embodiment, variant: str
             spec.joint(name).actfrcrange = [-cap, cap]
 
 
+#: MuJoCo friction cones by name.
+CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
+
+
+@dataclass(frozen=True)
+class ContactSettings:
+    """The scene's global contact options: the friction cone and ``impratio`` (the ratio of
+    frictional to normal constraint impedance; > 1 resists slip more). The default was chosen
+    by measurement (``python -m beavr_sim.bench contact``; docs/models.md, "Contact settings")."""
+
+    cone: str = "pyramidal"
+    impratio: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_name("cone", self.cone, tuple(CONES))
+        if not (np.isfinite(self.impratio) and self.impratio >= 1.0):
+            raise ValueError(f"impratio must be a finite number >= 1, got {self.impratio!r}")
+
+    def apply(self, spec: mujoco.MjSpec) -> None:
+        spec.option.cone = CONES[self.cone]
+        spec.option.impratio = float(self.impratio)
+
+
+DEFAULT_CONTACT = ContactSettings()
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """A fixed camera: position and a point it looks at (world frame), vertical field of view."""
@@ -103,14 +129,20 @@ def _look_at_quat(pos: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def build_scene_spec(
-    embodiment: Embodiment, height: int, width: int, hand_variant: str = DEFAULT_HAND_VARIANT
+    embodiment: Embodiment,
+    height: int,
+    width: int,
+    hand_variant: str = DEFAULT_HAND_VARIANT,
+    contact: ContactSettings = DEFAULT_CONTACT,
 ) -> mujoco.MjSpec:
     """The scene without task objects: everything every task shares. The hands are the
-    ``hand_variant`` of their hardware (their torque cap: :func:`apply_hand_variant`)."""
+    ``hand_variant`` of their hardware (their torque cap: :func:`apply_hand_variant`);
+    ``contact``: the global contact options."""
     check_hand_variant(embodiment, hand_variant)
     spec = mujoco.MjSpec()
     spec.modelname = f"beavr_sim_{embodiment.name}"
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    contact.apply(spec)
     spec.visual.global_.offwidth = max(width, 640)
     spec.visual.global_.offheight = max(height, 480)
     spec.visual.quality.shadowsize = 2048
