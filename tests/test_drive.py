@@ -149,3 +149,24 @@ def test_the_twin_arm_follows_a_2_rad_s_ramp_within_20_mrad():
         assert action[0] - env.agent_pos[0] > 0.1
     finally:
         env.close()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_period_controls_equal_substeps(seed):
+    """The per-period fast path (scalar, closed form where feasible) is :meth:`substep`
+    repeated: the same controls and the same state after the period."""
+    rng = np.random.default_rng(seed)
+    fast, slow = _servo(), _servo()
+    for servo in (fast, slow):
+        servo.reset(np.zeros(2))
+    for _ in range(6):
+        # Smooth steps (closed form) and jumps (caps bind), mixed per joint.
+        target = fast.target + rng.choice([1e-3, 0.3], size=2) * rng.normal(size=2)
+        fast.begin_period(target)
+        slow.begin_period(target)
+        controls = fast.period_controls()
+        expected = np.array([slow.substep() for _ in range(slow.n_substeps)])
+        np.testing.assert_allclose(controls, expected, atol=1e-9)
+        np.testing.assert_allclose(fast.reference, slow.reference, atol=1e-9)
+        np.testing.assert_allclose(fast.velocity, slow.velocity, atol=1e-9)
