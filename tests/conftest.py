@@ -63,3 +63,19 @@ def pickup_box_with_forced_hold():
     yield make
     for loop in loops:
         loop.twin.env.close()
+
+
+@pytest.fixture
+def quest_push():
+    """``connect(context, transport, stream="quest_right") -> socket``: a PUSH socket connected
+    to a Quest stream of the detector, as the headset app sends (linger 0). The test closes it
+    before terminating its context."""
+    import zmq
+
+    def connect(context, transport, stream: str = "quest_right"):
+        push = context.socket(zmq.PUSH)
+        push.setsockopt(zmq.LINGER, 0)
+        push.connect(transport.endpoint(stream, bind=False))
+        return push
+
+    return connect

@@ -265,7 +265,7 @@ def _quest_stream(first: int = 60, n: int = 150, gap_at: int = 60, gap: int = 6)
     return out
 
 
-def test_an_untracked_fingertip_from_the_quest_holds_the_finger_in_process():
+def test_an_untracked_fingertip_from_the_quest_holds_the_finger_in_process(quest_push):
     """The right index tip sent as 0,0,0 for six frames (the real parser flags it untracked):
     the session goes on, the index finger holds, then follows the hand again."""
     transport = TransportConfig(ports=PortConfig.free())
@@ -279,9 +279,7 @@ def test_an_untracked_fingertip_from_the_quest_holds_the_finger_in_process():
         transport=transport,
     )
     loop = build_loop(options, context)
-    push = context.socket(zmq.PUSH)
-    push.setsockopt(zmq.LINGER, 0)
-    push.connect(transport.endpoint("quest_right", bind=False))
+    push = quest_push(context, transport)
     ticks = []
     try:
         for i, payload in enumerate(_quest_stream()):
@@ -324,7 +322,7 @@ def _multiprocess(source: str, **kwargs):
     return MultiprocessSession(options)
 
 
-def test_an_untracked_fingertip_from_the_quest_in_multiprocess():
+def test_an_untracked_fingertip_from_the_quest_in_multiprocess(quest_push):
     from beavr_sim.wire.messages import JointCommandMsg
     from beavr_sim.wire.transport import Subscriber
 
@@ -332,9 +330,7 @@ def test_an_untracked_fingertip_from_the_quest_in_multiprocess():
     transport = session.transport
     session.start()
     context = zmq.Context()
-    push = context.socket(zmq.PUSH)
-    push.setsockopt(zmq.LINGER, 0)
-    push.connect(transport.endpoint("quest_right", bind=False))
+    push = quest_push(context, transport)
     commands = Subscriber(
         context,
         transport.endpoint("commands", bind=False),
@@ -374,7 +370,7 @@ def test_an_untracked_fingertip_from_the_quest_in_multiprocess():
 
 
 # ------------------------------------------------------------------ item 7: reset race
-def test_a_reset_in_multiprocess_rehomes_the_operator_to_the_new_pose():
+def test_a_reset_in_multiprocess_rehomes_the_operator_to_the_new_pose(quest_push):
     """A headset hand moves the arm away from home, then stays still; after a reset the
     operator continues from the reset pose (the arm stays there), not from a robot state
     published before the reset (the arm would be driven back where it was)."""
@@ -384,9 +380,7 @@ def test_a_reset_in_multiprocess_rehomes_the_operator_to_the_new_pose():
     transport = session.transport
     session.start()
     context = zmq.Context()
-    push = context.socket(zmq.PUSH)
-    push.setsockopt(zmq.LINGER, 0)
-    push.connect(transport.endpoint("quest_right", bind=False))
+    push = quest_push(context, transport)
     frames = _trace_frames()[60:200]
     still = format_keypoints(frames[-1]).encode()
     arm = slice(0, 7)

@@ -118,7 +118,7 @@ def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
     assert "drives xarm7_leap_right" in capsys.readouterr().err
 
 
-def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
+def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted(quest_push):
     """The Quest source end to end: a PUSH socket per stream like the app, real keypoint
     strings (from a bundled trace) and malformed ones, in real time."""
     from beavr_sim.headset.quest_protocol import format_keypoints
@@ -134,9 +134,7 @@ def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted():
         transport=transport,
     )
     loop = build_loop(options, context)
-    push = context.socket(zmq.PUSH)
-    push.setsockopt(zmq.LINGER, 0)
-    push.connect(transport.endpoint("quest_right", bind=False))
+    push = quest_push(context, transport)
     frames = [f for _, k, f in TraceReader(bundled_trace("PickupBox")).events() if k == "hand"]
     q0 = loop.twin.env.agent_pos.copy()
     bad = [
