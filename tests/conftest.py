@@ -47,8 +47,8 @@ def pickup_box_with_forced_hold():
         check = guard.check
         refusals: list[str] = []
 
-        def forced(action, qpos_now, previous=None):
-            verdict = check(action, qpos_now, previous)
+        def forced(action, qpos_now, previous=None, reference=None):
+            verdict = check(action, qpos_now, previous, reference)
             elapsed = twin.env.elapsed_seconds
             if previous is not None and t0 <= elapsed < t1:
                 reasons = {**verdict.reasons, "right": "forced: test hold"}

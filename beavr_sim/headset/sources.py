@@ -1,7 +1,8 @@
 """Detector sources: where hand frames come from (the headset, a recorded trace, memory).
 
-A source is polled once per control tick with the current time and returns the frames that
-arrived since the last poll, oldest first. Sources never raise on bad input: frames the
+A source is polled with the current time and returns the frames that arrived since the last
+poll, oldest first: once per control tick on the virtual clock, or as each frame arrives
+(:meth:`HandSource.wait`) in the event-driven real-time runners. Sources never raise on bad input: frames the
 headset sends malformed are rejected inside the source and counted by its validator.
 
 - :class:`FrameListSource`: frames in memory, released when the clock reaches their time.
@@ -35,6 +36,18 @@ class HandSource(ABC):
     @abstractmethod
     def poll(self, now: float) -> list[HandFrame]:
         """Frames received up to time ``now`` (the loop's clock), oldest first."""
+
+    def wait(self, timeout_s: float, clock=time.monotonic) -> list[HandFrame]:
+        """Real time: the frames as soon as any have arrived, waiting at most ``timeout_s``
+        (the event-driven runners process each frame when it arrives, not at a tick). This
+        default polls every millisecond; sources that can block on arrival do."""
+        deadline = clock() + max(0.0, timeout_s)
+        while True:
+            frames = self.poll(clock())
+            remaining = deadline - clock()
+            if frames or remaining <= 0:
+                return frames
+            time.sleep(min(remaining, 0.001))
 
     @property
     def finished(self) -> bool:
@@ -75,6 +88,19 @@ class FrameListSource(HandSource):
             out.append(replace(frame, t_source=t, t_receive=now if self.real_time else t))
             self._next += 1
         return out
+
+    def wait(self, timeout_s: float, clock=time.monotonic) -> list[HandFrame]:
+        """Real time: sleep until the next frame is due (at most ``timeout_s``), then poll.
+        (On the virtual clock, or before the first poll fixed the offset: a poll.)"""
+        now = clock()
+        if not self.real_time or self._offset is None:
+            return self.poll(now)
+        if self.finished:
+            time.sleep(max(0.0, timeout_s))
+            return []
+        due = self.frames[self._next].t_source + self._offset
+        time.sleep(max(0.0, min(due, now + max(0.0, timeout_s)) - now))
+        return self.poll(clock())
 
     def rewind(self) -> None:
         """Deliver the frames again from the first (a trace replayed from its start)."""
@@ -118,14 +144,18 @@ class QuestSource(HandSource):
 
     real_time = True
 
-    def __init__(self, context, config, validator=None):
+    def __init__(self, context, config, validator=None, latest_only: bool = True):
         self.validates = validator is not None
         from beavr_sim.headset.quest_io import QuestReceiver
 
-        self.receiver = QuestReceiver(context, config, validator=validator)
+        self.receiver = QuestReceiver(context, config, validator=validator, latest_only=latest_only)
 
     def poll(self, now: float) -> list[HandFrame]:
         return self.receiver.poll(0.0)
+
+    def wait(self, timeout_s: float, clock=time.monotonic) -> list[HandFrame]:
+        """Blocks on the app's sockets: a frame is parsed the moment it arrives."""
+        return self.receiver.poll(timeout_s)
 
     def close(self) -> None:
         self.receiver.close()

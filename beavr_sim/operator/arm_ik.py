@@ -370,8 +370,9 @@ class ArmIK:
         T[:3, 3] = data.xpos[self._hand_body]
         return T
 
-    def step(self, T_world_target: np.ndarray) -> np.ndarray:
-        """One control period towards ``T_world_target``; returns the arm joint positions.
+    def step(self, T_world_target: np.ndarray, dt: float | None = None) -> np.ndarray:
+        """One control period (or ``dt`` s: a command per hand frame) towards
+        ``T_world_target``; returns the arm joint positions.
 
         An iteration whose QP has no solution leaves the joints as they are; :attr:`infeasible`
         says whether every iteration of this step failed (the arm did not move), and
@@ -380,8 +381,9 @@ class ArmIK:
         if T_world_target.shape != (4, 4) or not np.isfinite(T_world_target).all():
             raise ValueError(f"step needs a finite 4x4 pose, got shape {T_world_target.shape}")
         failed = 0
+        period = self.dt if dt is None else float(dt)
         for _ in range(self.config.iterations):
-            if not self._step(T_world_target, self.dt / self.config.iterations):
+            if not self._step(T_world_target, period / self.config.iterations):
                 failed += 1
                 self.last_exitflag = getattr(self._qp, "last_exitflag", None)
         self.infeasible = failed == self.config.iterations

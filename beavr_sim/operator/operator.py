@@ -453,17 +453,19 @@ class EffectorOperator:
         return True
 
     # ----------------------------------------------------------------- per tick
-    def command(self, now: float, paused: bool) -> JointCommand:
-        """Joint targets for this control tick (time ``now``, the receive clock).
+    def command(self, now: float, paused: bool, dt: float | None = None) -> JointCommand:
+        """Joint targets for this control tick (time ``now``, the receive clock); ``dt``: the
+        time this command stands for (default the control period; the event-driven operator
+        sends one per hand frame, and passes the time since the previous one).
 
         Never raises: an exception is an ``"error"`` hold that repeats the last command's
         positions (see the module docstring for every reason)."""
         try:
-            return self._command(now, paused)
+            return self._command(now, paused, dt)
         except Exception as exc:
             return self._hold_on_error(exc)
 
-    def _command(self, now: float, paused: bool) -> JointCommand:
+    def _command(self, now: float, paused: bool, dt: float | None = None) -> JointCommand:
         reason = ""
         if paused:
             reason = "paused"
@@ -497,7 +499,7 @@ class EffectorOperator:
                 fingers_held = self.retargeter.infeasible
                 self._q_hand = q_hand
                 self.ik.set_fingers(q_hand)
-            q_arm = self.ik.step(target)
+            q_arm = self.ik.step(target, dt)
             if self.ik.infeasible:
                 reason = "ik_infeasible"  # the arm did not move: its previous joints
         positions = self._clip(np.concatenate([q_arm, self._q_hand]))
@@ -686,9 +688,13 @@ class Operator:
         """Each effector's current targets in the world frame (views, logs)."""
         return {name: op.targets() for name, op in self.effectors.items()}
 
-    def command(self, now: float) -> dict[str, JointCommand]:
-        """One control tick: a command per effector. Never raises (see the module
-        docstring for the holds that take an exception's place)."""
+    def command(
+        self, now: float, side: str | None = None, dt: float | None = None
+    ) -> dict[str, JointCommand]:
+        """One control tick: a command per effector (of ``side`` only, when given: the
+        event-driven operator commands a side's effectors when its hand frame arrives; ``dt``
+        as in :meth:`EffectorOperator.command`). Never raises (see the module docstring for
+        the holds that take an exception's place)."""
         paused = self.paused
         if self._was_paused and not paused:
             for op in self.effectors.values():
@@ -697,4 +703,8 @@ class Operator:
                 except Exception as exc:
                     op._fail("release", exc)
         self._was_paused = paused
-        return {name: op.command(now, paused) for name, op in self.effectors.items()}
+        return {
+            name: op.command(now, paused, dt)
+            for name, op in self.effectors.items()
+            if side is None or op.side == side
+        }

@@ -45,16 +45,28 @@ def connect_mirror(options, env, closers: list):
 
 
 class MirrorListener:
-    """Hands each tick's guarded action to the hardware mirror (first listener of the loop);
-    while the emergency stop is latched the operator is paused (nothing jumps at release)."""
+    """Hands the twin's guarded action to the hardware mirror: at each command the twin
+    applies (:meth:`on_command`, a command hook of the real-time loop: a command per hand
+    frame), and once per tick when no command came in it (first listener of the loop; on the
+    virtual or paced clock, one command per tick). While the emergency stop is latched the
+    operator is paused (nothing jumps at release)."""
 
     def __init__(self, mirror, loop):
         self.mirror, self.loop = mirror, loop
         self._estopped = False
+        self._positions = loop.twin.action.copy()  # the twin's joints after its last step
+        self._submitted = False  # since the last tick
+
+    def on_command(self, outcome) -> None:
+        self.mirror.submit(self.loop.twin.action.copy(), self._positions, outcome.blocked)
+        self._submitted = True
 
     def __call__(self, tick: Tick) -> None:
         state = tick.state
-        self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+        self._positions = state.positions
+        if not self._submitted:
+            self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+        self._submitted = False
         if self.loop.operator.take_gestures("estop"):
             self.mirror.estop("headset gesture: both hands pinch")
         if self.mirror.estopped != self._estopped:

@@ -41,6 +41,10 @@ from beavr_sim.wire.records import JointCommand, Tick, TickListener
 
 log = logging.getLogger(__name__)
 
+#: The shortest time (s) one command stands for in real time (a command per hand frame): two
+#: frames bunched by scheduling move the arm's IK target no faster than its speed cap allows.
+MIN_COMMAND_DT_S = 0.002
+
 
 class StopTeleop(Exception):
     """Raise it from a tick listener (or ``progress``) to end the run on purpose; any other
@@ -267,6 +271,9 @@ class TeleopSummary:
     #: (in --multiprocess: the operator's and the twin's loops together).
     overruns: int = 0
     missed_ticks: int = 0
+    #: Valid frames replaced by a newer one of the same hand before any command used them
+    #: (counted in ``frames_received`` too).
+    frames_superseded: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -320,6 +327,13 @@ class TeleopLoop:
         #: How many times the loop was reset (a reset during :meth:`run` starts the wait for
         #: the end of the source over).
         self.resets = 0
+        #: Valid frames replaced by a newer one of the same hand before a command used them.
+        self.frames_superseded = 0
+        #: Called with each :class:`~beavr_sim.twin.twin.CommandOutcome` the moment the twin
+        #: applied it (real time: a command per hand frame), e.g. the hardware mirror.
+        self.command_hooks: list[Callable] = []
+        self._sides = sorted({op.side for op in operator.effectors.values()})
+        self._last_command = dict.fromkeys(self._sides, -math.inf)
 
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> None:
@@ -345,7 +359,10 @@ class TeleopLoop:
     # ------------------------------------------------------------------ one tick
     def tick(self) -> Tick:
         """One tick; paced, first waits for its wall deadline (at once when late: see
-        :class:`TickSchedule`)."""
+        :class:`TickSchedule`). In real time the tick is event-driven
+        (:meth:`_event_tick`)."""
+        if self.real_time:
+            return self._event_tick()
         if self.paced:
             self.schedule.wait()
         now = self.now()
@@ -380,6 +397,88 @@ class TeleopLoop:
                     self.latencies_ms.append((self.twin.applied_perf - poll_wall) * 1e3)
         self.ticks += 1
         tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
+        self._notify(tick)
+        return tick
+
+    def _event_tick(self) -> Tick:
+        """Real time: until the physics' next deadline, each hand frame is processed when it
+        arrives (validated, observed, its side's effectors commanded, the command guarded and
+        written to the twin's actuators, the command hooks called); then the physics steps
+        one control period. A side without a frame in the period is commanded at the step
+        (its holds: waiting, tracking lost, paused)."""
+        used: list = []
+        commands: dict[str, JointCommand] = {}
+        commanded: set[str] = set()
+        deadline = self.schedule.next
+        while deadline is not None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            self._take_frames(self.source.wait(remaining), used, commands, commanded)
+        self._take_frames(self.source.poll(self.now()), used, commands, commanded)
+        self.schedule.take(time.monotonic())
+        now = self.now()
+        for side in self._sides:
+            if side not in commanded:
+                self._command_side(side, now, True, commands)
+        state = self.twin.step()
+        self.ticks += 1
+        tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
+        self._notify(tick)
+        return tick
+
+    def _take_frames(self, frames, used: list, commands: dict, commanded: set) -> None:
+        by_side: dict[str, list] = {}
+        ok = True
+        for frame in frames:
+            self.frames_received += 1
+            if self.source.validates or self.validator.check(frame) is None:
+                ok = self._operator_call("observe", self.operator.observe, frame)[0] and ok
+                used.append(frame)
+                by_side.setdefault(getattr(frame, "side", None), []).append(frame)
+        now = self.now()
+        for side, frames_of_side in by_side.items():
+            if side not in self._last_command:
+                continue  # a hand this embodiment does not use (the operator counted it)
+            self.frames_superseded += len(frames_of_side) - 1
+            commanded.add(side)
+            self._command_side(side, now, ok, commands)
+
+    def _command_side(self, side: str, now: float, ok: bool, commands: dict) -> None:
+        """Command ``side``'s effectors now and apply the commands to the twin at once."""
+        dt = min(max(now - self._last_command[side], MIN_COMMAND_DT_S), self.dt)
+        self._last_command[side] = now
+        if ok:
+            ok, out = self._operator_call("command", self.operator.command, now, side, dt)
+        if not ok:
+            out = {
+                n: c
+                for n, c in self._hold_all("error").items()
+                if self.operator.effectors[n].side == side
+            }
+        for name, cmd in out.items():
+            if cmd.hold:
+                count_hold(self.holds, name, cmd.reason)
+        outcome = self.twin.command(out)
+        for name in outcome.blocked:  # continue from where the robot was held
+            count_hold(self.holds, name, "guard")
+            self._operator_call(
+                "resync", self.operator.resync, name, self.twin.action[self.twin.slices[name]]
+            )
+        for name in outcome.accepted:
+            t_receive = out[name].t_receive
+            if math.isfinite(t_receive):
+                self.latencies_ms.append((self.twin.applied_monotonic - t_receive) * 1e3)
+        commands.update(out)
+        for hook in self.command_hooks:
+            try:
+                hook(outcome)
+            except StopTeleop:
+                raise
+            except Exception as exc:
+                self.listener_error(listener_name(hook), exc)
+
+    def _notify(self, tick: Tick) -> None:
         for listener in self.listeners:
             try:
                 listener(tick)
@@ -387,7 +486,6 @@ class TeleopLoop:
                 raise
             except Exception as exc:
                 self.listener_error(listener_name(listener), exc)
-        return tick
 
     def _operator_call(self, what: str, fn: Callable, *args) -> tuple[bool, object]:
         return operator_call(self.operator_errors, what, fn, *args)
@@ -486,4 +584,6 @@ class TeleopLoop:
             listener_errors=listener_errors,
             overruns=self.schedule.overruns,
             missed_ticks=self.schedule.missed_ticks,
+            frames_superseded=self.frames_superseded
+            + sum(getattr(getattr(self.source, "receiver", None), "superseded", {}).values()),
         )

@@ -8,6 +8,16 @@ The same components as the single-process loop (``pipeline.py``), connected by t
     twin      --robot_state (RobotStateMsg, every tick: its heartbeat)-->  operator, supervisor
     supervisor --session (SessionMsg)-->  operator, twin
 
+The pipeline is event-driven: nothing waits for a fixed clock on the way from a hand frame to
+the actuators. The detector blocks on the headset's sockets and passes on each valid frame as
+it arrives; the operator blocks on the hand streams and, for each frame, observes it and
+commands that hand's effectors at once (frames queued behind a newer one are observed and
+counted as superseded; a side without frames for a control period is commanded on the clock:
+its holds); the twin guards each command when it arrives, writes it to its actuators' targets
+and hands it to the hardware mirror at once, while its physics steps one control period at a
+time on its own real-time clock (the mirror also gets the targets once per period when no
+command came: its heartbeat).
+
 Each process creates its own ZMQ context, owns its sockets in its main thread, and runs on
 the real clock. Latest-only streams are conflated. Publishers wait for their subscribers
 (readiness handshake) before the session starts. Killing any one process leaves the others
@@ -18,16 +28,17 @@ report their final counters to the supervisor as JSON over a pipe.
 
 Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
 of an older one; the operator re-homes from the first state of a newer epoch only, and after
-a reset request holds until that state comes (:class:`OperatorRehome`). The operator and the
-twin tick on a :class:`~beavr_sim.teleop.pipeline.TickSchedule` (after a stall: no catch-up
-burst, the skipped periods counted); an operator exception holds every effector for a tick
-(reason ``"error"``), it never ends the process.
+a reset request holds until that state comes (:class:`OperatorRehome`). The twin's physics
+ticks on a :class:`~beavr_sim.teleop.pipeline.TickSchedule` (after a stall: no catch-up
+burst, the skipped periods counted); an operator exception holds that side's effectors for a
+command (reason ``"error"``), it never ends the process.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import multiprocessing as mp
 import sys
 import time
@@ -36,6 +47,7 @@ from dataclasses import asdict
 import numpy as np
 
 from beavr_sim.teleop.pipeline import (
+    MIN_COMMAND_DT_S,
     TeleopSummary,
     TickSchedule,
     _percentiles,
@@ -50,6 +62,8 @@ PROCESS_NAMES = ("detector", "operator", "twin")
 #: Seconds without a message after which a stream's producer counts as dead.
 LIVENESS_TIMEOUT_S = 0.5
 HANDSHAKE_TIMEOUT_S = 10.0
+#: The detector blocks on its sources at most this long (s) before it looks for a stop.
+DETECTOR_WAKE_S = 0.02
 
 
 def _options_dict(options) -> dict:
@@ -84,7 +98,8 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
     if options["source"] == "trace":
         source = TraceSource(options["trace"], real_time=True)
     else:
-        source = QuestSource(context, transport, validator)
+        # Every frame is passed on as it arrives (the operator counts what it supersedes).
+        source = QuestSource(context, transport, validator, latest_only=False)
     sides = options["sides"]
     for side in sides:
         pubs[side].wait_for_subscribers(1, HANDSHAKE_TIMEOUT_S)
@@ -102,12 +117,13 @@ def detector_main(options: dict, transport: TransportConfig, conn) -> None:
                 started = command == "resume"
                 time.sleep(0.002)
                 continue
-            for frame in source.poll(time.monotonic()):
+            # Blocks until a frame arrives (the Quest sockets) or is due (a trace); wakes at
+            # least every DETECTOR_WAKE_S for the session's stop.
+            for frame in source.wait(DETECTOR_WAKE_S):
                 received += 1
                 valid = source.validates or validator.check(frame) is None
                 if valid and frame.side in pubs:
                     pubs[frame.side].send(frame.side.encode(), HandFrameMsg.from_frame(frame))
-            time.sleep(0.002)
     finally:
         receiver = getattr(source, "receiver", None)
         conn.send_bytes(
@@ -181,14 +197,29 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     compute_ms: list[float] = []
     holds: dict[str, dict[str, int]] = {}
     errors: dict[str, int] = {}
-    schedule = TickSchedule(dt)
+    sides = list(hands)
+    side_effectors = {
+        side: [e.name for e in embodiment.effectors if e.side == side] for side in sides
+    }
+    #: Per side: frames observed but not commanded on their own (a newer one was queued).
+    superseded = dict.fromkeys(sides, 0)
+    frames_commanded = dict.fromkeys(sides, 0)
+    clock_commands = dict.fromkeys(sides, 0)
+    # Each side's effectors are commanded when its hand frame arrives; a side without a
+    # frame for a control period is commanded on the clock (holds: tracking lost, paused,
+    # waiting), so the twin and the hardware always hear from the operator.
+    last_command = dict.fromkeys(sides, time.monotonic())
+    poller = zmq.Poller()
+    for sub in (*hands.values(), state, session):
+        poller.register(sub.socket, zmq.POLLIN)
+    overruns = 0
 
     def guarded(what: str, fn, *args) -> tuple[bool, object]:
         return operator_call(errors, what, fn, *args)
 
-    def send_hold(now: float, reason: str) -> None:
-        """Every effector holds (the twin keeps its last targets)."""
-        for name in slices:
+    def send_hold(now: float, reason: str, names) -> None:
+        """These effectors hold (the twin keeps their last targets)."""
+        for name in names:
             count_hold(holds, name, reason)
             commands.send(
                 name.encode(),
@@ -203,9 +234,44 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                 ),
             )
 
+    def command_side(side: str, ok: bool) -> None:
+        """Command ``side``'s effectors now, from what the operator has observed."""
+        now = time.monotonic()
+        dt_side = min(max(now - last_command[side], MIN_COMMAND_DT_S), dt)
+        last_command[side] = now
+        names = side_effectors[side]
+        if rehome.waiting:
+            # Hold until the twin's state after the reset comes: re-homing to a state from
+            # before it would drive the robot back where it was.
+            rehome.warn_if_late(now)
+            send_hold(now, "resetting", names)
+            return
+        if ok:
+            ok, out = guarded("command", operator.command, now, side, dt_side)
+        if not ok:
+            send_hold(now, "error", names)
+            return
+        for name, cmd in out.items():
+            if cmd.hold:
+                count_hold(holds, name, cmd.reason)
+            t_source = cmd.t_source if np.isfinite(cmd.t_source) else 0.0
+            commands.send(
+                name.encode(),
+                JointCommandMsg(
+                    effector=name,
+                    t_source=t_source,
+                    t_command=now,
+                    positions=cmd.positions.tolist(),
+                    hold=cmd.hold,
+                    reason=cmd.reason,
+                    epoch=rehome.epoch,
+                ),
+            )
+
     try:
         while True:
-            schedule.wait()
+            due = min(last_command.values()) + dt
+            poller.poll(max(0, math.ceil((due - time.monotonic()) * 1000)))
             msg = session.recv(0.0)
             if msg is not None:
                 if msg.command == "stop":
@@ -214,44 +280,31 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                     operator.set_paused(msg.command == "pause")
                 if msg.command == "reset":
                     rehome.expect(msg.epoch)
-            latest = state.recv(0.0)
+            latest = state.recv_latest(0.0)
             if latest is not None:
                 guarded("reset", rehome.on_state, latest)
-            t0 = time.perf_counter()
-            ok = True
-            for sub in hands.values():
+            for side, sub in hands.items():
+                frames = []
                 while (frame_msg := sub.recv(0.0)) is not None:
-                    if not rehome.waiting:  # frames from before the reset are dropped
+                    frames.append(frame_msg)
+                if not frames:
+                    continue
+                t0 = time.perf_counter()
+                ok = True
+                if not rehome.waiting:  # frames from before the reset are dropped
+                    for frame_msg in frames:
                         ok = guarded("observe", operator.observe, frame_msg.to_frame())[0] and ok
+                    superseded[side] += len(frames) - 1
+                    frames_commanded[side] += 1
+                command_side(side, ok)
+                compute_ms.append((time.perf_counter() - t0) * 1e3)
             now = time.monotonic()
-            if rehome.waiting:
-                # Hold until the twin's state after the reset comes: re-homing to a state from
-                # before it would drive the robot back where it was.
-                rehome.warn_if_late(now)
-                send_hold(now, "resetting")
-                continue
-            if ok:
-                ok, out = guarded("command", operator.command, now)
-            if not ok:
-                send_hold(now, "error")
-                continue
-            for name, cmd in out.items():
-                if cmd.hold:
-                    count_hold(holds, name, cmd.reason)
-                t_source = cmd.t_source if np.isfinite(cmd.t_source) else 0.0
-                commands.send(
-                    name.encode(),
-                    JointCommandMsg(
-                        effector=name,
-                        t_source=t_source,
-                        t_command=now,
-                        positions=cmd.positions.tolist(),
-                        hold=cmd.hold,
-                        reason=cmd.reason,
-                        epoch=rehome.epoch,
-                    ),
-                )
-            compute_ms.append((time.perf_counter() - t0) * 1e3)
+            for side in sides:
+                if now - last_command[side] >= dt:
+                    if now - last_command[side] > 1.1 * dt:
+                        overruns += 1
+                    clock_commands[side] += 1
+                    command_side(side, True)
     finally:
         conn.send_bytes(
             json.dumps(
@@ -261,8 +314,11 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                     "holds": holds,
                     "errors": errors,
                     "reset_epoch": rehome.epoch,
-                    "overruns": schedule.overruns,
-                    "missed_ticks": schedule.missed_ticks,
+                    "overruns": overruns,
+                    "missed_ticks": 0,
+                    "frames_superseded": superseded,
+                    "frames_commanded": frames_commanded,
+                    "clock_commands": clock_commands,
                 }
             ).encode()
         )
@@ -450,7 +506,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
 
         browser_estop = BrowserEstop(view, mirror)
     poller = zmq.Poller()
-    for sub in subs.values():
+    for sub in (*subs.values(), session):
         poller.register(sub.socket, zmq.POLLIN)
     conn.send_bytes(b"ready")
     latencies: list[float] = []
@@ -458,53 +514,46 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     success = False
     details: dict = {}
     dt = 1.0 / env.control_hz
-    # ``next``: the latest moment of the next step (the operator's commands usually come
-    # first); a step after it (a stall) moves the grid on from that step: no catch-up steps.
+    # The physics steps on its own real-time clock, one control period at a time; commands
+    # are guarded and written to the actuators (and handed to the mirror) when they arrive,
+    # in between. A stall moves the grid on (no catch-up steps).
     schedule = TickSchedule(dt)
     schedule.restart(time.monotonic() + dt)
     last_t_source: dict[str, float] = {}
     # Optional timing log for ``python -m beavr_sim.bench latency`` (off unless the option
-    # names a file): every command applied, (t_apply, t_source) per effector, and every tick
-    # handed to the hardware mirror, (t_submit, {effector: t_source in effect}).
+    # names a file): every command applied, (t_apply, t_source) per effector, and every
+    # action handed to the hardware mirror, (t_submit, {effector: t_source in effect}).
     latency_log = options.get("latency_log")
     applied_log: dict[str, list] = {e.name: [] for e in env.embodiment.effectors}
     submit_log: list = []
     in_effect: dict[str, float] = {}
     epoch = 0  # resets done: stamped on every state; commands of an older epoch are dropped
     stale: dict[str, int] = {}
+    positions = twin.action.copy()  # the twin's measured joints after its last step
+    submitted = False  # an action went to the mirror since the last step
     try:
         while True:
+            remaining = schedule.next - time.monotonic()
+            if remaining > 0:
+                poller.poll(math.ceil(remaining * 1000))
             msg = session.recv(0.0)
             if msg is not None and msg.command == "stop":
                 break
             reset = msg is not None and msg.command == "reset"
             if reset or (view is not None and view.take_reset()):  # supervisor or browser
-                twin.reset(options["seed"])
+                positions = twin.reset(options["seed"])
                 epoch = max(epoch + 1, msg.epoch if reset else 0)
                 fixtures = fixtures_to_wire(env)
             if msg is not None and mirror is not None and msg.command == "estop":
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
                 mirror.release()
-            # Step as soon as every effector's next command is in (the operator paces the
-            # twin: least latency), or at the control period's end without it (the operator
-            # is slow or dead: the robot holds its last targets).
-            commands: dict = {}
-            deadline = schedule.next
-            while len(commands) < len(subs):
-                for name, sub in subs.items():
-                    cmd = sub.recv_latest(0.0)
-                    if cmd is not None:
-                        commands[name] = cmd
-                remaining = deadline - time.monotonic()
-                if len(commands) == len(subs) or remaining <= 0:
-                    break
-                poller_events = dict(poller.poll(max(1, int(remaining * 1000))))
-                if not poller_events:
-                    break
-            schedule.take(time.monotonic())
+            # Every effector's newest command, guarded and applied at once.
             applied = {}
-            for name, cmd in commands.items():
+            for name, sub in subs.items():
+                cmd = sub.recv_latest(0.0)
+                if cmd is None:
+                    continue
                 if cmd.epoch < epoch:  # computed from the pose before a reset: hold
                     stale[name] = stale.get(name, 0) + 1
                     continue
@@ -516,20 +565,34 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     t_source=cmd.t_source,
                     t_receive=cmd.t_source,
                 )
-                if cmd.t_source > 0 and cmd.t_source != last_t_source.get(name):
-                    latencies.append((time.monotonic() - cmd.t_source) * 1e3)
-                    last_t_source[name] = cmd.t_source
-            commands = applied
-            if latency_log:
-                t_apply = time.monotonic()
-                for name, cmd in applied.items():
-                    applied_log[name].append((t_apply, cmd.t_source))
-                    in_effect[name] = cmd.t_source
-            st = twin.apply(commands)
-            if mirror is not None and latency_log:
-                submit_log.append((time.monotonic(), dict(in_effect)))
-            if mirror is not None:  # the same guarded action, the same tick
-                mirror.submit(st.action, st.positions, st.guard_blocked_effectors)
+            if applied:
+                outcome = twin.command(applied)
+                t_apply = twin.applied_monotonic
+                for name in outcome.accepted:
+                    t_source = applied[name].t_source
+                    if t_source > 0 and t_source != last_t_source.get(name):
+                        latencies.append((t_apply - t_source) * 1e3)
+                        last_t_source[name] = t_source
+                    if latency_log:
+                        applied_log[name].append((t_apply, t_source))
+                        in_effect[name] = t_source
+                if mirror is not None:  # the guarded action, the moment it is applied
+                    if latency_log:
+                        submit_log.append((time.monotonic(), dict(in_effect)))
+                    mirror.submit(twin.action.copy(), positions, outcome.blocked)
+                    submitted = True
+            now = time.monotonic()
+            if now < schedule.next:
+                continue
+            schedule.take(now)
+            st = twin.step()
+            positions = st.positions
+            if mirror is not None:
+                if not submitted:  # no command this period: the same targets (heartbeat)
+                    if latency_log:
+                        submit_log.append((time.monotonic(), dict(in_effect)))
+                    mirror.submit(st.action, st.positions, st.guard_blocked_effectors)
+                submitted = False
                 if browser_estop is not None:
                     browser_estop(None)
             success = success or st.success

@@ -263,7 +263,8 @@ def build_loop(options: SessionOptions, context=None):
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
     else:
-        source = QuestSource(context, options.transport, validator)
+        # Every frame reaches the loop (it counts the frames a newer one supersedes).
+        source = QuestSource(context, options.transport, validator, latest_only=False)
     embodiment = embodiment or DEFAULT_EMBODIMENT
     kwargs = {}
     if options.source == "quest":
@@ -612,5 +613,7 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     mirror, q_measured = connect_mirror(options, loop.twin.env, closers)
     loop.reset(loop.seed, robot_qpos=q_measured)
     mirror.start(loop.twin.action)
-    loop.listeners.insert(0, MirrorListener(mirror, loop))
+    listener = MirrorListener(mirror, loop)
+    loop.listeners.insert(0, listener)
+    loop.command_hooks.append(listener.on_command)
     return mirror

@@ -404,19 +404,27 @@ class CollisionGuard:
                 reasons.setdefault(owner, f"contact: {a} - {b} {1e3 * -dist[i]:.1f} mm deep{where}")
 
     def check(
-        self, action: np.ndarray, qpos_now: np.ndarray, previous: np.ndarray | None = None
+        self,
+        action: np.ndarray,
+        qpos_now: np.ndarray,
+        previous: np.ndarray | None = None,
+        reference: np.ndarray | None = None,
     ) -> GuardVerdict:
         """Would ``action`` (joint targets, action order) be unsafe, objects as in ``qpos_now``?
 
-        With ``previous`` (the last accepted action, one control period earlier) the velocity
-        and acceleration rules apply and the geometric rules hold along the path from it.
-        Effectors that break a joint rule are checked geometrically at ``previous`` (they
-        would hold there); without ``previous`` at their (unsafe) targets, clipped to finite.
+        With ``previous`` (the last accepted action) the velocity and acceleration rules apply
+        and the geometric rules hold along the path from it. ``reference``: where the velocity
+        and acceleration rules measure from, one control period before ``action`` takes
+        effect (default ``previous``; the event-driven twin passes the target its physics
+        last stepped to, while ``previous`` is the newest accepted command, the path the
+        hardware travels). Effectors that break a joint rule are checked geometrically at
+        ``previous`` (they would hold there); without ``previous`` at their (unsafe) targets,
+        clipped to finite.
         """
         action = np.asarray(action, dtype=np.float64)
         self.checks += 1
         reasons: dict[str, str] = {}
-        self._joint_rules(action, previous, reasons)
+        self._joint_rules(action, previous if reference is None else reference, reasons)
         target = action
         if reasons:
             target = action.copy()
@@ -456,18 +464,31 @@ class CollisionGuard:
         previous: np.ndarray,
         qpos_now: np.ndarray,
         slices: Mapping[str, slice] | None = None,
+        reference: np.ndarray | None = None,
+        commit: bool = True,
     ) -> tuple[np.ndarray, GuardVerdict]:
         """``action`` with every refused effector's slice set back to ``previous`` (the last
-        accepted action, one control period ago), and the verdict.
+        accepted action), and the verdict; ``reference`` as in :meth:`check`.
+
+        ``commit``: the result takes effect one control period after ``reference`` (it becomes
+        the motion the acceleration rule compares the next command's with; see
+        :meth:`commit`). The event-driven twin checks several commands per period and
+        commits once, when its physics steps.
 
         The held action is not checked again: if the robot is already unsafe (e.g. placed
         there by a reset) holding is still the safest thing.
         """
         slices = self.slices if slices is None else slices
-        verdict = self.check(action, qpos_now, previous)
+        verdict = self.check(action, qpos_now, previous, reference)
         safe = np.array(action, dtype=np.float64, copy=True)
         for name in verdict.blocked:
             safe[slices[name]] = previous[slices[name]]
-        if self.dt is not None:
-            self._velocity = (safe - previous) / self.dt
+        if commit:
+            self.commit(safe, previous if reference is None else reference)
         return safe, verdict
+
+    def commit(self, action: np.ndarray, reference: np.ndarray) -> None:
+        """``action`` took effect one control period after ``reference``: its velocity is
+        what the next command's acceleration is measured against."""
+        if self.dt is not None:
+            self._velocity = (np.asarray(action, dtype=np.float64) - reference) / self.dt

@@ -1,13 +1,16 @@
 """The twin interface: joint commands in, the simulated robot moves, robot state out.
 
-It owns the env. Each control tick it composes the newest command of every effector into
-one action (an effector with no command yet, or whose commands stopped, holds its last
-target: the robot never goes limp and never jumps), limits every joint's step to what its
-speed cap allows in one control period (the last line against a jump, whatever produced it;
-on with the guard off too), lets the safety guard (:mod:`beavr_sim.twin.guard`) refuse what
-is unsafe along that step (that effector holds its last safe target), and steps the env one
-control period. A malformed command (unknown effector, wrong shape) is logged and counted,
-never raised: that effector holds.
+It owns the env. Commands come in (:meth:`TwinInterface.command`, any number per control
+period: one per hand frame in the event-driven runners) and the physics steps one control
+period at a time towards the newest of them (:meth:`TwinInterface.step`); :meth:`apply` is
+both, once per tick. Each effector's newest command goes into the action at once (an effector
+with no command yet, or whose commands stopped, holds its last target: the robot never goes
+limp and never jumps); every joint's target is limited to what its speed cap allows in one
+control period from the last step's target (the last line against a jump, whatever produced
+it; on with the guard off too); the safety guard (:mod:`beavr_sim.twin.guard`) refuses what is
+unsafe along the path from the newest accepted target (that effector keeps it). A malformed
+command (unknown effector, wrong shape) is logged and counted, never raised: that effector
+holds.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,12 +62,18 @@ class TwinInterface:
         #: Commands dropped as malformed (unknown effector or wrong shape), per effector name.
         self.malformed: dict[str, int] = {}
         self.applied_perf = self.applied_monotonic = float("nan")
+        #: The action of the last step (the physics moves from it to :attr:`action`).
+        self._stepped = self.action.copy()
+        self._moved = False  # a command was checked since the last step
+        self._blocked_since_step: tuple[str, ...] = ()
 
     def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> np.ndarray:
         """Reset the env (the robot at ``robot_qpos``, action order, or home); returns the
         measured joint positions (action order)."""
         self.env.reset(seed=seed, options={"robot_qpos": robot_qpos})
         self.action = self.env.agent_pos.astype(np.float64).copy()
+        self._stepped = self.action.copy()
+        self._moved, self._blocked_since_step = False, ()
         if self.guard is not None:
             self.guard.reset()
         return self.action.copy()
@@ -120,32 +130,62 @@ class TwinInterface:
                 )
 
     def apply(self, commands: Mapping[str, JointCommand]) -> TwinState:
-        """Write the commands into the action, limit each joint's step to its speed cap, let
-        the guard refuse what is unsafe along the step, step one control period."""
+        """One control tick: :meth:`command` then :meth:`step` (the virtual-clock replay and
+        the single-process loop at one command per tick)."""
+        self.command(commands)
+        return self.step()
+
+    def command(self, commands: Mapping[str, JointCommand]) -> CommandOutcome:
+        """Write the commands into the action the next :meth:`step` takes (the twin's
+        actuator targets), at once; any number of times per control period.
+
+        Each joint's target is limited to the target of the last step +- one period at its
+        speed cap (the motion the physics makes in that period: the servo model moves the
+        reference along that line); the guard refuses what is unsafe along the path from the
+        newest accepted action (the path mirrored hardware travels), with its speed and
+        acceleration rules measured from the last step's target. A refused effector keeps its
+        newest accepted target."""
         commands = {n: c for n, c in commands.items() if self._well_formed(n, c)}
         previous = self.action.copy()
         for name, cmd in commands.items():
             self.action[self.slices[name]] = cmd.positions
-        self._limit_steps(previous, commands)
+        self._limit_steps(self._stepped, commands)
         blocked: tuple[str, ...] = ()
         if self.guard is not None and commands:
             data = self.env.data
             self.guard.set_fixtures(data.mocap_pos, data.mocap_quat)
             self.action, verdict = self.guard.filter(
-                self.action, previous, self.env.data.qpos, self.slices
+                self.action,
+                previous,
+                self.env.data.qpos,
+                self.slices,
+                reference=self._stepped,
+                commit=False,
             )
             blocked = verdict.blocked
             if blocked:
                 self.last_refusal = verdict
                 for name in blocked:
                     self.guard_blocks[name] = self.guard_blocks.get(name, 0) + 1
-        elif self.guard is not None:
-            self.guard.still()
-        self.commands_applied += sum(
-            1 for name, cmd in commands.items() if not cmd.hold and name not in blocked
+            self._moved = True
+        accepted = tuple(
+            name for name, cmd in commands.items() if not cmd.hold and name not in blocked
         )
+        self.commands_applied += len(accepted)
+        self._blocked_since_step = tuple(sorted({*self._blocked_since_step, *blocked}))
         # The instant the (guarded) action goes to the actuators: where latency ends.
         self.applied_perf, self.applied_monotonic = time.perf_counter(), time.monotonic()
+        return CommandOutcome(accepted=accepted, blocked=blocked)
+
+    def step(self) -> TwinState:
+        """Step the env one control period towards the action (the newest guarded targets)."""
+        if self.guard is not None:
+            if self._moved:
+                self.guard.commit(self.action, self._stepped)
+            else:
+                self.guard.still()
+        blocked, self._blocked_since_step, self._moved = self._blocked_since_step, (), False
+        self._stepped = self.action.copy()
         _, _, terminated, truncated, info = self.env.step(self.action.astype(np.float32))
         data = self.env.data
         return TwinState(
@@ -161,3 +201,12 @@ class TwinInterface:
             guard_blocked=bool(blocked),
             guard_blocked_effectors=blocked,
         )
+
+
+@dataclass(frozen=True)
+class CommandOutcome:
+    """What :meth:`TwinInterface.command` did: effectors whose command now drives the twin,
+    and those the guard refused (they keep their newest accepted targets)."""
+
+    accepted: tuple[str, ...] = ()
+    blocked: tuple[str, ...] = ()
