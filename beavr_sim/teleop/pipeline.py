@@ -329,6 +329,9 @@ class TeleopLoop:
         self.resets = 0
         #: Valid frames replaced by a newer one of the same hand before a command used them.
         self.frames_superseded = 0
+        #: Real time: commands made for a hand frame on its arrival (one per side and frame,
+        #: or per the newest of frames that arrived together).
+        self.frame_commands = 0
         #: Called with each :class:`~beavr_sim.twin.twin.CommandOutcome` the moment the twin
         #: applied it (real time: a command per hand frame), e.g. the hardware mirror.
         self.command_hooks: list[Callable] = []
@@ -441,6 +444,7 @@ class TeleopLoop:
             if side not in self._last_command:
                 continue  # a hand this embodiment does not use (the operator counted it)
             self.frames_superseded += len(frames_of_side) - 1
+            self.frame_commands += 1
             commanded.add(side)
             self._command_side(side, now, ok, commands)
 
