@@ -5,10 +5,11 @@ prints JSON; ``--plot DIR`` also writes latency / timing histograms (PNG) into D
 per stage (raw hand -> filtered target -> IK hand -> simulated hand) on bundled traces, on
 the virtual clock, and joint ramp lags of the xArm twin (``bench/tracking.py``); JSON.
 
-``python -m beavr_sim.bench latency [--config 1|2|3|4] [--seconds S] [--json] [--no-mirror]
-[--plot DIR]``: end-to-end latency of the ``--multiprocess`` pipeline fed the Quest app's
-protocol (``bench/latency.py``): a table on stderr (not with ``--json``), JSON on the last
-stdout line.
+``python -m beavr_sim.bench latency [--config 1|2|3|4 | --sweep] [--seconds S] [--json]
+[--no-mirror] [--plot DIR]``: end-to-end latency of the ``--multiprocess`` pipeline fed the
+Quest app's protocol (``bench/latency.py``; ``--sweep``: 1, 2, 4 and 8 hand effectors at 90 Hz
+in concurrent sessions): a table on stderr (not with ``--json``), JSON on the last stdout
+line.
 
 ``python -m beavr_sim.bench contact [--contact CONE:IMPRATIO,...] [--tasks T,...]
 [--episodes N]``: contact settings compared on the grasping experts (success, slip of the held
@@ -75,6 +76,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="latency: without mirroring to the emulated hardware",
     )
+    parser.add_argument(
+        "--sweep",
+        action="store_true",
+        help="latency: 1, 2, 4 and 8 hand effectors at 90 Hz (concurrent sessions sharing this "
+        "machine's cores) instead of one --config; --seconds per effector count",
+    )
+    parser.add_argument("--sweep-counts", default=None, help=argparse.SUPPRESS)
     parser.add_argument(
         "--episodes", type=int, default=16, help="contact: expert episodes per task and setting"
     )
@@ -161,19 +169,34 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _latency(args) -> int:
-    from beavr_sim.bench.latency import run, table
+    from beavr_sim.bench import latency
 
     seconds = 10.0 if args.seconds is None else args.seconds
-    if not args.json:
-        print(f"benchmarking latency, config {args.config} ({seconds:g} s)...", file=sys.stderr)
     samples: dict = {}
-    result = run(args.config, seconds, mirror=not args.no_mirror, samples=samples)
+    if args.sweep or args.sweep_counts:
+        counts = (
+            [int(n) for n in args.sweep_counts.split(",")]
+            if args.sweep_counts
+            else list(latency.SWEEP_COUNTS)
+        )
+        if not args.json:
+            print(
+                f"benchmarking latency, sweep over {counts} effectors ({seconds:g} s each)...",
+                file=sys.stderr,
+            )
+        result = latency.run_sweep(counts, seconds, mirror=not args.no_mirror, samples=samples)
+        report = latency.sweep_table
+    else:
+        if not args.json:
+            print(f"benchmarking latency, config {args.config} ({seconds:g} s)...", file=sys.stderr)
+        result = latency.run(args.config, seconds, mirror=not args.no_mirror, samples=samples)
+        report = latency.table
     if args.plot is not None:
         from beavr_sim.bench.plots import write_latency
 
         result["plots"] = [str(p) for p in write_latency(samples, args.plot, result)]
     if not args.json:
-        print(table(result), file=sys.stderr)
+        print(report(result), file=sys.stderr)
     print(json.dumps(result))
     return 0
 

@@ -9,6 +9,14 @@ runner as it is (detector, operator and twin processes over loopback ZeroMQ), mi
 emulated hardware (``hardware_config="emulated"``), started with a timing log
 (``options["latency_log"]``, written by the twin process; see ``processes.py``).
 
+The pipeline is meant to be event-driven: one command per hand frame at the headset rate, each
+applied by the twin on arrival and submitted to the hardware mirror at once; the twin also
+submits a heartbeat once per physics period when no command came, carrying the ``t_source``
+values already in effect. So every figure below is over **distinct commands**: a log entry
+(applied command, or driver write) whose ``t_source`` equals the previous entry's for that
+effector is a *repeat* (a heartbeat, or a command re-applied without a new frame behind it):
+counted in ``repeats``, left out of the rate, the jitter and the latency.
+
 What each number spans (all clocks are ``time.monotonic`` on one machine):
 
 - ``latency_twin_ms``: generator send (just before ``socket.send`` of the keypoint string) ->
@@ -16,19 +24,38 @@ What each number spans (all clocks are ``time.monotonic`` on one machine):
   frame behind a command is found from the command's ``t_source``, the detector's receive
   stamp of the newest frame the operator had used: its send is the generator's latest send on
   that hand's stream at or before that stamp (the detector takes the newest payload of each
-  poll, so that is the frame it parsed). Only the first application of each frame counts.
+  poll, so that is the frame it parsed).
 - ``latency_driver_ms``: generator send -> the emulated device's driver call that wrote the
   first target derived from it having returned (hardware mirror writer thread). The write's
-  time is its tick's hand-off to the mirror plus the mirror's measured hand-off -> write time.
+  time is its hand-off to the mirror plus the mirror's measured hand-off -> write time.
 - ``send_to_detector_ms``: generator send -> the detector's receive stamp (transport plus the
   detector's 2 ms polling); ``detector_to_twin_ms``: the rest (what the twin's own
   ``latency_ms`` reports).
-- ``command_hz``: commands applied to the twin per second for the effector (hold ticks
-  excluded) against ``target_hz`` (the twin's control rate); ``jitter_ms``: standard deviation
-  of the interval between successive applied commands (and driver writes, per device).
+- ``command_hz``: distinct commands applied to the twin per second for the effector against
+  ``target_hz`` = the headset rate (one command per frame); ``write_hz``: distinct driver
+  writes per second per device, against the same target (devices no hand effector drives,
+  e.g. RX-1's ``body``: every write, against the twin's ``control_hz``). ``jitter_ms``:
+  standard deviation of the interval between successive distinct commands (writes).
+- ``frames`` (per effector, for its hand's stream): ``sent`` by the generator, ``received``
+  by the detector, ``dropped`` = sent - received, ``superseded_detector`` (replaced by a newer
+  payload within one detector poll), ``superseded_operator`` (observed by the operator but
+  not turned into their own command because a newer one was already queued; 0 until the
+  operator reports it), ``superseded`` (the two together) and ``rejected`` (by the detector's
+  validator; it counts all streams together, so this is per side only for one-handed
+  embodiments, else None: see the session's ``frames.rejected``).
+- ``errors`` / ``holding`` (per device): the hardware mirror's own account; once a device
+  fails every device of that rig holds (no more writes), so its write rate falls.
 - ``floor``: a bare ZeroMQ PUSH -> PULL hop on loopback with a keypoint string of the same
   size at the same rate (sender in its own process, blocking receiver), run just before the
-  pipeline in the same invocation.
+  pipeline in the same invocation; ``over_floor`` is latency / floor at p50 and p99.
+
+``--sweep`` runs 1, 2, 4 and 8 hand effectors at 90 Hz: one ``xarm7_leap_right`` session for
+1, else ``n / 2`` ``xarm7_leap_bimanual`` sessions running concurrently, each with its own
+ports, load generator and emulated rig. All of them share this machine's cores (and the
+generators, the emulators and the harness too), so the growth measures contention on one
+machine as much as the pipeline. Per effector count it reports send -> twin and send ->
+driver pooled over all effectors (devices) of all sessions, and the p99 growth from 1 to 4
+effectors against :data:`SWEEP_P99_GROWTH_TARGET`.
 
 The first ``WARMUP_S`` of the stream (processes settling, the operator anchoring) is left out.
 """
@@ -42,6 +69,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -60,6 +88,11 @@ BEAVR_TABLE_V = {
     "pct_of_target_rate": [99.2, 99.4],
 }
 WARMUP_S = 0.5
+#: ``--sweep``: effector counts, headset rate, task, and the p99 growth allowed from 1 to 4.
+SWEEP_COUNTS = (1, 2, 4, 8)
+SWEEP_HZ = 90.0
+SWEEP_TASK = "PickPlace"
+SWEEP_P99_GROWTH_TARGET = 1.5
 
 
 def _stats(values) -> dict:
@@ -99,10 +132,17 @@ def _hand_payloads(embodiment: str, task: str, sides: list[str]) -> tuple[dict, 
 
 
 def generator_main(
-    endpoints: dict, payloads: dict, duration: float, rate_hz: float, seconds: float, conn
+    endpoints: dict,
+    payloads: dict,
+    duration: float,
+    rate_hz: float,
+    seconds: float,
+    conn,
+    start_at: float | None = None,
 ) -> None:
-    """The load generator (own process): sends for ``seconds`` at ``rate_hz``; its send times
-    per side go back through the pipe ``conn``."""
+    """The load generator (own process): sends for ``seconds`` at ``rate_hz``, from
+    ``start_at`` (``time.monotonic``; concurrent generators start together) or as soon as it
+    is connected; its send times per side go back through the pipe ``conn``."""
     import zmq
 
     context = zmq.Context()
@@ -113,10 +153,11 @@ def generator_main(
         s.setsockopt(zmq.SNDHWM, 1000)
         s.connect(endpoint)
         socks[name] = s
-    time.sleep(0.3)  # the connections are up before the first frame
+    # the connections are up before the first frame
+    start = max(start_at or 0.0, time.monotonic() + 0.3)
+    time.sleep(max(0.0, start - time.monotonic()))
     sent: dict[str, list[float]] = {s: [] for s in payloads}
     period = 1.0 / rate_hz
-    start = time.monotonic()
     k = 0
     while True:
         t_due = start + k * period
@@ -212,10 +253,12 @@ def _latest_send(sends: np.ndarray, stamps) -> np.ndarray:
     return np.searchsorted(sends, np.asarray(stamps, dtype=float), side="right") - 1
 
 
-def _rate(times, window: tuple[float, float]) -> tuple[float | None, dict]:
-    t = np.asarray([x for x in times if window[0] <= x <= window[1]], dtype=float)
-    if t.size < 2:
-        return None, _stats([])
+def _rate(times) -> tuple[float | None, dict]:
+    """Rate (Hz) over ``times`` (seconds, ascending) and the statistics (ms) of the intervals
+    between them."""
+    t = np.asarray(times, dtype=float)
+    if t.size < 2 or t[-1] <= t[0]:
+        return None, {"std_ms": None, "mean_ms": None, "p99": None, "max": None}
     intervals = np.diff(t) * 1e3
     hz = (t.size - 1) / (t[-1] - t[0])
     return float(hz), {
@@ -225,34 +268,53 @@ def _rate(times, window: tuple[float, float]) -> tuple[float | None, dict]:
     }
 
 
-def analyse(log: dict, sent: dict, sides: dict[str, str], window: tuple[float, float]) -> dict:
-    """Per effector figures from the twin's timing log and the generator's send times;
-    ``sides``: effector -> the hand stream that drives it."""
-    target_hz = float(log["control_hz"])
+def _pct(hz: float | None, target_hz: float) -> float | None:
+    return round(100 * hz / target_hz, 2) if hz else None
+
+
+def analyse(
+    log: dict,
+    sent: dict,
+    sides: dict[str, str],
+    window: tuple[float, float],
+    headset_hz: float,
+) -> dict:
+    """Per effector and per device figures from the twin's timing log and the generator's
+    send times (``{side: [t_send]}``); ``sides``: effector -> the hand stream that drives it.
+    Only entries inside ``window`` count; an entry repeating the previous entry's ``t_source``
+    (over the whole log) is a repeat: counted, left out of rate, jitter and latency. Each
+    effector and device keeps its latency samples (ms) under ``"_samples"``."""
+    control_hz = float(log["control_hz"])
+    lo, hi = window
     effectors = {}
     for name, side in sides.items():
-        sends = np.asarray(sent[side], dtype=float)
-        applied = [(t, ts) for t, ts in log["applied"].get(name, []) if window[0] <= t <= window[1]]
-        hz, jitter = _rate([t for t, _ in applied], window)
-        fresh, seen = [], set()
-        for t_apply, t_source in applied:
-            if t_source > 0 and t_source not in seen:
-                seen.add(t_source)
+        sends = np.asarray(sent.get(side, []), dtype=float)
+        fresh, repeats, prev = [], 0, None
+        for t_apply, t_source in log["applied"].get(name, []):
+            repeat = prev is not None and t_source == prev
+            prev = t_source
+            if not lo <= t_apply <= hi:
+                continue
+            if repeat:
+                repeats += 1
+            else:
                 fresh.append((t_apply, t_source))
-        idx = _latest_send(sends, [ts for _, ts in fresh])
+        hz, jitter = _rate([t for t, _ in fresh])
+        stamped = [(t, ts) for t, ts in fresh if ts > 0]
+        idx = _latest_send(sends, [ts for _, ts in stamped])
         twin_ms, det_ms, rest_ms = [], [], []
-        for (t_apply, t_source), i in zip(fresh, idx, strict=True):
+        for (t_apply, t_source), i in zip(stamped, idx, strict=True):
             if i >= 0:
                 twin_ms.append((t_apply - sends[i]) * 1e3)
                 det_ms.append((t_source - sends[i]) * 1e3)
                 rest_ms.append((t_apply - t_source) * 1e3)
         effectors[name] = {
             "side": side,
-            "target_hz": target_hz,
+            "target_hz": float(headset_hz),
             "command_hz": round(hz, 3) if hz else None,
-            "pct_of_target": round(100 * hz / target_hz, 2) if hz else None,
-            "commands_applied": len(applied),
-            "fresh_frames_applied": len(fresh),
+            "pct_of_target": _pct(hz, headset_hz),
+            "commands_applied": len(fresh),
+            "repeats": repeats,
             "jitter_ms": jitter,
             "latency_twin_ms": _stats(twin_ms),
             "send_to_detector_ms": _stats(det_ms),
@@ -264,35 +326,251 @@ def analyse(log: dict, sent: dict, sides: dict[str, str], window: tuple[float, f
     devices = {}
     for link in log.get("links", []):
         name, effector = link["name"], link["effector"]
-        side = sides.get(effector)
-        sends = np.asarray(sent.get(side, []), dtype=float)
-        write_times = link["write_times"]
-        hz, jitter = _rate(write_times, window)
-        lat, last = [], None
-        for t_take, w_ms in zip(write_times, link["write_latency_ms"], strict=False):
-            if not window[0] <= t_take <= window[1]:
+        driven = effector in sides  # by a hand effector (RX-1's body is not)
+        sends = np.asarray(sent.get(sides.get(effector), []), dtype=float)
+        fresh, repeats, prev = [], 0, None
+        for t_take, w_ms in zip(link["write_times"], link["write_latency_ms"], strict=False):
+            if not driven:
+                if lo <= t_take <= hi:
+                    fresh.append((t_take, None, None, None))
                 continue
+            # the tick the writer took: the latest submit at or before its take
             k = int(np.searchsorted(submit_t, t_take, side="right")) - 1
-            if k < 0:
-                continue
-            t_sub, in_effect = submits[k]
-            t_source = in_effect.get(effector, 0.0)
-            if t_source <= 0 or t_source == last:
-                continue
-            last = t_source
-            i = int(_latest_send(sends, [t_source])[0])
-            if i >= 0:
-                lat.append((t_sub + w_ms / 1e3 - sends[i]) * 1e3)
+            t_sub, in_effect = submits[k] if k >= 0 else (None, {})
+            t_source = float(in_effect.get(effector, 0.0))
+            repeat = prev is not None and t_source == prev
+            prev = t_source
+            if t_source <= 0 or not lo <= t_take <= hi:
+                continue  # before the effector's first command, or outside the window
+            if repeat:
+                repeats += 1
+            else:
+                fresh.append((t_take, t_sub, t_source, w_ms))
+        hz, jitter = _rate([w[0] for w in fresh])
+        lat = []
+        if driven and fresh:
+            idx = _latest_send(sends, [w[2] for w in fresh])
+            for (_, t_sub, _, w_ms), i in zip(fresh, idx, strict=True):
+                if i >= 0:
+                    lat.append((t_sub + w_ms / 1e3 - sends[i]) * 1e3)
+        target = float(headset_hz) if driven else control_hz
         devices[name] = {
             "effector": effector,
-            "target_hz": target_hz,
+            "target_hz": target,
             "write_hz": round(hz, 3) if hz else None,
-            "pct_of_target": round(100 * hz / target_hz, 2) if hz else None,
+            "pct_of_target": _pct(hz, target),
+            "writes": len(fresh),
+            "repeats": repeats if driven else None,
             "jitter_ms": jitter,
             "latency_driver_ms": _stats(lat),
             "_samples": lat,
         }
     return {"effectors": effectors, "devices": devices}
+
+
+def frame_counts(sent: dict, detector: dict, operator: dict, streams) -> dict:
+    """The session's frame accounting per hand stream, from the generator's send counts
+    (``{side: n}``) and the detector's and operator's results (read defensively: the
+    operator reports ``frames_superseded`` only once the event-driven design lands)."""
+    received = detector.get("quest_received", {}) or {}
+    det_sup = detector.get("frames_superseded", {}) or {}
+    op_sup = operator.get("frames_superseded", {}) or {}
+    if not isinstance(op_sup, dict):
+        op_sup = {}
+    return {
+        "sent": {s: int(sent.get(s, 0)) for s in streams},
+        "received": {s: int(received.get(s, 0)) for s in streams},
+        "dropped": {s: int(sent.get(s, 0)) - int(received.get(s, 0)) for s in streams},
+        "passed_on": detector.get("frames_received", 0),
+        "superseded": {s: int(det_sup.get(s, 0)) for s in streams},
+        "superseded_operator": {s: int(op_sup.get(s, 0)) for s in streams},
+        "superseded_total": {s: int(det_sup.get(s, 0)) + int(op_sup.get(s, 0)) for s in streams},
+        "rejected": detector.get("frames_rejected", 0),
+        "rejected_by_reason": detector.get("rejected_by_reason", {}),
+    }
+
+
+def effector_frames(frames: dict, side: str) -> dict:
+    """One hand stream's share of :func:`frame_counts` (rejected: the detector counts all
+    streams together, so a per side figure only where there is one stream, or a dict)."""
+    rejected = frames["rejected"]
+    if isinstance(rejected, dict):
+        rejected = int(rejected.get(side, 0))
+    elif len(frames["sent"]) != 1:
+        rejected = None
+    return {
+        "sent": frames["sent"].get(side, 0),
+        "received": frames["received"].get(side, 0),
+        "dropped": frames["dropped"].get(side, 0),
+        "superseded_detector": frames["superseded"].get(side, 0),
+        "superseded_operator": frames["superseded_operator"].get(side, 0),
+        "superseded": frames["superseded_total"].get(side, 0),
+        "rejected": rejected,
+    }
+
+
+def _over_floor(lat: dict, floor_latency: dict) -> dict:
+    return {
+        q: round(lat[q] / floor_latency[q], 1) if lat[q] and floor_latency.get(q) else None
+        for q in ("p50", "p99")
+    }
+
+
+_PAYLOADS: dict = {}
+
+
+@dataclass
+class LiveSession:
+    """One pipeline under test: its stream, its session and, once run, what it left."""
+
+    embodiment: str
+    task: str
+    rate_hz: float
+    mirror: bool
+    effectors: dict[str, str]  # effector -> hand stream
+    streams: list[str]
+    payloads: dict
+    duration: float
+    transport: object = None
+    session: object = None
+    log_path: str | None = None
+    startup_s: float | None = None
+    sent: dict = field(default_factory=dict)
+    died: list = field(default_factory=list)
+    log: dict | None = None
+
+
+def prepare(embodiment: str, task: str, rate_hz: float, mirror: bool) -> LiveSession:
+    """The stream for ``embodiment`` (payloads cached per embodiment and task)."""
+    from beavr_sim.robots import make_embodiment
+
+    effectors = {e.name: e.side for e in make_embodiment(embodiment).effectors}
+    streams = sorted(set(effectors.values()))
+    key = (embodiment, task, tuple(streams))
+    if key not in _PAYLOADS:
+        _PAYLOADS[key] = _hand_payloads(embodiment, task, streams)
+    payloads, duration = _PAYLOADS[key]
+    return LiveSession(embodiment, task, rate_hz, mirror, effectors, streams, payloads, duration)
+
+
+def _max_payload(lives) -> bytes:
+    return max((p for live in lives for _, ps in live.payloads.values() for p in ps), key=len)
+
+
+def start_session(live: LiveSession) -> None:
+    """Start ``live``'s ``--multiprocess`` pipeline on its own free ports, with a timing log."""
+    from beavr_sim.teleop.processes import MultiprocessSession
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+    live.transport = TransportConfig(ports=PortConfig.free())
+    options = SessionOptions(
+        task=live.task,
+        embodiment=live.embodiment,
+        source="quest",
+        viser=False,
+        headless=True,
+        progress=False,
+        multiprocess=True,
+        transport=live.transport,
+        mirror_hardware=live.mirror,
+        hardware_config="emulated" if live.mirror else None,
+    )
+    session = MultiprocessSession(options)
+    fd, live.log_path = tempfile.mkstemp(prefix="beavr_latency_", suffix=".json")
+    os.close(fd)
+    session.options["latency_log"] = live.log_path
+    t_start = time.monotonic()
+    try:
+        session.start()
+    except BaseException:
+        os.unlink(live.log_path)
+        live.log_path = None
+        raise
+    live.startup_s = time.monotonic() - t_start
+    live.session = session
+
+
+def drive(lives: list[LiveSession], seconds: float) -> None:
+    """Run one load generator per session, all starting together, for ``seconds``; their
+    send times land in each ``live.sent``, dead pipeline processes in ``live.died``."""
+    ctx = mp.get_context("spawn")
+    start_at = time.monotonic() + 1.0 + 0.5 * len(lives)  # time to spawn them all
+    gens = []
+    for live in lives:
+        endpoints = {s: live.transport.endpoint(f"quest_{s}", bind=False) for s in live.streams}
+        endpoints["pause"] = live.transport.endpoint("quest_pause", bind=False)
+        parent, child = ctx.Pipe()
+        args = (endpoints, live.payloads, live.duration, live.rate_hz, seconds, child, start_at)
+        gen = ctx.Process(target=generator_main, args=args, name="load-generator", daemon=True)
+        gens.append((live, gen, parent))
+    try:
+        for _, gen, _ in gens:
+            gen.start()
+        deadline = start_at + seconds + 30.0
+        for live, _, parent in gens:
+            if not parent.poll(max(0.1, deadline - time.monotonic())):
+                raise RuntimeError("a load generator did not finish")
+            live.sent = json.loads(parent.recv_bytes())
+        time.sleep(0.3)  # the last frames reach the twins
+        for live in lives:
+            live.died = live.session.dead()
+    finally:
+        for _, gen, _ in gens:
+            gen.join(5.0)
+            if gen.is_alive():
+                gen.kill()
+
+
+def stop_session(live: LiveSession) -> None:
+    """Stop ``live``'s pipeline and read its timing log (into ``live.log``)."""
+    try:
+        live.session.stop()
+    finally:
+        if live.log_path:
+            try:
+                with open(live.log_path) as f:
+                    live.log = json.load(f)
+            except (OSError, ValueError):
+                live.log = None
+            finally:
+                os.unlink(live.log_path)
+                live.log_path = None
+
+
+def session_figures(live: LiveSession, floor_latency: dict) -> dict:
+    """Frames, effectors and devices of a stopped session; latency samples (ms) stay under
+    each effector's and device's ``"_samples"``."""
+    if live.log is None:
+        raise RuntimeError(f"{live.embodiment}: the twin wrote no timing log ({live.died})")
+    all_sends = [t for ts in live.sent.values() for t in ts]
+    window = (min(all_sends) + WARMUP_S, max(all_sends) + 0.3)
+    figures = analyse(live.log, live.sent, live.effectors, window, live.rate_hz)
+    results = live.session.results
+    frames = frame_counts(
+        {s: len(ts) for s, ts in live.sent.items()},
+        results.get("detector", {}),
+        results.get("operator", {}),
+        live.streams,
+    )
+    for d in figures["effectors"].values():
+        d["frames"] = effector_frames(frames, d["side"])
+        d["over_floor"] = _over_floor(d["latency_twin_ms"], floor_latency)
+    hardware = results.get("twin", {}).get("hardware", {}) or {}
+    for name, d in figures["devices"].items():
+        d["over_floor"] = _over_floor(d["latency_driver_ms"], floor_latency)
+        # the mirror's own account: a failed device makes every device hold (no writes)
+        d["errors"] = hardware.get(name, {}).get("errors")
+        d["holding"] = hardware.get(name, {}).get("holding")
+    return {"frames": frames, **figures}
+
+
+def _pop_samples(figures: dict, samples: dict | None, prefix: str = "") -> None:
+    for group, key in (("effectors", "latency_twin_ms"), ("devices", "latency_driver_ms")):
+        for name, d in figures[group].items():
+            lat = d.pop("_samples")
+            if samples is not None:
+                samples[f"{key}_{prefix}{name}"] = lat
 
 
 def run(
@@ -303,120 +581,223 @@ def run(
     samples: dict | None = None,
 ) -> dict:
     """Measure configuration ``config`` for ``seconds`` of stream; the result dict."""
-    from beavr_sim.robots import make_embodiment
-    from beavr_sim.teleop.processes import MultiprocessSession
-    from beavr_sim.teleop.session import SessionOptions
-    from beavr_sim.wire.ports import PortConfig, TransportConfig
-
     embodiment, rate_hz, task = CONFIGS[config]
-    effectors = {e.name: e.side for e in make_embodiment(embodiment).effectors}
-    streams = sorted(set(effectors.values()))
-    payloads, duration = _hand_payloads(embodiment, task, streams)
+    live = prepare(embodiment, task, rate_hz, mirror)
     # The floor first, on the same machine with nothing of ours running (run after the
     # pipeline it catches the processes' shutdown).
-    payload = max((p for _, ps in payloads.values() for p in ps), key=len)
-    floor = transport_floor(payload, rate_hz, floor_seconds or min(seconds, 5.0))
-    transport = TransportConfig(ports=PortConfig.free())
-    options = SessionOptions(
-        task=task,
-        embodiment=embodiment,
-        source="quest",
-        viser=False,
-        headless=True,
-        progress=False,
-        multiprocess=True,
-        transport=transport,
-        mirror_hardware=mirror,
-        hardware_config="emulated" if mirror else None,
-    )
-    session = MultiprocessSession(options)
-    fd, log_path = tempfile.mkstemp(prefix="beavr_latency_", suffix=".json")
-    os.close(fd)
-    session.options["latency_log"] = log_path
-    t_start = time.monotonic()
-    session.start()
-    startup_s = time.monotonic() - t_start
-    endpoints = {s: transport.endpoint(f"quest_{s}", bind=False) for s in streams}
-    endpoints["pause"] = transport.endpoint("quest_pause", bind=False)
-    ctx = mp.get_context("spawn")
-    parent, child = ctx.Pipe()
-    gen = ctx.Process(
-        target=generator_main,
-        args=(endpoints, payloads, duration, rate_hz, seconds, child),
-        name="load-generator",
-        daemon=True,
-    )
-    died: list[str] = []
-    try:
-        gen.start()
-        if not parent.poll(seconds + 30.0):
-            raise RuntimeError("the load generator did not finish")
-        sent = json.loads(parent.recv_bytes())
-        time.sleep(0.3)  # the last frames reach the twin
-        died = session.dead()
-    finally:
-        gen.join(5.0)
-        if gen.is_alive():
-            gen.kill()
-        session.stop()
-    try:
-        with open(log_path) as f:
-            log = json.load(f)
-    finally:
-        os.unlink(log_path)
-    all_sends = [t for ts in sent.values() for t in ts]
-    window = (min(all_sends) + WARMUP_S, max(all_sends) + 0.3)
-    figures = analyse(log, sent, effectors, window)
-    det = session.results.get("detector", {})
-    frames = {
-        "sent": {s: len(ts) for s, ts in sent.items()},
-        "received": {s: det.get("quest_received", {}).get(s, 0) for s in streams},
-        "passed_on": det.get("frames_received", 0),
-        "superseded": det.get("frames_superseded", {}),
-        "rejected": det.get("frames_rejected", 0),
-        "rejected_by_reason": det.get("rejected_by_reason", {}),
-    }
+    floor = transport_floor(_max_payload([live]), rate_hz, floor_seconds or min(seconds, 5.0))
     floor_samples = floor.pop("samples_ms")
-    fl = floor["latency_ms"]
-    for group, key in (("effectors", "latency_twin_ms"), ("devices", "latency_driver_ms")):
-        for name, d in figures[group].items():
-            lat = d[key]
-            d["over_floor"] = {
-                q: round(lat[q] / fl[q], 1) if lat[q] and fl[q] else None for q in ("p50", "p99")
-            }
-            if samples is not None:
-                samples[f"{key}_{name}"] = d["_samples"]
-            del d["_samples"]
+    start_session(live)
+    try:
+        drive([live], seconds)
+    finally:
+        stop_session(live)
+    figures = session_figures(live, floor["latency_ms"])
+    _pop_samples(figures, samples)
     if samples is not None:
         samples["floor_ms"] = floor_samples
-    twin = session.results.get("twin", {})
+    session = live.session
     return {
         "benchmark": "latency",
         "config": config,
         "embodiment": embodiment,
         "task": task,
         "headset_hz": rate_hz,
-        "control_hz": log["control_hz"],
+        "target_hz": rate_hz,
+        "control_hz": live.log["control_hz"],
         "operator_hz": session.options["control_hz"],
         "seconds": seconds,
         "warmup_s": WARMUP_S,
-        "startup_s": round(startup_s, 2),
+        "startup_s": round(live.startup_s, 2),
         "mirror_hardware": mirror,
         "hardware_config": "emulated" if mirror else None,
-        "processes_died": died,
+        "processes_died": live.died,
         "exits": session.exits,
-        "frames": frames,
-        "effectors": figures["effectors"],
-        "devices": figures["devices"],
+        **figures,
         "floor": floor,
-        "twin_latency_ms_own": twin.get("latency_ms"),
+        "twin_latency_ms_own": session.results.get("twin", {}).get("latency_ms"),
         "beavr_table_v": BEAVR_TABLE_V,
         "machine": {"cpus": os.cpu_count(), "platform": sys.platform},
     }
 
 
+def sweep_sessions(n_effectors: int) -> list[str]:
+    """The embodiments run concurrently for ``n_effectors`` hand effectors (at most two per
+    embodiment): one right arm for 1, else bimanual pairs (plus a right arm when odd)."""
+    if n_effectors < 1:
+        raise ValueError(f"effector count must be >= 1, got {n_effectors}")
+    pairs, single = divmod(n_effectors, 2)
+    return ["xarm7_leap_right"] * single + ["xarm7_leap_bimanual"] * pairs
+
+
+def sweep_point(sessions: list[dict], floor_latency: dict) -> dict:
+    """One effector count of the sweep from the :func:`session_figures` of its concurrent
+    sessions (each with ``"embodiment"``, ``"startup_s"`` and ``"processes_died"`` added;
+    the ``"_samples"`` still in): send -> twin and send -> driver pooled over all effectors
+    (devices driven by them) of all sessions."""
+    twin = [x for s in sessions for d in s["effectors"].values() for x in d["_samples"]]
+    driver = [x for s in sessions for d in s["devices"].values() for x in d["_samples"]]
+    effs = {f"s{i}.{n}": d for i, s in enumerate(sessions) for n, d in s["effectors"].items()}
+    devs = [d for s in sessions for d in s["devices"].values() if d["repeats"] is not None]
+    pcts = [d["pct_of_target"] for d in effs.values()]
+    write_pcts = [d["pct_of_target"] for d in devs]
+    twin_stats, driver_stats = _stats(twin), _stats(driver)
+
+    def total(key):
+        return sum(
+            v for s in sessions for v in s["frames"][key].values() if isinstance(v, (int, float))
+        )
+
+    rejected = [s["frames"]["rejected"] for s in sessions]
+    return {
+        "effectors": len(effs),
+        "sessions": len(sessions),
+        "embodiments": [s["embodiment"] for s in sessions],
+        "startup_s": [s["startup_s"] for s in sessions],
+        "processes_died": [
+            f"s{i}:{p}" for i, s in enumerate(sessions) for p in s["processes_died"]
+        ],
+        "device_errors": [
+            f"s{i}.{n}"
+            for i, s in enumerate(sessions)
+            for n, d in s["devices"].items()
+            if d.get("errors")
+        ],
+        "send_to_twin_ms": twin_stats,
+        "send_to_driver_ms": driver_stats,
+        "over_floor": {
+            "send_to_twin": _over_floor(twin_stats, floor_latency),
+            "send_to_driver": _over_floor(driver_stats, floor_latency),
+        },
+        "pct_of_target_min": min((p or 0.0 for p in pcts), default=None),
+        "write_pct_of_target_min": min((p or 0.0 for p in write_pcts), default=None),
+        "repeats": sum(d["repeats"] for d in effs.values()),
+        "frames": {
+            "sent": total("sent"),
+            "dropped": total("dropped"),
+            "superseded": total("superseded_total"),
+            "rejected": sum(r for r in rejected if isinstance(r, int)),
+        },
+        "per_effector": {
+            n: {
+                "command_hz": d["command_hz"],
+                "pct_of_target": d["pct_of_target"],
+                "repeats": d["repeats"],
+                "p50": d["latency_twin_ms"]["p50"],
+                "p99": d["latency_twin_ms"]["p99"],
+            }
+            for n, d in effs.items()
+        },
+    }
+
+
+def sweep_growth(points: list[dict], lo: int = 1, hi: int = 4) -> dict:
+    """p99 at ``hi`` effectors / p99 at ``lo``, send -> twin and send -> driver, against
+    :data:`SWEEP_P99_GROWTH_TARGET` (None where a count is missing or has no samples)."""
+    by_n = {p["effectors"]: p for p in points}
+    growth = {}
+    for key in ("send_to_twin", "send_to_driver"):
+        a = by_n.get(lo, {}).get(f"{key}_ms", {}).get("p99")
+        b = by_n.get(hi, {}).get(f"{key}_ms", {}).get("p99")
+        growth[key] = round(b / a, 2) if a and b is not None else None
+    known = [g for g in growth.values() if g is not None]
+    return {
+        "from": lo,
+        "to": hi,
+        **growth,
+        "target": SWEEP_P99_GROWTH_TARGET,
+        "within_target": all(g <= SWEEP_P99_GROWTH_TARGET for g in known) if known else None,
+    }
+
+
+def run_sweep(
+    counts=SWEEP_COUNTS,
+    seconds: float = 10.0,
+    mirror: bool = True,
+    floor_seconds: float | None = None,
+    samples: dict | None = None,
+) -> dict:
+    """``--sweep``: for each effector count, its sessions (:func:`sweep_sessions`) started one
+    after the other, driven concurrently at :data:`SWEEP_HZ` for ``seconds``, stopped, and
+    analysed; pooled per count (:func:`sweep_point`). All sessions of a count share this
+    machine's cores. ``samples`` gets ``sweep_twin_ms_<n>`` / ``sweep_driver_ms_<n>``."""
+    counts = [int(n) for n in counts]
+    plan = {n: sweep_sessions(n) for n in counts}
+    every = [
+        prepare(e, SWEEP_TASK, SWEEP_HZ, mirror)
+        for e in sorted({e for p in plan.values() for e in p})
+    ]
+    floor = transport_floor(_max_payload(every), SWEEP_HZ, floor_seconds or min(seconds, 5.0))
+    floor_samples = floor.pop("samples_ms")
+    points = []
+    for n in counts:
+        lives = [prepare(e, SWEEP_TASK, SWEEP_HZ, mirror) for e in plan[n]]
+        started = []
+        try:
+            for live in lives:
+                start_session(live)
+                started.append(live)
+            drive(lives, seconds)
+        finally:
+            for live in started:
+                stop_session(live)
+        sessions = []
+        for live in lives:
+            figures = session_figures(live, floor["latency_ms"])
+            figures.update(
+                embodiment=live.embodiment,
+                startup_s=round(live.startup_s, 2),
+                processes_died=live.died,
+            )
+            sessions.append(figures)
+        point = sweep_point(sessions, floor["latency_ms"])
+        point["control_hz"] = lives[0].log["control_hz"]
+        points.append(point)
+        if samples is not None:
+            for group, kind in (("effectors", "twin"), ("devices", "driver")):
+                samples[f"sweep_{kind}_ms_{n}"] = [
+                    x for s in sessions for d in s[group].values() for x in d["_samples"]
+                ]
+    if samples is not None:
+        samples["floor_ms"] = floor_samples
+    cpus = os.cpu_count()
+    return {
+        "benchmark": "latency_sweep",
+        "task": SWEEP_TASK,
+        "headset_hz": SWEEP_HZ,
+        "target_hz": SWEEP_HZ,
+        "seconds": seconds,
+        "warmup_s": WARMUP_S,
+        "mirror_hardware": mirror,
+        "hardware_config": "emulated" if mirror else None,
+        "counts": counts,
+        "shared_cores": f"all sessions of a count (pipelines, generators, emulated rigs) share "
+        f"this machine's {cpus} cores",
+        "floor": floor,
+        "sweep": points,
+        "p99_growth_1_to_4": sweep_growth(points),
+        "machine": {"cpus": cpus, "platform": sys.platform},
+    }
+
+
 def _f(x, spec: str = ".2f") -> str:
     return "-" if x is None else format(x, spec)
+
+
+_HEADER = (
+    f"{'':28}{'rate Hz':>9}{'% tgt':>8}{'jitter':>8}{'p50':>8}{'p95':>8}{'p99':>8}"
+    f"{'max':>8}{'n':>6}{'rep':>6}{'/floor p50':>11}{'p99':>6}"
+)
+
+
+def _row(label, hz, pct, jit, lat, over, repeats=None) -> str:
+    over = over or {}
+    return (
+        f"{label:28}{_f(hz, '.2f'):>9}{_f(pct, '.1f'):>8}{_f(jit, '.2f'):>8}"
+        f"{_f(lat['p50']):>8}{_f(lat['p95']):>8}{_f(lat['p99']):>8}{_f(lat['max']):>8}"
+        f"{lat['n']:>6}{_f(repeats, 'd'):>6}{_f(over.get('p50'), '.1f'):>11}"
+        f"{_f(over.get('p99'), '.1f'):>6}"
+    )
 
 
 def table(result: dict) -> str:
@@ -425,42 +806,85 @@ def table(result: dict) -> str:
     fr = r["frames"]
     lines = [
         f"latency, config {r['config']}: {r['embodiment']} ({r['task']}), headset "
-        f"{r['headset_hz']:g} Hz, operator {r['operator_hz']:g} Hz, twin {r['control_hz']:g} Hz, "
-        f"{r['seconds']:g} s, mirroring {'emulated' if r['mirror_hardware'] else 'off'}",
-        f"frames sent {fr['sent']}, received {fr['received']}, passed on {fr['passed_on']}, "
-        f"superseded {fr['superseded']}, rejected {fr['rejected']}",
-        f"{'':26}{'rate Hz':>9}{'% tgt':>8}{'jitter':>8}{'p50':>8}{'p95':>8}{'p99':>8}"
-        f"{'max':>8}{'n':>6}{'/floor p50':>11}",
+        f"{r['headset_hz']:g} Hz (= target rate), operator {r['operator_hz']:g} Hz, twin "
+        f"{r['control_hz']:g} Hz, {r['seconds']:g} s, mirroring "
+        f"{'emulated' if r['mirror_hardware'] else 'off'}",
+        f"frames sent {fr['sent']}, received {fr['received']}, dropped {fr['dropped']}, "
+        f"passed on {fr['passed_on']}, superseded {fr['superseded_total']} (detector "
+        f"{fr['superseded']}, operator {fr['superseded_operator']}), rejected {fr['rejected']}",
+        _HEADER,
     ]
-
-    def row(label, hz, pct, jit, lat, over):
-        lines.append(
-            f"{label:26}{_f(hz, '.2f'):>9}{_f(pct, '.1f'):>8}{_f(jit, '.2f'):>8}"
-            f"{_f(lat['p50']):>8}{_f(lat['p95']):>8}{_f(lat['p99']):>8}{_f(lat['max']):>8}"
-            f"{lat['n']:>6}{_f(over.get('p50') if over else None, '.1f'):>11}"
-        )
-
     for name, d in r["effectors"].items():
-        row(
-            f"{name}: send->twin",
-            d["command_hz"],
-            d["pct_of_target"],
-            d["jitter_ms"].get("std_ms"),
-            d["latency_twin_ms"],
-            d["over_floor"],
+        lines.append(
+            _row(
+                f"{name}: send->twin",
+                d["command_hz"],
+                d["pct_of_target"],
+                d["jitter_ms"].get("std_ms"),
+                d["latency_twin_ms"],
+                d["over_floor"],
+                d["repeats"],
+            )
         )
-        row(f"{name}:  send->detector", None, None, None, d["send_to_detector_ms"], None)
+        lines.append(
+            _row(f"{name}:  send->detector", None, None, None, d["send_to_detector_ms"], None)
+        )
     for name, d in r["devices"].items():
-        row(
-            f"{name}: send->driver",
-            d["write_hz"],
-            d["pct_of_target"],
-            d["jitter_ms"].get("std_ms"),
-            d["latency_driver_ms"],
-            d["over_floor"],
+        lines.append(
+            _row(
+                f"{name}: send->driver",
+                d["write_hz"],
+                d["pct_of_target"],
+                d["jitter_ms"].get("std_ms"),
+                d["latency_driver_ms"],
+                d["over_floor"],
+                d["repeats"],
+            )
         )
-    row("floor: bare ZMQ hop", r["floor"]["rate_hz"], None, None, r["floor"]["latency_ms"], None)
-    lines.append("latencies in ms; jitter = std of the interval between commands (ms)")
+    failed = {n: d["holding"] for n, d in r["devices"].items() if d.get("errors")}
+    if failed:
+        lines.append(f"devices failed (every device then holds): {failed}")
+    fl = r["floor"]
+    lines.append(_row("floor: bare ZMQ hop", fl["rate_hz"], None, None, fl["latency_ms"], None))
+    lines.append(
+        "latencies in ms; rates over distinct commands (writes), % of the headset rate; jitter = "
+        "std of the interval between them (ms); rep = repeats (same t_source), left out"
+    )
+    return "\n".join(lines)
+
+
+def sweep_table(result: dict) -> str:
+    """The ``--sweep`` report."""
+    r = result
+    lines = [
+        f"latency sweep: {r['task']}, headset {r['headset_hz']:g} Hz, {r['seconds']:g} s per "
+        f"count, mirroring {'emulated' if r['mirror_hardware'] else 'off'}; "
+        f"{r['shared_cores']}",
+        f"{'effectors':>10}{'sessions':>9}{'min % tgt':>10}{'twin p50':>10}{'p99':>8}"
+        f"{'driver p50':>11}{'p99':>8}{'twin p99/floor':>15}{'dropped':>8}{'died':>6}{'dev err':>8}",
+    ]
+    for p in r["sweep"]:
+        tw, dr = p["send_to_twin_ms"], p["send_to_driver_ms"]
+        lines.append(
+            f"{p['effectors']:>10}{p['sessions']:>9}{_f(p['pct_of_target_min'], '.1f'):>10}"
+            f"{_f(tw['p50']):>10}{_f(tw['p99']):>8}{_f(dr['p50']):>11}{_f(dr['p99']):>8}"
+            f"{_f(p['over_floor']['send_to_twin']['p99'], '.1f'):>15}"
+            f"{p['frames']['dropped']:>8}{len(p['processes_died']):>6}"
+            f"{len(p.get('device_errors', [])):>8}"
+        )
+    fl = r["floor"]["latency_ms"]
+    g = r["p99_growth_1_to_4"]
+    lines.append(
+        f"floor (bare ZMQ hop, {r['headset_hz']:g} Hz): p50 {_f(fl['p50'])}, p99 {_f(fl['p99'])}"
+    )
+    lines.append(
+        f"p99 growth {g['from']} -> {g['to']} effectors: send->twin {_f(g['send_to_twin'])}x, "
+        f"send->driver {_f(g['send_to_driver'])}x (target <= {g['target']:g}x)"
+    )
+    lines.append(
+        "latencies in ms, pooled over all effectors (devices) of all sessions of a count; dev "
+        "err: devices the mirror saw fail (then every device of that rig holds: no writes)"
+    )
     return "\n".join(lines)
 
 

@@ -30,6 +30,12 @@ FILES = {
     "latency_send_to_driver.png": "latency harness: generator send -> emulated driver write",
 }
 
+#: ``latency --sweep --plot DIR``'s figures (one series per effector count).
+LATENCY_SWEEP_FILES = {
+    "latency_sweep_send_to_twin.png": "latency sweep: send -> twin's actuators per effector count",
+    "latency_sweep_send_to_driver.png": "latency sweep: send -> emulated driver write per count",
+}
+
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown")
 
 
@@ -249,9 +255,12 @@ def write_sim(samples: Mapping[str, object], out: Path, result: Mapping | None =
 
 
 def write_latency(samples: Mapping[str, object], out: str | Path, result: Mapping | None = None):
-    """The latency harness's figures (one series per effector / device, and the floor)."""
+    """The latency harness's figures (one series per effector / device, and the floor); with
+    ``--sweep``'s samples (``sweep_twin_ms_<n>``), one series per effector count instead."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    if any(k.startswith("sweep_") for k in samples):
+        return _write_latency_sweep(samples, out, result)
     config = f" (config {result['config']})" if result else ""
     written = []
     for key, name, what in (
@@ -269,6 +278,34 @@ def write_latency(samples: Mapping[str, object], out: str | Path, result: Mappin
             series,
             out / name,
             title=f"Quest-protocol send -> {what}{config}",
+            xlabel="latency (ms)",
+        )
+        written.append(out / name)
+    return written
+
+
+def _write_latency_sweep(samples: Mapping[str, object], out: Path, result: Mapping | None):
+    hz = f", {result['headset_hz']:g} Hz" if result else ""
+    written = []
+    for kind, name, what in (
+        ("twin", "latency_sweep_send_to_twin.png", "command at the twin's actuators"),
+        ("driver", "latency_sweep_send_to_driver.png", "emulated driver write"),
+    ):
+        prefix = f"sweep_{kind}_ms_"
+        counts = sorted(int(k.removeprefix(prefix)) for k in samples if k.startswith(prefix))
+        series = {
+            f"{n} effector{'s' if n > 1 else ''}": samples[f"{prefix}{n}"]
+            for n in counts
+            if len(samples[f"{prefix}{n}"])
+        }
+        if not series:
+            continue
+        if len(samples.get("floor_ms", [])):
+            series["bare ZMQ hop (floor)"] = samples["floor_ms"]
+        histogram(
+            series,
+            out / name,
+            title=f"Send -> {what} by effector count{hz} (concurrent, shared cores)",
             xlabel="latency (ms)",
         )
         written.append(out / name)

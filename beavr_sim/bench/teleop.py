@@ -55,10 +55,10 @@ class _TimedEffector:
         finally:
             self.tick_s += time.perf_counter() - t0
 
-    def command(self, now, paused):
+    def command(self, now, paused, dt=None):
         t0 = time.perf_counter()
         try:
-            return self._command(now, paused)
+            return self._command(now, paused, dt)
         finally:
             self.samples.append((self.tick_s + time.perf_counter() - t0) * 1e3)
             self.tick_s = 0.0

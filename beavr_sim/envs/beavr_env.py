@@ -10,7 +10,7 @@ task success or failure, ``truncated`` the time limit; ``info["is_success"]`` is
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -94,6 +94,11 @@ class BeavrEnv(gym.Env):
         self.task.build(spec)
         self.control_hz = float(control_hz)
         self.n_substeps = max(1, math.ceil(1.0 / (self.control_hz * MAX_PHYSICS_DT)))
+        #: Called (no arguments) after each physics substep of :meth:`step`, or None: the
+        #: event-driven twin takes the commands that arrive meanwhile there, so a control
+        #: period of physics never holds a command up by more than a substep. It must not
+        #: change the env's state (it may read it).
+        self.between_substeps: Callable[[], None] | None = None
         spec.option.timestep = 1.0 / (self.control_hz * self.n_substeps)
         self.model: mujoco.MjModel = spec.compile()
         self.data = mujoco.MjData(self.model)
@@ -180,13 +185,20 @@ class BeavrEnv(gym.Env):
         servo = self._servo
         if servo is not None:
             servo.begin_period(clipped_target[self._servo_index])
-        if servo is None or servo.at_rest:
+        hook = self.between_substeps
+        if hook is None and (servo is None or servo.at_rest):
             mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        elif servo is None or servo.at_rest:
+            for _ in range(self.n_substeps):
+                mujoco.mj_step(self.model, self.data)
+                hook()
         else:
             ctrl, ids = self.data.ctrl, servo.actuator_ids
             for row in servo.period_controls():
                 ctrl[ids] = row
                 mujoco.mj_step(self.model, self.data)
+                if hook is not None:
+                    hook()
         self._elapsed_steps += 1
         self._status = self.task.evaluate(self.model, self.data)
         terminated = bool(self._status.success or self._status.failure)

@@ -337,6 +337,11 @@ class TeleopLoop:
         self.command_hooks: list[Callable] = []
         self._sides = sorted({op.side for op in operator.effectors.values()})
         self._last_command = dict.fromkeys(self._sides, -math.inf)
+        # Real time: what arrived since the last physics step (the next tick's frames, the
+        # newest command per effector, the sides commanded by a frame).
+        self._pending_frames: list = []
+        self._pending_commands: dict[str, JointCommand] = {}
+        self._pending_sides: set[str] = set()
 
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> None:
@@ -407,37 +412,47 @@ class TeleopLoop:
         """Real time: until the physics' next deadline, each hand frame is processed when it
         arrives (validated, observed, its side's effectors commanded, the command guarded and
         written to the twin's actuators, the command hooks called); then the physics steps
-        one control period. A side without a frame in the period is commanded at the step
-        (its holds: waiting, tracking lost, paused)."""
-        used: list = []
-        commands: dict[str, JointCommand] = {}
-        commanded: set[str] = set()
+        one control period, taking the frames that arrive meanwhile between its substeps
+        (they count for the next tick). A side without a frame in the period is commanded at
+        the step (its holds: waiting, tracking lost, paused)."""
         deadline = self.schedule.next
         while deadline is not None:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            self._take_frames(self.source.wait(remaining), used, commands, commanded)
-        self._take_frames(self.source.poll(self.now()), used, commands, commanded)
+            self._take_frames(self.source.wait(remaining))
+        self._take_frames(self.source.poll(self.now()))
         self.schedule.take(time.monotonic())
         now = self.now()
         for side in self._sides:
-            if side not in commanded:
-                self._command_side(side, now, True, commands)
-        state = self.twin.step()
+            if side not in self._pending_sides:
+                self._command_side(side, now, True, self._pending_commands)
+        used, commands = self._pending_frames, self._pending_commands
+        self._pending_frames, self._pending_commands, self._pending_sides = [], {}, set()
+        env = self.twin.env
+        env.between_substeps = self._frames_between_substeps
+        try:
+            state = self.twin.step()
+        finally:
+            env.between_substeps = None
         self.ticks += 1
         tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
         self._notify(tick)
         return tick
 
-    def _take_frames(self, frames, used: list, commands: dict, commanded: set) -> None:
+    def _frames_between_substeps(self) -> None:
+        frames = self.source.poll(self.now())
+        if frames:
+            self._take_frames(frames)
+
+    def _take_frames(self, frames) -> None:
         by_side: dict[str, list] = {}
         ok = True
         for frame in frames:
             self.frames_received += 1
             if self.source.validates or self.validator.check(frame) is None:
                 ok = self._operator_call("observe", self.operator.observe, frame)[0] and ok
-                used.append(frame)
+                self._pending_frames.append(frame)
                 by_side.setdefault(getattr(frame, "side", None), []).append(frame)
         now = self.now()
         for side, frames_of_side in by_side.items():
@@ -445,8 +460,8 @@ class TeleopLoop:
                 continue  # a hand this embodiment does not use (the operator counted it)
             self.frames_superseded += len(frames_of_side) - 1
             self.frame_commands += 1
-            commanded.add(side)
-            self._command_side(side, now, ok, commands)
+            self._pending_sides.add(side)
+            self._command_side(side, now, ok, self._pending_commands)
 
     def _command_side(self, side: str, now: float, ok: bool, commands: dict) -> None:
         """Command ``side``'s effectors now and apply the commands to the twin at once."""

@@ -531,6 +531,54 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     stale: dict[str, int] = {}
     positions = twin.action.copy()  # the twin's measured joints after its last step
     submitted = False  # an action went to the mirror since the last step
+    command_poller = zmq.Poller()
+    for sub in subs.values():
+        command_poller.register(sub.socket, zmq.POLLIN)
+
+    def take_commands() -> None:
+        """Every effector's newest command, guarded, written to the actuators' targets and
+        handed to the mirror at once."""
+        nonlocal submitted
+        applied = {}
+        for name, sub in subs.items():
+            cmd = sub.recv_latest(0.0)
+            if cmd is None:
+                continue
+            if cmd.epoch < epoch:  # computed from the pose before a reset: hold
+                stale[name] = stale.get(name, 0) + 1
+                continue
+            if cmd.hold or not cmd.positions:
+                continue  # holding: keep the last targets
+            applied[name] = JointCommand(
+                effector=name,
+                positions=np.asarray(cmd.positions),
+                t_source=cmd.t_source,
+                t_receive=cmd.t_source,
+            )
+        if not applied:
+            return
+        outcome = twin.command(applied)
+        t_apply = twin.applied_monotonic
+        for name in outcome.accepted:
+            t_source = applied[name].t_source
+            if t_source > 0 and t_source != last_t_source.get(name):
+                latencies.append((t_apply - t_source) * 1e3)
+                last_t_source[name] = t_source
+            if latency_log:
+                applied_log[name].append((t_apply, t_source))
+                in_effect[name] = t_source
+        if mirror is not None:  # the guarded action, the moment it is applied
+            if latency_log:
+                submit_log.append((time.monotonic(), dict(in_effect)))
+            mirror.submit(twin.action.copy(), positions, outcome.blocked)
+            submitted = True
+
+    def between_substeps() -> None:
+        # Commands that arrive while the physics steps are taken between its substeps.
+        if command_poller.poll(0):
+            take_commands()
+
+    env.between_substeps = between_substeps
     try:
         while True:
             remaining = schedule.next - time.monotonic()
@@ -548,39 +596,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
                 mirror.release()
-            # Every effector's newest command, guarded and applied at once.
-            applied = {}
-            for name, sub in subs.items():
-                cmd = sub.recv_latest(0.0)
-                if cmd is None:
-                    continue
-                if cmd.epoch < epoch:  # computed from the pose before a reset: hold
-                    stale[name] = stale.get(name, 0) + 1
-                    continue
-                if cmd.hold or not cmd.positions:
-                    continue  # holding: keep the last targets
-                applied[name] = JointCommand(
-                    effector=name,
-                    positions=np.asarray(cmd.positions),
-                    t_source=cmd.t_source,
-                    t_receive=cmd.t_source,
-                )
-            if applied:
-                outcome = twin.command(applied)
-                t_apply = twin.applied_monotonic
-                for name in outcome.accepted:
-                    t_source = applied[name].t_source
-                    if t_source > 0 and t_source != last_t_source.get(name):
-                        latencies.append((t_apply - t_source) * 1e3)
-                        last_t_source[name] = t_source
-                    if latency_log:
-                        applied_log[name].append((t_apply, t_source))
-                        in_effect[name] = t_source
-                if mirror is not None:  # the guarded action, the moment it is applied
-                    if latency_log:
-                        submit_log.append((time.monotonic(), dict(in_effect)))
-                    mirror.submit(twin.action.copy(), positions, outcome.blocked)
-                    submitted = True
+            take_commands()
             now = time.monotonic()
             if now < schedule.next:
                 continue
