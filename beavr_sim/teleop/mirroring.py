@@ -9,6 +9,11 @@ import sys
 
 from beavr_sim.wire.records import Tick
 
+#: Python's thread switch interval (s) in a process that mirrors: the mirror's writer threads
+#: take the interpreter from the physics within this much, not the default 5 ms (a write
+#: waits for the interpreter, not for a physics step).
+MIRROR_SWITCH_INTERVAL_S = 0.0005
+
 
 def connect_mirror(options, env, closers: list):
     """The rig of ``options`` (a :class:`SessionOptions` or its dict) connected to the env's

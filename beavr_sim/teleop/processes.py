@@ -454,7 +454,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     closers = []
     if options.get("mirror_hardware"):
         from beavr_sim.hardware.device import MirrorError
-        from beavr_sim.teleop.mirroring import connect_mirror
+        from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, connect_mirror
 
         try:
             mirror, q_measured = connect_mirror(options, env, closers)
@@ -465,6 +465,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
             env.close()
             return
         twin.reset(options["seed"], q_measured)  # the twin starts where the robot stands
+        sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)  # see teleop/mirroring.py
         mirror.start(twin.action)
     fixtures = fixtures_to_wire(env)
     subs = {

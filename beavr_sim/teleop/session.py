@@ -606,13 +606,20 @@ def headset_listener(
 
 def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
-    add the mirror as the loop's first listener: it gets every guarded command in the tick the
-    twin applies it."""
-    from beavr_sim.teleop.mirroring import MirrorListener, connect_mirror
+    add the mirror as the loop's first listener and command hook: it gets every guarded
+    command the moment the twin applies it."""
+    from beavr_sim.teleop.mirroring import (
+        MIRROR_SWITCH_INTERVAL_S,
+        MirrorListener,
+        connect_mirror,
+    )
 
     mirror, q_measured = connect_mirror(options, loop.twin.env, closers)
     loop.reset(loop.seed, robot_qpos=q_measured)
     mirror.start(loop.twin.action)
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)
+    closers.append(lambda: sys.setswitchinterval(previous))
     listener = MirrorListener(mirror, loop)
     loop.listeners.insert(0, listener)
     loop.command_hooks.append(listener.on_command)
