@@ -30,10 +30,25 @@ from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
 
 
+class FakeClock:
+    """The mirror's clock for submit spacing, advanced by hand (the writers keep real time)."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+
 class Bench:
     """A PickupBox twin, in-process emulators of its arm and hand, and a mirror of them."""
 
-    def __init__(self, mirror_config: MirrorConfig | None = None, dry_run: bool = False):
+    def __init__(
+        self, mirror_config: MirrorConfig | None = None, dry_run: bool = False, clock=None
+    ):
         self.env = gym.make("beavr_sim/PickupBox-v0").unwrapped
         self.twin = TwinInterface(self.env)
         self.twin.reset(seed=0)
@@ -60,7 +75,13 @@ class Bench:
             mirror_config or MirrorConfig(hand_divergence_rad=2.5),
         )
         self.mirror = HardwareMirror(
-            rig, self.env.embodiment, joints, self.env.model, self.env.control_hz, dry_run=dry_run
+            rig,
+            self.env.embodiment,
+            joints,
+            self.env.model,
+            self.env.control_hz,
+            dry_run=dry_run,
+            clock=clock or time.monotonic,
         )
         q = self.mirror.connect()
         self.twin.reset(seed=0, robot_qpos=q)
@@ -80,11 +101,33 @@ class Bench:
 
     def wait_written(self, timeout: float = 2.0) -> None:
         deadline = time.monotonic() + timeout
+        m = self.mirror
         while time.monotonic() < deadline:
-            if all(link._seq_sent == self.mirror._seq for link in self.mirror.links):
+            if all(link._seq_sent == m._seq for link in m.links):
                 time.sleep(0.05)  # the xArm's interpolated stream finishes
+                break
+            time.sleep(0.002)
+        while time.monotonic() < deadline:  # (a loaded machine: until its last step is out)
+            streaming = [
+                link
+                for link in m.links
+                if link.device.stream_hz and not (m._halted or link.stats.holding)
+            ]
+            if all(
+                np.abs(link._last - m._dispatched[link.index]).max() < 1e-5 for link in streaming
+            ):
                 return
             time.sleep(0.002)
+
+    def submit_at(self, clock: FakeClock, dt: float, action, settle: bool = True) -> np.ndarray:
+        """An event-driven submit ``dt`` of (injected) time after the previous one, straight
+        to the mirror (twin positions = the action); returns the dispatched target."""
+        clock.advance(dt)
+        action = np.asarray(action, dtype=np.float64)
+        self.mirror.submit(action, action)
+        if settle:
+            self.wait_written()
+        return self.mirror._dispatched.copy()
 
     def arm_targets(self) -> np.ndarray:
         return np.array([q for _, q in self.arm.servo_log]).reshape(-1, 7)
@@ -500,7 +543,8 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
             self.paused = paused
 
     mirror, operator = FakeMirror(), FakeOperator()
-    listener = MirrorListener(mirror, SimpleNamespace(operator=operator))
+    loop = SimpleNamespace(operator=operator, twin=SimpleNamespace(action=np.zeros(23)))
+    listener = MirrorListener(mirror, loop)
     state = SimpleNamespace(action=None, positions=None, guard_blocked_effectors=())
     tick = SimpleNamespace(state=state)
     listener(tick)  # the headset gesture
@@ -624,3 +668,127 @@ def test_dry_run_connects_and_reads_but_never_writes():
         bench.close()
     # Closing a dry run holds nothing either.
     assert len(bench.arm.servo_log) == n_servo
+
+
+# ---------------------------------------------------------------- event-driven submits
+@pytest.fixture
+def clocked():
+    clock = FakeClock()
+    # The twin is where the devices are sent (its positions are the submitted actions) but
+    # for catching up, where the devices trail it by design: no divergence hold then.
+    b = Bench(MirrorConfig(arm_divergence_rad=1.0, hand_divergence_rad=2.5), clock=clock)
+    b.submit_at(clock, 1 / 30, b.twin.action)  # the first submit (it stands for a period)
+    yield b, clock
+    b.close()
+
+
+def test_submits_at_90_hz_are_each_written_as_submitted(clocked):
+    bench, clock = clocked
+    n_arm, n_hand = len(bench.arm_targets()), len(bench.hand_goals())
+    target = bench.twin.action.copy()
+    submitted = []
+    for _ in range(12):  # 1.8 rad/s on an arm joint, 2.7 rad/s on a finger: within the caps
+        target[0] += 0.02
+        target[12] += 0.03
+        submitted.append(bench.submit_at(clock, 1 / 90, target))
+        np.testing.assert_array_equal(submitted[-1], target)  # nothing limited
+    submitted = np.array(submitted)
+    arm, hand = bench.arm_targets()[n_arm:], bench.hand_goals()[n_hand:]
+    # One streamed step per command (90 Hz commands, a 100 Hz stream): written at once.
+    np.testing.assert_allclose(arm, submitted[:, :7], atol=1e-5)
+    np.testing.assert_allclose(hand, submitted[:, 7:], atol=np.pi / 4096 + 1e-9)
+    for name, s in bench.mirror.summary().items():
+        assert s["catch_up_steps"] == s["rate_limited"] == 0, name
+        assert s["superseded"] == s["preempted"] == s["errors"] == 0, name
+        assert s["write_latency_ms"]["n"] == 1 + 12, name  # (the fixture's first submit)
+
+
+def test_bunched_submits_are_slowed_to_the_speed_cap(clocked):
+    bench, clock = clocked
+    mirror = bench.mirror
+    vmax = mirror._vmax
+    n_arm = len(bench.arm_targets())
+    target = bench.twin.action.copy()
+    times, dispatched = [clock()], [target.copy()]
+    # A step fine over 11 ms (1.8 rad/s) but not over 0.5 ms (40 rad/s).
+    for dt in (1 / 90, 0.0005):
+        target[0] += 0.02
+        dispatched.append(bench.submit_at(clock, dt, target))
+        times.append(clock())
+    # The second: 1 ms (the floor) of motion at the cap, not the whole step.
+    assert dispatched[-1][0] - dispatched[-2][0] == pytest.approx(vmax[0] * 1e-3, rel=1e-9)
+    assert mirror.summary()["right_arm"]["rate_limited"] == 1
+    # The twin moves on at nearly its top speed: the mirror pays back what it owes at the
+    # cap, never mistaking it for a jump (no slow catch-up).
+    for _ in range(8):
+        target[0] += 0.9 * vmax[0] / 90
+        dispatched.append(bench.submit_at(clock, 1 / 90, target))
+        times.append(clock())
+    dispatched.append(bench.submit_at(clock, 1 / 90, target))
+    times.append(clock())
+    np.testing.assert_array_equal(dispatched[-1], target)  # caught up at the speed cap
+    summary = mirror.summary()["right_arm"]
+    assert summary["catch_up_steps"] == 0 and summary["rate_limited"] >= 2
+    assert summary["superseded"] == 0
+    # No joint moved faster than its cap between consecutive targets, over their submits'
+    # spacing (floored); each was written (the stream's steps between them: at most 90 % of
+    # the xArm's own cap per 10 ms step).
+    written = bench.arm_targets()[n_arm:]
+    dispatched, times = np.array(dispatched), np.array(times)
+    steps = np.abs(np.diff(dispatched, axis=0))
+    allowed = vmax * np.maximum(np.diff(times), 1e-3)[:, None]
+    assert (steps <= allowed * (1 + 1e-9)).all()
+    if summary["preempted"] == 0:  # (else a target is passed by on a loaded machine)
+        for q in dispatched[1:, :7]:
+            assert np.abs(written - q).max(axis=1).min() < 1e-5
+    assert np.abs(np.diff(written, axis=0)).max() <= 0.9 * np.pi / 100 + 1e-5
+
+
+def test_catch_up_speed_is_the_same_at_any_submit_rate(clocked):
+    bench, clock = clocked
+    mirror = bench.mirror
+    home = bench.twin.action.copy()
+    far = home.copy()
+    far[0] += 0.5  # the twin jumped (a reset) while the devices held
+    speed = mirror.rig.mirror.arm_catch_up_speed
+    progress = {}
+    for hz in (90, 30):
+        mirror.estop("test")
+        time.sleep(0.1)
+        assert mirror.summary()["right_arm"]["holding"].startswith("e-stop")
+        mirror.release()
+        start = mirror.links[0]._last[0]  # where the arm holds
+        t0 = clock()
+        for _ in range(round(0.2 * hz)):  # 0.2 s of submits
+            q = bench.submit_at(clock, 1 / hz, far)
+        assert abs(bench.arm_targets()[-1][0] - q[0]) < 1e-5  # written
+        progress[hz] = (q[0] - start) / (clock() - t0)
+    assert progress[90] == pytest.approx(speed, rel=1e-4)
+    assert progress[30] == pytest.approx(speed, rel=1e-4)
+    summary = mirror.summary()["right_arm"]
+    assert summary["catch_up_steps"] == 18 + 6 and summary["rate_limited"] == 0
+
+
+def test_a_newer_target_preempts_a_streamed_interpolation(clocked):
+    bench, clock = clocked
+    home = bench.twin.action.copy()
+    first = home.copy()
+    first[0] += 0.09  # 30 Hz: streamed in 4 steps at 100 Hz (the xArm's cap: 90 % of pi)
+    n_arm = len(bench.arm_targets())
+    bench.submit_at(clock, 1 / 30, first, settle=False)
+    deadline = time.monotonic() + 2.0
+    while len(bench.arm.servo_log) == n_arm and time.monotonic() < deadline:
+        time.sleep(0.0002)
+    second = first.copy()
+    second[2] += 0.02  # 11 ms later, another joint moves too
+    bench.submit_at(clock, 1 / 90, second)
+    arm = bench.arm_targets()[n_arm:]
+    np.testing.assert_allclose(arm[0], home[:7] + (first - home)[:7] / 4, atol=1e-5)
+    # The old stream's remaining steps (joint 3 still) were not all sent: never its end.
+    old = [q for q in arm[1:] if abs(q[2] - home[2]) < 1e-6]
+    assert len(old) < 3
+    assert not any(np.allclose(q, first[:7], atol=1e-5) for q in arm)
+    np.testing.assert_allclose(arm[-1], second[:7], atol=1e-5)
+    summary = bench.mirror.summary()["right_arm"]
+    assert summary["preempted"] == 1 and summary["superseded"] == 0
+    assert summary["write_latency_ms"]["n"] == 1 + 2  # both targets written, each once taken

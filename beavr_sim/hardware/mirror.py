@@ -1,16 +1,25 @@
-"""Hardware mirroring in lockstep: every guarded command the twin applies goes to the devices.
+"""Hardware mirroring, event-driven: every guarded command the twin applies goes to the devices.
 
-The twin's thread calls :meth:`HardwareMirror.submit` once per control tick with the action the
-twin just applied (already past the guard, :mod:`beavr_sim.twin.guard`) and the twin's measured
+The twin's thread calls :meth:`HardwareMirror.submit` with each action the moment it applies
+it (already past the guard, :mod:`beavr_sim.twin.guard`): once per guarded command (one per
+hand frame, at the headset's rate, with its jitter), and once per control period when no
+command came in that period (a heartbeat with the same targets); with the twin's measured
 joints. Each device has its own writer thread (a slow serial bus never slows the twin) that
 sends the newest target and reads the measured joints back. The mirror:
 
 - sends only what the twin's guard accepted: a command the twin refused never reaches a motor
   (the twin holds that effector, and so the device holds);
 - limits every target it sends to the device's speed (:class:`~beavr_sim.twin.guard.GuardConfig`
-  caps) from the last one sent; when the twin is further away than one tick's motion (after a
-  hold, a release, a reset) the device *catches up* at the slower catch-up speed, each
-  intermediate target checked by the mirror's own copy of the guard along its path;
+  caps) over the time since the previous submit (at most one control period, at least
+  :data:`MIN_INTERVAL_S`): commands bunched by scheduling jitter are slowed to the speed cap
+  (``rate_limited``); when the twin is further away than one period's motion (after a hold, a
+  release, a reset) the device *catches up* at the slower catch-up speed, whatever the submit
+  rate, each intermediate target checked by the mirror's own copy of the guard along its path;
+- streams a device that wants a stream (:attr:`~beavr_sim.hardware.device.Device.stream_hz`)
+  each target interpolated from the last one sent over the time that target stands for (one
+  step, sent at once, at 90 Hz commands to a 100 Hz device); a newer target ends the
+  interpolation and goes out at once from where the device was last sent; a target superseded
+  before its first write is never written (``superseded``);
 - holds a device whose measured joints stay further than a threshold from the twin's for longer
   than a window, and every device when no fresh command came within a timeout (a dead operator
   or twin), saying why; resumes (catching up) when commands come again;
@@ -18,6 +27,8 @@ sends the newest target and reads the measured joints back. The mirror:
 - holds every other device when one fails (a vanished serial port, a controller error), and
   refuses to start when a device cannot be reached (:meth:`connect` names it and what to check).
 
+Called once per control period it does what lockstep mirroring did (each step at most one
+period's motion, catch-up at one period's catch-up step, streams over a whole period).
 ``dry_run`` does everything but the final write (the devices are connected and read).
 """
 
@@ -27,7 +38,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +49,14 @@ from beavr_sim.robots.embodiment import Embodiment, JointIndex
 from beavr_sim.twin.guard import CollisionGuard, GuardConfig
 
 log = logging.getLogger(__name__)
+
+#: The shortest time (s) a submit's motion is spread over. Two commands can arrive a fraction
+#: of a millisecond apart (scheduling jitter); with their true spacing the second could barely
+#: move (at a spacing of 0 not at all: the target would freeze until the next heartbeat). One
+#: millisecond of motion at the speed cap is a few mrad, and a streamed device is bounded
+#: further by its writer (each target spread over at least one of its stream intervals, no
+#: step faster than 90 % of the device's own cap).
+MIN_INTERVAL_S = 1e-3
 
 
 @dataclass
@@ -56,6 +75,13 @@ class DeviceStats:
     last_error: str = ""
     #: Targets limited to the catch-up speed.
     catch_up_steps: int = 0
+    #: Targets slowed to the speed cap over the time since the previous submit (bunched
+    #: commands: each within one period's motion, but too fast for their spacing).
+    rate_limited: int = 0
+    #: Dispatched targets never written: a newer one came before the writer took them.
+    superseded: int = 0
+    #: Streamed interpolations cut short by a newer target (which went out at once).
+    preempted: int = 0
     write_latency_ms: list[float] = field(default_factory=list)
     write_times: list[float] = field(default_factory=list)
 
@@ -72,6 +98,9 @@ class DeviceStats:
             "holding": self.holding,
             "last_error": self.last_error,
             "catch_up_steps": self.catch_up_steps,
+            "rate_limited": self.rate_limited,
+            "superseded": self.superseded,
+            "preempted": self.preempted,
             "write_latency_ms": {
                 "p50": float(np.percentile(lat, 50)) if lat.size else None,
                 "p99": float(np.percentile(lat, 99)) if lat.size else None,
@@ -131,16 +160,21 @@ class _Link:
         self.stats.last_error = str(exc)
         self.mirror._device_failed(self, exc)
 
-    def _write(self, q: np.ndarray, t_dispatch: float, now: float) -> None:
+    def _write(
+        self, q: np.ndarray, t_dispatch: float, now: float, seq: int, interval: float
+    ) -> None:
         """Send ``q``; a device that wants a stream gets it interpolated from the last target
-        over one control period, at its rate (the first step leaves at once)."""
+        over ``interval`` (the time since the submit before it, within one stream step and one
+        control period), at its rate: the first step leaves at once, a newer dispatch (``seq``
+        no longer the newest) ends the rest and a hold breaks it off."""
         m = self.mirror
         steps = [q]
         rate = self.device.stream_hz
         if rate and self._last is not None:
-            # One control period of steps at the device's rate, more if a step would pass
+            # The command's interval in steps at the device's rate, more if a step would pass
             # the device's own speed cap (90 % of it per step).
-            n = max(1, round(m._period * rate))
+            interval = min(max(interval, 1.0 / rate), m._period)
+            n = max(1, round(interval * rate))
             if self.device.max_velocity:
                 largest = float(np.max(np.abs(q - self._last), initial=0.0))
                 n = max(n, math.ceil(largest / (0.9 * self.device.max_velocity / rate)))
@@ -148,9 +182,17 @@ class _Link:
         start = time.perf_counter()
         for k, step in enumerate(steps):
             if k:
-                time.sleep(max(0.0, start + k / rate - time.perf_counter()))
-                if m._halted or m._stopping.is_set():
+                with m._cond:  # sleep to the next step; a new dispatch or a hold wakes us
+                    m._cond.wait_for(
+                        lambda: m._seq != seq or bool(m._halted) or m._stopping.is_set(),
+                        timeout=max(0.0, start + k / rate - time.perf_counter()),
+                    )
+                    halted, newer = m._halted or m._stopping.is_set(), m._seq != seq
+                if halted:
                     break  # a hold takes over from here
+                if newer:
+                    self.stats.preempted += 1
+                    break  # the newer target goes out at once, from the last one sent
             if not m.dry_run:
                 self._last = self.device.send_positions(step)
                 self.stats.commands_sent += 1
@@ -170,6 +212,7 @@ class _Link:
                     lambda: m._seq != self._seq_sent or m._stopping.is_set(), timeout=m._period
                 )
                 seq, target, t_dispatch = m._seq, m._dispatched, m._t_dispatch
+                interval = m._interval
                 twin = m._twin_positions
                 halted = m._halted
                 t_submit = m._t_submit
@@ -190,10 +233,11 @@ class _Link:
                 continue
             if seq == self._seq_sent:
                 continue
+            self.stats.superseded += max(0, seq - self._seq_sent - 1)
             self._seq_sent = seq
             q = target[self.index]
             try:
-                self._write(q, t_dispatch, now)
+                self._write(q, t_dispatch, now, seq, interval)
                 measured = self.device.read_positions()
                 self.measured = measured
             except Exception as exc:  # a writer never dies silently: the device fails
@@ -231,12 +275,16 @@ class HardwareMirror:
         *,
         guard: GuardConfig | None = None,
         dry_run: bool = False,
+        clock: Callable[[], float] = time.monotonic,
     ):
+        """``clock``: monotonic seconds, the time between submits is measured with (tests
+        inject one)."""
         rig.check_embodiment(embodiment)
         self.rig = rig
         self.joints = joints
         self.dry_run = bool(dry_run)
         self._period = 1.0 / control_hz
+        self._clock = clock
         guard_config = guard or GuardConfig()
         # The mirror's own guard checks the targets it makes itself (catching up).
         self.guard = CollisionGuard(model, embodiment, joints, guard_config, dt=self._period)
@@ -256,6 +304,7 @@ class HardwareMirror:
         for link in self.links:  # no faster than a device's own cap
             if link.device.max_velocity:
                 vmax[link.index] = np.minimum(vmax[link.index], link.device.max_velocity)
+        self._vmax = vmax
         self._step_cap = vmax * self._period
         hand = self.guard.hand_joints
         self._catch_up_cap = (
@@ -268,6 +317,14 @@ class HardwareMirror:
         self._dispatched: np.ndarray | None = None
         self._t_dispatch = 0.0
         self._t_submit = time.monotonic()
+        #: The time (``clock``) of the previous submit (none yet: the first stands for a whole
+        #: period), and the time the dispatched target stands for (since the submit before
+        #: it, within [0, period]).
+        self._t_previous = -math.inf
+        self._interval = self._period
+        #: What the last submit left of its action because of the rate limit (action - target;
+        #: zero after a catch-up): distance the mirror still owes, not a jump of the twin.
+        self._owed = np.zeros(joints.size)
         self._twin_positions = joints.home.astype(np.float64).copy()
         self._halted = ""  # why every device holds ("" = none)
         self._estop = False
@@ -309,6 +366,8 @@ class HardwareMirror:
         self._dispatched = np.asarray(q_start, dtype=np.float64).copy()
         self._twin_positions = self._dispatched.copy()
         self._t_submit = time.monotonic()
+        self._t_previous = -math.inf
+        self._owed = np.zeros_like(self._dispatched)
         self.guard.reset()
         for link in self.links:
             link._last = self._dispatched[link.index].copy()
@@ -331,24 +390,33 @@ class HardwareMirror:
             link.device.disconnect()
             link.stats.connected = False
 
-    # ------------------------------------------------------------------ per tick
+    # ------------------------------------------------------------------ per command
     def submit(
         self, action: np.ndarray, twin_positions: np.ndarray, refused: Sequence[str] = ()
     ) -> None:
-        """The twin applied ``action`` this tick (past its guard); its joints are
-        ``twin_positions``; ``refused``: effectors whose command the guard refused."""
+        """The twin applied ``action`` (past its guard): a guarded command, or the period's
+        heartbeat; its joints are ``twin_positions``; ``refused``: effectors whose command
+        the guard refused."""
         if self._dispatched is None:
             raise RuntimeError("HardwareMirror.submit before start()")
-        action = np.asarray(action, dtype=np.float64)
+        action = np.array(action, dtype=np.float64)  # a copy: the caller may reuse its array
+        t = self._clock()
+        dt = min(max(t - self._t_previous, 0.0), self._period)
+        self._t_previous = t
         previous = self._dispatched.copy()
+        owed = self._owed.copy()
         for link in self.links:  # a holding device is where it was held, not where we sent
             if (self._halted or link.stats.holding) and link._last is not None:
                 previous[link.index] = link._last
+                owed[link.index] = 0.0
         step = action - previous
         target = action
-        if (np.abs(step) > self._step_cap * (1 + 1e-9)).any():
-            # Further than one tick of motion: catch up slowly, guarded.
-            target = previous + np.clip(step, -self._catch_up_cap, self._catch_up_cap)
+        if (np.abs(step - owed) > self._step_cap * (1 + 1e-9)).any():
+            # The twin is further than one period of motion away (not counting what the rate
+            # limit still owes): catch up slowly, at the same speed whatever the submit rate,
+            # guarded.
+            cap = self._catch_up_cap * (max(dt, MIN_INTERVAL_S) / self._period)
+            target = previous + np.clip(step, -cap, cap)
             verdict = self.guard.check(target, self._qpos, previous)
             if not verdict.ok:
                 for name in verdict.blocked:
@@ -358,11 +426,27 @@ class HardwareMirror:
             for link in self.links:
                 if (target[link.index] != action[link.index]).any():
                     link.stats.catch_up_steps += 1
+            self._owed = np.zeros_like(action)
+        else:
+            # Within a period's motion, but no faster than the speed cap over the time since
+            # the last submit: a device's step is shortened along its direction (its target
+            # stays on the line to the guarded action); the rest is owed, not a jump.
+            limit = self._vmax * max(dt, MIN_INTERVAL_S)
+            for link in self.links:
+                i = link.index
+                ratio = float(np.max(np.abs(step[i]) / limit[i], initial=0.0))
+                if ratio > 1 + 1e-9:
+                    if target is action:
+                        target = action.copy()
+                    target[i] = previous[i] + step[i] / ratio
+                    link.stats.rate_limited += 1
+            self._owed = action - target
         for link, effector in zip(self.links, self._link_effector, strict=True):
             if effector in refused:
                 link.stats.commands_refused += 1
         with self._cond:
             self._dispatched = target
+            self._interval = dt
             self._twin_positions = np.asarray(twin_positions, dtype=np.float64).copy()
             self._t_dispatch = time.perf_counter()
             self._t_submit = time.monotonic()
