@@ -50,6 +50,9 @@ class Bench:
         self, mirror_config: MirrorConfig | None = None, dry_run: bool = False, clock=None
     ):
         self.env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+        # Without a clock of the test's own, each step() stands for exactly one control period
+        # (lockstep), however fast or slow this machine runs the test.
+        self._lockstep_clock = FakeClock() if clock is None else None
         self.twin = TwinInterface(self.env)
         self.twin.reset(seed=0)
         joints = self.env.joints
@@ -81,7 +84,7 @@ class Bench:
             self.env.model,
             self.env.control_hz,
             dry_run=dry_run,
-            clock=clock or time.monotonic,
+            clock=clock or self._lockstep_clock,
         )
         q = self.mirror.connect()
         self.twin.reset(seed=0, robot_qpos=q)
@@ -93,6 +96,8 @@ class Bench:
         state = self.twin.apply(
             {"right": JointCommand("right", np.asarray(positions), t_source=0.0, t_receive=0.0)}
         )
+        if self._lockstep_clock is not None:
+            self._lockstep_clock.advance(1.0 / self.env.control_hz)
         self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
         self.accepted.append(state.action.copy())
         if settle:
