@@ -308,6 +308,9 @@ def analyse(
                 twin_ms.append((t_apply - sends[i]) * 1e3)
                 det_ms.append((t_source - sends[i]) * 1e3)
                 rest_ms.append((t_apply - t_source) * 1e3)
+        # Where the time goes between the detector's stamp and the twin's actuators (the
+        # twin's stage log: detector stamp, operator's command start, twin took it, applied).
+        stages = [st for st in log.get("stages", {}).get(name, []) if lo <= st[3] <= hi]
         effectors[name] = {
             "side": side,
             "target_hz": float(headset_hz),
@@ -319,6 +322,11 @@ def analyse(
             "latency_twin_ms": _stats(twin_ms),
             "send_to_detector_ms": _stats(det_ms),
             "detector_to_twin_ms": _stats(rest_ms),
+            "stages_ms": {
+                "detector_to_operator_command": _stats([(c - d) * 1e3 for d, c, _, _ in stages]),
+                "operator_command_to_twin": _stats([(k - c) * 1e3 for _, c, k, _ in stages]),
+                "twin_guard_and_apply": _stats([(a - k) * 1e3 for _, _, k, a in stages]),
+            },
             "_samples": twin_ms,
         }
     submits = log.get("submits", [])
@@ -829,6 +837,14 @@ def table(result: dict) -> str:
         lines.append(
             _row(f"{name}:  send->detector", None, None, None, d["send_to_detector_ms"], None)
         )
+        for stage, label in (
+            ("detector_to_operator_command", "  detector->operator"),
+            ("operator_command_to_twin", "  operator->twin"),
+            ("twin_guard_and_apply", "  twin guard+apply"),
+        ):
+            stats = d.get("stages_ms", {}).get(stage)
+            if stats and stats["n"]:
+                lines.append(_row(f"{name}:{label}", None, None, None, stats, None))
     for name, d in r["devices"].items():
         lines.append(
             _row(

@@ -125,8 +125,9 @@ class _Link:
         self._diverged_since: float | None = None
         self._held = False
         self._last: np.ndarray | None = None  # the last target sent
-        #: The device's joints as last read by its writer thread.
+        #: The device's joints as last read by its writer thread (once per control period).
         self.measured: np.ndarray | None = None
+        self._t_read = -math.inf
         self._thread: threading.Thread | None = None
 
     @property
@@ -238,13 +239,19 @@ class _Link:
             q = target[self.index]
             try:
                 self._write(q, t_dispatch, now, seq, interval)
-                measured = self.device.read_positions()
-                self.measured = measured
+                # Read back once per control period, not after every write: commands come
+                # at the headset's rate, the divergence watch needs no more, and a read is a
+                # bus round trip the next write would wait behind.
+                measured = None
+                if time.monotonic() - self._t_read >= 0.9 * m._period:
+                    measured = self.device.read_positions()
+                    self._t_read = time.monotonic()
+                    self.measured = measured
             except Exception as exc:  # a writer never dies silently: the device fails
                 log.exception("%s: write failed", self.name)
                 self._fail(exc if isinstance(exc, DeviceError) else DeviceError(repr(exc)))
                 continue
-            if m.dry_run:
+            if m.dry_run or measured is None:
                 continue
             gap = np.abs(measured - twin[self.index])
             divergence = float(np.max(gap))

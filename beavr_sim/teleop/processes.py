@@ -526,6 +526,9 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     # action handed to the hardware mirror, (t_submit, {effector: t_source in effect}).
     latency_log = options.get("latency_log")
     applied_log: dict[str, list] = {e.name: [] for e in env.embodiment.effectors}
+    # and per command applied: (detector's stamp, operator's command time, twin took it,
+    # applied), to say where the time goes
+    stage_log: dict[str, list] = {e.name: [] for e in env.embodiment.effectors}
     submit_log: list = []
     in_effect: dict[str, float] = {}
     epoch = 0  # resets done: stamped on every state; commands of an older epoch are dropped
@@ -540,7 +543,8 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         """Every effector's newest command, guarded, written to the actuators' targets and
         handed to the mirror at once."""
         nonlocal submitted
-        applied = {}
+        t_take = time.monotonic()
+        applied, t_command = {}, {}
         for name, sub in subs.items():
             cmd = sub.recv_latest(0.0)
             if cmd is None:
@@ -556,6 +560,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 t_source=cmd.t_source,
                 t_receive=cmd.t_source,
             )
+            t_command[name] = cmd.t_command
         if not applied:
             return
         outcome = twin.command(applied)
@@ -567,6 +572,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 last_t_source[name] = t_source
             if latency_log:
                 applied_log[name].append((t_apply, t_source))
+                stage_log[name].append((t_source, t_command[name], t_take, t_apply))
                 in_effect[name] = t_source
         if mirror is not None:  # the guarded action, the moment it is applied
             if latency_log:
@@ -645,7 +651,9 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
             mirror.close()
             hardware = mirror.summary()
         if latency_log:
-            _write_latency_log(latency_log, env.control_hz, applied_log, submit_log, mirror)
+            _write_latency_log(
+                latency_log, env.control_hz, applied_log, submit_log, mirror, stage_log
+            )
         for close in reversed(closers):
             close()
         conn.send_bytes(
@@ -685,7 +693,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         context.term()
 
 
-def _write_latency_log(path, control_hz, applied_log, submit_log, mirror) -> None:
+def _write_latency_log(path, control_hz, applied_log, submit_log, mirror, stage_log) -> None:
     """The twin's timing log (``options["latency_log"]``) as JSON: see ``bench/latency.py``."""
     links = []
     if mirror is not None:
@@ -705,6 +713,7 @@ def _write_latency_log(path, control_hz, applied_log, submit_log, mirror) -> Non
             {
                 "control_hz": control_hz,
                 "applied": applied_log,
+                "stages": stage_log,
                 "submits": submit_log,
                 "links": links,
             },
