@@ -310,7 +310,11 @@ def analyse(
                 rest_ms.append((t_apply - t_source) * 1e3)
         # Where the time goes between the detector's stamp and the twin's actuators (the
         # twin's stage log: detector stamp, operator's command start, twin took it, applied).
-        stages = [st for st in log.get("stages", {}).get(name, []) if lo <= st[3] <= hi]
+        stages, prev_stamp = [], None
+        for st in log.get("stages", {}).get(name, []):
+            if st[0] != prev_stamp and lo <= st[3] <= hi:  # a frame's first command only
+                stages.append(st)
+            prev_stamp = st[0]
         effectors[name] = {
             "side": side,
             "target_hz": float(headset_hz),

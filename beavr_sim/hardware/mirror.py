@@ -82,6 +82,9 @@ class DeviceStats:
     superseded: int = 0
     #: Streamed interpolations cut short by a newer target (which went out at once).
     preempted: int = 0
+    #: Dispatches not written because this device's target had not changed (another
+    #: device's command) and it was written within the last control period.
+    unchanged: int = 0
     write_latency_ms: list[float] = field(default_factory=list)
     write_times: list[float] = field(default_factory=list)
 
@@ -101,6 +104,7 @@ class DeviceStats:
             "rate_limited": self.rate_limited,
             "superseded": self.superseded,
             "preempted": self.preempted,
+            "unchanged": self.unchanged,
             "write_latency_ms": {
                 "p50": float(np.percentile(lat, 50)) if lat.size else None,
                 "p99": float(np.percentile(lat, 99)) if lat.size else None,
@@ -128,6 +132,7 @@ class _Link:
         #: The device's joints as last read by its writer thread (once per control period).
         self.measured: np.ndarray | None = None
         self._t_read = -math.inf
+        self._t_write = -math.inf  # when a target last went out
         self._thread: threading.Thread | None = None
 
     @property
@@ -200,6 +205,7 @@ class _Link:
             else:
                 self._last = np.asarray(step, dtype=np.float64)
             if k == 0:
+                self._t_write = time.monotonic()
                 self.stats.write_latency_ms.append((time.perf_counter() - t_dispatch) * 1e3)
                 self.stats.write_times.append(now)
                 self._held = False
@@ -237,6 +243,16 @@ class _Link:
             self.stats.superseded += max(0, seq - self._seq_sent - 1)
             self._seq_sent = seq
             q = target[self.index]
+            if (
+                self._last is not None
+                and not self._held
+                and now - self._t_write < 0.9 * m._period
+                and np.array_equal(q, self._last)
+            ):
+                # Unchanged (a command for another device): nothing to send; the same
+                # target still goes out once per control period.
+                self.stats.unchanged += 1
+                continue
             try:
                 self._write(q, t_dispatch, now, seq, interval)
                 # Read back once per control period, not after every write: commands come

@@ -62,6 +62,10 @@ PROCESS_NAMES = ("detector", "operator", "twin")
 #: Seconds without a message after which a stream's producer counts as dead.
 LIVENESS_TIMEOUT_S = 0.5
 HANDSHAKE_TIMEOUT_S = 10.0
+#: A side without a hand frame for this many control periods is commanded on the clock (its
+#: holds). More than one: a 30 Hz headset's frames come a period apart, with jitter, and a
+#: clock command just before each would repeat the last frame's.
+CLOCK_COMMAND_AFTER = 1.5
 #: The detector blocks on its sources at most this long (s) before it looks for a stop.
 DETECTOR_WAKE_S = 0.02
 
@@ -206,8 +210,8 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     frames_commanded = dict.fromkeys(sides, 0)
     clock_commands = dict.fromkeys(sides, 0)
     # Each side's effectors are commanded when its hand frame arrives; a side without a
-    # frame for a control period is commanded on the clock (holds: tracking lost, paused,
-    # waiting), so the twin and the hardware always hear from the operator.
+    # frame for CLOCK_COMMAND_AFTER control periods is commanded on the clock (holds:
+    # tracking lost, paused, waiting), so the twin always hears from the operator.
     last_command = dict.fromkeys(sides, time.monotonic())
     poller = zmq.Poller()
     for sub in (*hands.values(), state, session):
@@ -270,7 +274,7 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
 
     try:
         while True:
-            due = min(last_command.values()) + dt
+            due = min(last_command.values()) + CLOCK_COMMAND_AFTER * dt
             poller.poll(max(0, math.ceil((due - time.monotonic()) * 1000)))
             msg = session.recv(0.0)
             if msg is not None:
@@ -300,8 +304,8 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                 compute_ms.append((time.perf_counter() - t0) * 1e3)
             now = time.monotonic()
             for side in sides:
-                if now - last_command[side] >= dt:
-                    if now - last_command[side] > 1.1 * dt:
+                if now - last_command[side] >= CLOCK_COMMAND_AFTER * dt:
+                    if now - last_command[side] > 1.1 * CLOCK_COMMAND_AFTER * dt:
                         overruns += 1
                     clock_commands[side] += 1
                     command_side(side, True)
