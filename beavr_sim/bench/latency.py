@@ -2,7 +2,7 @@
 measured as the BEAVR paper's Table V (issue 20).
 
 A load generator process speaks the BEAVR Quest app's wire protocol: it PUSHes keypoint
-strings (``format_keypoints`` of a bundled human-hand trace, looped at real speed) to the
+strings (``format_keypoints`` of a bundled human-hand trace, played forwards and backwards at real speed) to the
 detector's Quest PULL ports at the headset rate, one per hand the embodiment uses, and the
 pause status ``High`` with each app frame. The pipeline under test is the ``--multiprocess``
 runner as it is (detector, operator and twin processes over loopback ZeroMQ), mirroring to the
@@ -166,7 +166,10 @@ def generator_main(
         delay = t_due - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-        trace_t = ((time.monotonic() - start) % duration) if duration > 0 else 0.0
+        # Played forwards, then backwards, and so on: the hand never jumps back to the
+        # recording's start (the operator would reject the jump and hold: a gap in the rate).
+        phase = ((time.monotonic() - start) % (2 * duration)) if duration > 0 else 0.0
+        trace_t = phase if phase <= duration else 2 * duration - phase
         for side, (times, data) in payloads.items():
             i = min(int(np.searchsorted(times, trace_t, side="right")) - 1, len(data) - 1)
             payload = data[max(0, i)]
@@ -628,6 +631,8 @@ def run(
         **figures,
         "floor": floor,
         "twin_latency_ms_own": session.results.get("twin", {}).get("latency_ms"),
+        # commands that held (not applied, so not in the rates): effector -> reason -> n
+        "operator_holds": session.results.get("operator", {}).get("holds", {}),
         "beavr_table_v": BEAVR_TABLE_V,
         "machine": {"cpus": os.cpu_count(), "platform": sys.platform},
     }
@@ -818,12 +823,13 @@ def table(result: dict) -> str:
     fr = r["frames"]
     lines = [
         f"latency, config {r['config']}: {r['embodiment']} ({r['task']}), headset "
-        f"{r['headset_hz']:g} Hz (= target rate), operator {r['operator_hz']:g} Hz, twin "
+        f"{r['headset_hz']:g} Hz (= target rate), a command per frame, twin physics "
         f"{r['control_hz']:g} Hz, {r['seconds']:g} s, mirroring "
         f"{'emulated' if r['mirror_hardware'] else 'off'}",
         f"frames sent {fr['sent']}, received {fr['received']}, dropped {fr['dropped']}, "
         f"passed on {fr['passed_on']}, superseded {fr['superseded_total']} (detector "
         f"{fr['superseded']}, operator {fr['superseded_operator']}), rejected {fr['rejected']}",
+        f"operator holds (commands not applied, not in the rates): {r.get('operator_holds', {})}",
         _HEADER,
     ]
     for name, d in r["effectors"].items():
