@@ -50,7 +50,7 @@ def test_a_90_hz_quest_stream_gets_a_command_per_frame_in_one_process(quest_push
     )
     loop = build_loop(options, context)
     applied: list[float] = []  # when each command reached the twin's actuators
-    loop.command_hooks.append(lambda outcome: applied.append(loop.twin.applied_monotonic))
+    loop.command_hooks.append(lambda outcome, cmds: applied.append(loop.twin.applied_monotonic))
     push = quest_push(context, transport)
     time.sleep(0.2)  # connected before the first frame
     sent: list[float] = []

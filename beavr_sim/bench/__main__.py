@@ -77,6 +77,13 @@ def main(argv: list[str] | None = None) -> int:
         help="latency: without mirroring to the emulated hardware",
     )
     parser.add_argument(
+        "--layout",
+        choices=("processes", "single"),
+        default="processes",
+        help="latency: the --multiprocess runner (detector, operator, twin processes; default) "
+        "or the single-process runner (python -m beavr_sim.teleop's default)",
+    )
+    parser.add_argument(
         "--sweep",
         action="store_true",
         help="latency: 1, 2, 4 and 8 hand effectors at 90 Hz (concurrent sessions sharing this "
@@ -188,8 +195,13 @@ def _latency(args) -> int:
         report = latency.sweep_table
     else:
         if not args.json:
-            print(f"benchmarking latency, config {args.config} ({seconds:g} s)...", file=sys.stderr)
-        result = latency.run(args.config, seconds, mirror=not args.no_mirror, samples=samples)
+            print(
+                f"benchmarking latency, config {args.config}, {args.layout} ({seconds:g} s)...",
+                file=sys.stderr,
+            )
+        result = latency.run(
+            args.config, seconds, mirror=not args.no_mirror, samples=samples, layout=args.layout
+        )
         report = latency.table
     if args.plot is not None:
         from beavr_sim.bench.plots import write_latency

@@ -453,9 +453,12 @@ class LiveSession:
     sent: dict = field(default_factory=dict)
     died: list = field(default_factory=list)
     log: dict | None = None
+    layout: str = "processes"
 
 
-def prepare(embodiment: str, task: str, rate_hz: float, mirror: bool) -> LiveSession:
+def prepare(
+    embodiment: str, task: str, rate_hz: float, mirror: bool, layout: str = "processes"
+) -> LiveSession:
     """The stream for ``embodiment`` (payloads cached per embodiment and task)."""
     from beavr_sim.robots import make_embodiment
 
@@ -465,7 +468,11 @@ def prepare(embodiment: str, task: str, rate_hz: float, mirror: bool) -> LiveSes
     if key not in _PAYLOADS:
         _PAYLOADS[key] = _hand_payloads(embodiment, task, streams)
     payloads, duration = _PAYLOADS[key]
-    return LiveSession(embodiment, task, rate_hz, mirror, effectors, streams, payloads, duration)
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
+    return LiveSession(
+        embodiment, task, rate_hz, mirror, effectors, streams, payloads, duration, layout=layout
+    )
 
 
 def _max_payload(lives) -> bytes:
@@ -486,15 +493,18 @@ def start_session(live: LiveSession) -> None:
         viser=False,
         headless=True,
         progress=False,
-        multiprocess=True,
+        multiprocess=live.layout == "processes",
         transport=live.transport,
         mirror_hardware=live.mirror,
         hardware_config="emulated" if live.mirror else None,
     )
-    session = MultiprocessSession(options)
     fd, live.log_path = tempfile.mkstemp(prefix="beavr_latency_", suffix=".json")
     os.close(fd)
-    session.options["latency_log"] = live.log_path
+    if live.layout == "single":
+        session = SingleProcessSession(options, live.log_path)
+    else:
+        session = MultiprocessSession(options)
+        session.options["latency_log"] = live.log_path
     t_start = time.monotonic()
     try:
         session.start()
@@ -504,6 +514,110 @@ def start_session(live: LiveSession) -> None:
         raise
     live.startup_s = time.monotonic() - t_start
     live.session = session
+
+
+#: Process layouts the harness measures: the ``--multiprocess`` runner (detector, operator
+#: and twin processes), or the single-process runner (``python -m beavr_sim.teleop``'s
+#: default: the Quest sockets, operator, twin and mirror in one process).
+LAYOUTS = ("processes", "single")
+
+
+def single_process_main(options, log_path: str, conn) -> None:
+    """The single-process runner (own process, as ``python -m beavr_sim.teleop`` runs it
+    without ``--multiprocess``) with the twin's timing log of the multiprocess runner:
+    ``applied`` (t_apply, t_source) per command applied, ``submits`` per command handed to
+    the mirror, ``links``; runs until the pipe says stop, then sends its counters."""
+    import zmq
+
+    from beavr_sim.teleop.processes import _write_latency_log
+    from beavr_sim.teleop.session import build_loop, start_mirror
+
+    context = zmq.Context()
+    closers: list = []
+    loop = build_loop(options, context)
+    mirror = start_mirror(options, loop, closers) if options.mirror_hardware else None
+    applied: dict[str, list] = {name: [] for name in loop.operator.effectors}
+    submits: list = []
+    in_effect: dict[str, float] = {}
+
+    def log_command(outcome, commands) -> None:  # after the mirror's hook: it was submitted
+        t_apply = loop.twin.applied_monotonic
+        for name in outcome.accepted:
+            t_source = float(commands[name].t_source)
+            applied[name].append((t_apply, t_source))
+            in_effect[name] = t_source
+        if mirror is not None:
+            submits.append((time.monotonic(), dict(in_effect)))
+
+    loop.command_hooks.append(log_command)
+    conn.send_bytes(b"ready")
+    summary = None
+    try:
+        summary = loop.run(stop_on_success=False, stop_when=lambda: conn.poll(0.0))
+    finally:
+        if mirror is not None:
+            mirror.close()
+        _write_latency_log(
+            log_path, loop.twin.env.control_hz, applied, submits, mirror, {n: [] for n in applied}
+        )
+        receiver = loop.source.receiver
+        results = {
+            "detector": {
+                "frames_received": loop.frames_received,
+                "frames_rejected": loop.validator.rejected + sum(receiver.rejected.values()),
+                "quest_received": dict(receiver.received),
+                "frames_superseded": dict(receiver.superseded),
+            },
+            "operator": {
+                "frames_superseded": dict(loop.superseded_by_side),
+                "holds": summary.holds if summary is not None else {},
+            },
+            "twin": {"latency_ms": summary.latency_ms if summary is not None else None},
+        }
+        for close in reversed(closers):
+            close()
+        loop.source.close()
+        loop.twin.env.close()
+        context.term()
+        conn.send_bytes(json.dumps(results).encode())
+
+
+class SingleProcessSession:
+    """:func:`single_process_main` in its own process, with the supervisor interface the
+    harness uses (``start``, ``dead``, ``stop``, ``results``, ``options``, ``exits``)."""
+
+    def __init__(self, options, log_path: str):
+        self.options = {"control_hz": 30.0}
+        self.results: dict = {}
+        self.exits: dict = {}
+        ctx = mp.get_context("spawn")
+        self._pipe, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=single_process_main, args=(options, log_path, child), name="teleop"
+        )
+
+    def start(self) -> None:
+        self._proc.start()
+        if not self._pipe.poll(120.0) or self._pipe.recv_bytes() != b"ready":
+            self.stop()
+            raise RuntimeError("the single-process runner did not become ready")
+
+    def dead(self) -> list[str]:
+        return [] if self._proc.is_alive() else ["teleop"]
+
+    def stop(self) -> None:
+        if self._proc.is_alive():
+            self._pipe.send_bytes(b"stop")
+        if self._pipe.poll(20.0):
+            try:
+                self.results = json.loads(self._pipe.recv_bytes())
+            except (EOFError, ValueError):
+                pass
+        self._proc.join(10.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(1.0)
+        self.exits = {"teleop": self._proc.exitcode}
 
 
 def drive(lives: list[LiveSession], seconds: float) -> None:
@@ -594,10 +708,12 @@ def run(
     mirror: bool = True,
     floor_seconds: float | None = None,
     samples: dict | None = None,
+    layout: str = "processes",
 ) -> dict:
-    """Measure configuration ``config`` for ``seconds`` of stream; the result dict."""
+    """Measure configuration ``config`` for ``seconds`` of stream in process ``layout`` (one
+    of :data:`LAYOUTS`); the result dict."""
     embodiment, rate_hz, task = CONFIGS[config]
-    live = prepare(embodiment, task, rate_hz, mirror)
+    live = prepare(embodiment, task, rate_hz, mirror, layout)
     # The floor first, on the same machine with nothing of ours running (run after the
     # pipeline it catches the processes' shutdown).
     floor = transport_floor(_max_payload([live]), rate_hz, floor_seconds or min(seconds, 5.0))
@@ -615,6 +731,7 @@ def run(
     return {
         "benchmark": "latency",
         "config": config,
+        "layout": layout,
         "embodiment": embodiment,
         "task": task,
         "headset_hz": rate_hz,
@@ -822,7 +939,8 @@ def table(result: dict) -> str:
     r = result
     fr = r["frames"]
     lines = [
-        f"latency, config {r['config']}: {r['embodiment']} ({r['task']}), headset "
+        f"latency, config {r['config']} ({r.get('layout', 'processes')}): {r['embodiment']} "
+        f"({r['task']}), headset "
         f"{r['headset_hz']:g} Hz (= target rate), a command per frame, twin physics "
         f"{r['control_hz']:g} Hz, {r['seconds']:g} s, mirroring "
         f"{'emulated' if r['mirror_hardware'] else 'off'}",

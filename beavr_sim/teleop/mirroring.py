@@ -62,7 +62,7 @@ class MirrorListener:
         self._positions = loop.twin.action.copy()  # the twin's joints after its last step
         self._submitted = False  # since the last tick
 
-    def on_command(self, outcome) -> None:
+    def on_command(self, outcome, commands=None) -> None:
         self.mirror.submit(self.loop.twin.action.copy(), self._positions, outcome.blocked)
         self._submitted = True
 

@@ -327,13 +327,16 @@ class TeleopLoop:
         #: How many times the loop was reset (a reset during :meth:`run` starts the wait for
         #: the end of the source over).
         self.resets = 0
-        #: Valid frames replaced by a newer one of the same hand before a command used them.
+        #: Valid frames replaced by a newer one of the same hand before a command used them
+        #: (in all, and per hand).
         self.frames_superseded = 0
+        self.superseded_by_side: dict[str, int] = {}
         #: Real time: commands made for a hand frame on its arrival (one per side and frame,
         #: or per the newest of frames that arrived together).
         self.frame_commands = 0
-        #: Called with each :class:`~beavr_sim.twin.twin.CommandOutcome` the moment the twin
-        #: applied it (real time: a command per hand frame), e.g. the hardware mirror.
+        #: Called with each :class:`~beavr_sim.twin.twin.CommandOutcome` and the commands
+        #: (effector -> JointCommand) the moment the twin applied them (real time: a command
+        #: per hand frame), e.g. the hardware mirror.
         self.command_hooks: list[Callable] = []
         self._sides = sorted({op.side for op in operator.effectors.values()})
         self._last_command = dict.fromkeys(self._sides, -math.inf)
@@ -459,6 +462,9 @@ class TeleopLoop:
             if side not in self._last_command:
                 continue  # a hand this embodiment does not use (the operator counted it)
             self.frames_superseded += len(frames_of_side) - 1
+            self.superseded_by_side[side] = (
+                self.superseded_by_side.get(side, 0) + len(frames_of_side) - 1
+            )
             self.frame_commands += 1
             self._pending_sides.add(side)
             self._command_side(side, now, ok, self._pending_commands)
@@ -491,7 +497,7 @@ class TeleopLoop:
         commands.update(out)
         for hook in self.command_hooks:
             try:
-                hook(outcome)
+                hook(outcome, out)
             except StopTeleop:
                 raise
             except Exception as exc:
