@@ -118,6 +118,7 @@ def test_a_90_hz_quest_stream_gets_a_command_per_frame_across_processes(quest_pu
     # the twin applied (nearly) every one of them: more commands than its 30 Hz steps
     assert twin["commands_applied"] >= 0.8 * N_FRAMES, twin
     assert twin["latency_ms"]["p50"] < 1000 / 30, twin["latency_ms"]
+    assert session.summary().frames_superseded == superseded
 
 
 # ---------------------------------------------------------------------------- twin

@@ -211,6 +211,18 @@ class _Link:
                 self._held = False
                 self.stats.holding = ""
 
+    def _read_when_idle(self, m: HardwareMirror) -> None:
+        """No new target for a control period: read the joints back (the writes read at most
+        once a period, so the last one may not have been read)."""
+        if time.monotonic() - self._t_read < m._period:
+            return
+        try:
+            self.measured = self.device.read_positions()
+        except Exception as exc:  # a reader never dies silently: the device fails
+            log.exception("%s: read failed", self.name)
+            self._fail(exc if isinstance(exc, DeviceError) else DeviceError(repr(exc)))
+        self._t_read = time.monotonic()
+
     def _run(self) -> None:
         m = self.mirror
         while not m._stopping.is_set():
@@ -239,6 +251,7 @@ class _Link:
                 self._hold(f"no fresh command within {m.rig.mirror.command_timeout_s:g} s")
                 continue
             if seq == self._seq_sent:
+                self._read_when_idle(m)
                 continue
             self.stats.superseded += max(0, seq - self._seq_sent - 1)
             self._seq_sent = seq

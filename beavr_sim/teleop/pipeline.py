@@ -3,7 +3,11 @@
 Used by tests, deterministic replay and the single-process CLI. On the virtual clock
 (``real_time=False``) tick k happens at t = k * dt whatever the machine's speed, and the
 source delivers the frames stamped up to that time: a replay is bit-for-bit repeatable. In
-real time the loop sleeps to the control rate and the clock is ``time.monotonic()``. Paced
+real time the loop is event-driven (``_event_tick``): each hand frame is observed and its
+side commanded when it arrives, the command guarded and written to the twin's actuators (and
+handed to the command hooks, e.g. the hardware mirror) at once; the physics steps once per
+control period on ``time.monotonic()``, taking the frames that arrive meanwhile between its
+substeps. Paced
 (``paced=True``, virtual clock): the virtual clock's ticks, slept to the control rate - the
 same deterministic replay, at the speed hardware moves (a mirrored trace replay).
 
@@ -96,9 +100,9 @@ class TickSchedule:
     overran, a stall, a slow set-up) runs at once and the grid moves on from it: the deadlines
     it passed are skipped and counted (``missed_ticks``), not run back to back; ``overruns``
     counts the ticks that started more than ``tolerance_s`` (a tenth of a period) late. The
-    single-process loop and the operator process :meth:`wait` for each deadline; the twin
-    process steps as soon as its commands are in and uses ``next`` as the latest moment to
-    step without them, telling the schedule with :meth:`take`.
+    paced loop :meth:`wait` s for each deadline; the event-driven real-time loop and the twin
+    process take commands until ``next`` and then step their physics, telling the schedule
+    with :meth:`take`.
     """
 
     def __init__(self, dt: float, clock: Callable[[], float] = time.monotonic):

@@ -868,6 +868,11 @@ class MultiprocessSession:
                     break
         finally:
             self.stop()
+        return self.summary(success, died=reported)
+
+    def summary(self, success: bool = False, died=()) -> TeleopSummary:
+        """The session's summary from the processes' final reports (after :meth:`stop`);
+        ``died``: processes that died while it ran."""
         det, twin = self.results.get("detector", {}), self.results.get("twin", {})
         op = self.results.get("operator", {})
         return TeleopSummary(
@@ -882,11 +887,13 @@ class MultiprocessSession:
             rejected_by_reason=det.get("rejected_by_reason", {}),
             holds=merged_holds(op, twin),
             operator=op.get("operator", {}),
-            processes={n: ("died" if n in reported else "ok") for n in self.processes},
+            processes={n: ("died" if n in died else "ok") for n in self.processes},
             guard_blocks=twin.get("guard_blocks", {}),
             hardware=twin.get("hardware", {}),
             overruns=op.get("overruns", 0) + twin.get("overruns", 0),
             missed_ticks=op.get("missed_ticks", 0) + twin.get("missed_ticks", 0),
+            frames_superseded=sum(det.get("frames_superseded", {}).values())
+            + sum(op.get("frames_superseded", {}).values()),
         )
 
 
