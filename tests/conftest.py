@@ -79,3 +79,24 @@ def quest_push():
         return push
 
     return connect
+
+
+@pytest.fixture
+def quest_options():
+    """``make(**overrides) -> SessionOptions``: a headless live Quest session (PickupBox, no
+    browser view, no progress line) on free ports; ``options.transport`` names them."""
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+    def make(**overrides) -> SessionOptions:
+        kwargs = {
+            "task": "PickupBox",
+            "source": "quest",
+            "viser": False,
+            "headless": True,
+            "progress": False,
+            "transport": TransportConfig(ports=PortConfig.free()),
+        }
+        return SessionOptions(**{**kwargs, **overrides})
+
+    return make

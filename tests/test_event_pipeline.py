@@ -14,10 +14,9 @@ import zmq
 import beavr_sim  # noqa: F401
 from beavr_sim.assets import bundled_trace
 from beavr_sim.headset.quest_protocol import format_keypoints
-from beavr_sim.teleop.session import SessionOptions, build_loop
+from beavr_sim.teleop.session import build_loop
 from beavr_sim.traces.format import TraceReader
 from beavr_sim.twin.twin import TwinInterface
-from beavr_sim.wire.ports import PortConfig, TransportConfig
 from beavr_sim.wire.records import JointCommand
 
 #: Frames of the 90 Hz stream the tests send (one second).
@@ -37,17 +36,9 @@ def _send_at_90_hz(push, payloads: list[bytes], sent: list[float]) -> None:
         push.send(payload)
 
 
-def test_a_90_hz_quest_stream_gets_a_command_per_frame_in_one_process(quest_push):
-    transport = TransportConfig(ports=PortConfig.free())
-    context = zmq.Context()
-    options = SessionOptions(
-        task="PickupBox",
-        source="quest",
-        viser=False,
-        headless=True,
-        progress=False,
-        transport=transport,
-    )
+def test_a_90_hz_quest_stream_gets_a_command_per_frame_in_one_process(quest_push, quest_options):
+    options = quest_options()
+    transport, context = options.transport, zmq.Context()
     loop = build_loop(options, context)
     applied: list[float] = []  # when each command reached the twin's actuators
     loop.command_hooks.append(lambda outcome, cmds: applied.append(loop.twin.applied_monotonic))
@@ -82,19 +73,11 @@ def test_a_90_hz_quest_stream_gets_a_command_per_frame_in_one_process(quest_push
     assert summary.latency_ms["p50"] < 1000 / 30, summary.latency_ms  # not bounded by a period
 
 
-def test_a_90_hz_quest_stream_gets_a_command_per_frame_across_processes(quest_push):
+def test_a_90_hz_quest_stream_gets_a_command_per_frame_across_processes(quest_push, quest_options):
     from beavr_sim.teleop.processes import MultiprocessSession
 
-    transport = TransportConfig(ports=PortConfig.free())
-    options = SessionOptions(
-        task="PickupBox",
-        source="quest",
-        viser=False,
-        headless=True,
-        progress=False,
-        multiprocess=True,
-        transport=transport,
-    )
+    options = quest_options(multiprocess=True)
+    transport = options.transport
     session = MultiprocessSession(options)
     session.start()
     context = zmq.Context()

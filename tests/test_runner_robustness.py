@@ -265,19 +265,13 @@ def _quest_stream(first: int = 60, n: int = 150, gap_at: int = 60, gap: int = 6)
     return out
 
 
-def test_an_untracked_fingertip_from_the_quest_holds_the_finger_in_process(quest_push):
+def test_an_untracked_fingertip_from_the_quest_holds_the_finger_in_process(
+    quest_push, quest_options
+):
     """The right index tip sent as 0,0,0 for six frames (the real parser flags it untracked):
     the session goes on, the index finger holds, then follows the hand again."""
-    transport = TransportConfig(ports=PortConfig.free())
-    context = zmq.Context()
-    options = SessionOptions(
-        task="PickupBox",
-        source="quest",
-        viser=False,
-        headless=True,
-        progress=False,
-        transport=transport,
-    )
+    options = quest_options()
+    transport, context = options.transport, zmq.Context()
     loop = build_loop(options, context)
     push = quest_push(context, transport)
     ticks = []

@@ -118,21 +118,13 @@ def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
     assert "drives xarm7_leap_right" in capsys.readouterr().err
 
 
-def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted(quest_push):
+def test_fake_headset_drives_the_twin_and_bad_payloads_are_only_counted(quest_push, quest_options):
     """The Quest source end to end: a PUSH socket per stream like the app, real keypoint
     strings (from a bundled trace) and malformed ones, in real time."""
     from beavr_sim.headset.quest_protocol import format_keypoints
 
-    transport = TransportConfig(ports=PortConfig.free())
-    context = zmq.Context()
-    options = SessionOptions(
-        task="PickupBox",
-        source="quest",
-        viser=False,
-        headless=True,
-        progress=False,
-        transport=transport,
-    )
+    options = quest_options()
+    transport, context = options.transport, zmq.Context()
     loop = build_loop(options, context)
     push = quest_push(context, transport)
     frames = [f for _, k, f in TraceReader(bundled_trace("PickupBox")).events() if k == "hand"]

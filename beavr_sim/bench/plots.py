@@ -261,7 +261,7 @@ def write_latency(samples: Mapping[str, object], out: str | Path, result: Mappin
     out.mkdir(parents=True, exist_ok=True)
     if any(k.startswith("sweep_") for k in samples):
         return _write_latency_sweep(samples, out, result)
-    config = f" (config {result['config']})" if result else ""
+    config = f" (config {result['config']}, {result.get('layout', 'processes')})" if result else ""
     written = []
     for key, name, what in (
         ("latency_twin_ms_", "latency_send_to_twin.png", "command at the twin's actuators"),
@@ -270,17 +270,8 @@ def write_latency(samples: Mapping[str, object], out: str | Path, result: Mappin
         series = {
             k.removeprefix(key): v for k, v in samples.items() if k.startswith(key) and len(v)
         }
-        if not series:
-            continue
-        if len(samples.get("floor_ms", [])):
-            series["bare ZMQ hop (floor)"] = samples["floor_ms"]
-        histogram(
-            series,
-            out / name,
-            title=f"Quest-protocol send -> {what}{config}",
-            xlabel="latency (ms)",
-        )
-        written.append(out / name)
+        title = f"Quest-protocol send -> {what}{config}"
+        written += _latency_histogram(series, samples, out / name, title)
     return written
 
 
@@ -298,18 +289,19 @@ def _write_latency_sweep(samples: Mapping[str, object], out: Path, result: Mappi
             for n in counts
             if len(samples[f"{prefix}{n}"])
         }
-        if not series:
-            continue
-        if len(samples.get("floor_ms", [])):
-            series["bare ZMQ hop (floor)"] = samples["floor_ms"]
-        histogram(
-            series,
-            out / name,
-            title=f"Send -> {what} by effector count{hz} (concurrent, shared cores)",
-            xlabel="latency (ms)",
-        )
-        written.append(out / name)
+        title = f"Send -> {what} by effector count{hz} (concurrent, shared cores)"
+        written += _latency_histogram(series, samples, out / name, title)
     return written
+
+
+def _latency_histogram(series: dict, samples: Mapping, path: Path, title: str) -> list[Path]:
+    """``series`` with the transport floor beside it, as ``path`` (nothing without data)."""
+    if not series:
+        return []
+    if len(samples.get("floor_ms", [])):
+        series["bare ZMQ hop (floor)"] = samples["floor_ms"]
+    histogram(series, path, title=title, xlabel="latency (ms)")
+    return [path]
 
 
 WRITERS = {"teleop": write_teleop, "retarget": write_retarget, "sim": write_sim}

@@ -393,15 +393,9 @@ class TeleopLoop:
             ok, commands = self._operator_call("command", self.operator.command, now)
         if not ok:  # the operator failed: every effector holds its last target this tick
             commands = self._hold_all("error")
-        for name, cmd in commands.items():
-            if cmd.hold:
-                count_hold(self.holds, name, cmd.reason)
+        self._count_holds(commands)
         state = self.twin.apply(commands)
-        for name in state.guard_blocked_effectors:  # continue from where the robot was held
-            count_hold(self.holds, name, "guard")
-            self._operator_call(
-                "resync", self.operator.resync, name, state.action[self.twin.slices[name]]
-            )
+        self._resync_blocked(state.guard_blocked_effectors)
         if used:
             for cmd in commands.values():
                 if cmd.hold or cmd.effector in state.guard_blocked_effectors:
@@ -485,15 +479,9 @@ class TeleopLoop:
                 for n, c in self._hold_all("error").items()
                 if self.operator.effectors[n].side == side
             }
-        for name, cmd in out.items():
-            if cmd.hold:
-                count_hold(self.holds, name, cmd.reason)
+        self._count_holds(out)
         outcome = self.twin.command(out)
-        for name in outcome.blocked:  # continue from where the robot was held
-            count_hold(self.holds, name, "guard")
-            self._operator_call(
-                "resync", self.operator.resync, name, self.twin.action[self.twin.slices[name]]
-            )
+        self._resync_blocked(outcome.blocked)
         for name in outcome.accepted:
             t_receive = out[name].t_receive
             if math.isfinite(t_receive):
@@ -506,6 +494,20 @@ class TeleopLoop:
                 raise
             except Exception as exc:
                 self.listener_error(listener_name(hook), exc)
+
+    def _count_holds(self, commands: dict[str, JointCommand]) -> None:
+        for name, cmd in commands.items():
+            if cmd.hold:
+                count_hold(self.holds, name, cmd.reason)
+
+    def _resync_blocked(self, blocked) -> None:
+        """The guard refused these effectors' commands: count it, and continue each from
+        where the twin holds it (its target in the action)."""
+        for name in blocked:
+            count_hold(self.holds, name, "guard")
+            self._operator_call(
+                "resync", self.operator.resync, name, self.twin.action[self.twin.slices[name]]
+            )
 
     def _notify(self, tick: Tick) -> None:
         for listener in self.listeners:
