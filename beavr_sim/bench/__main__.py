@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         "--layout",
         choices=("processes", "single"),
         default="processes",
-        help="latency: the --multiprocess runner (detector, operator, twin processes; default) "
+        help="latency: the --multiprocess runner (operator and twin processes; default) "
         "or the single-process runner (python -m beavr_sim.teleop's default)",
     )
     parser.add_argument(

@@ -2,35 +2,36 @@
 measured as the BEAVR paper's Table V (issue 20).
 
 A load generator process speaks the BEAVR Quest app's wire protocol: it PUSHes keypoint
-strings (``format_keypoints`` of a bundled human-hand trace, played forwards and backwards at real speed) to the
-detector's Quest PULL ports at the headset rate, one per hand the embodiment uses, and the
-pause status ``High`` with each app frame. The pipeline under test is the ``--multiprocess``
-runner as it is (detector, operator and twin processes over loopback ZeroMQ), mirroring to the
-emulated hardware (``hardware_config="emulated"``), started with a timing log
-(``options["latency_log"]``, written by the twin process; see ``processes.py``).
+strings (``format_keypoints`` of a bundled human-hand trace, played forwards and backwards at
+real speed) to the detector's Quest PULL ports at the headset rate, one per hand the
+embodiment uses, and the pause status ``High`` with each app frame. The pipeline under test
+is the ``--multiprocess`` runner (``--layout processes``: the operator process, which owns
+the headset's sockets and the detector's parsing, and the twin process, over loopback
+ZeroMQ) or the single-process runner (``--layout single``), mirroring to the emulated hardware
+(``hardware_config="emulated"``), with a timing log (``options["latency_log"]``, written by
+the twin; see ``processes.py``).
 
-The pipeline is meant to be event-driven: one command per hand frame at the headset rate, each
-applied by the twin on arrival and submitted to the hardware mirror at once; the twin also
-submits a heartbeat once per physics period when no command came, carrying the ``t_source``
-values already in effect. So every figure below is over **distinct commands**: a log entry
-(applied command, or driver write) whose ``t_source`` equals the previous entry's for that
-effector is a *repeat* (a heartbeat, or a command re-applied without a new frame behind it):
-counted in ``repeats``, left out of the rate, the jitter and the latency.
+The pipeline is event-driven: one command per hand frame at the headset rate, each applied by
+the twin on arrival and submitted to the hardware mirror at once; the twin also submits a
+heartbeat once per physics period when no command came, carrying the ``t_source`` values
+already in effect. So every figure below is over **distinct commands**: a log entry (applied
+command, or driver write) whose ``t_source`` equals the previous entry's for that effector is
+a *repeat* (a heartbeat, or a command re-applied without a new frame behind it): counted in
+``repeats``, left out of the rate, the jitter and the latency.
 
 What each number spans (all clocks are ``time.monotonic`` on one machine):
 
 - ``latency_twin_ms``: generator send (just before ``socket.send`` of the keypoint string) ->
-  the command derived from it handed to the twin's actuators (``TwinInterface.apply``). The
+  the command derived from it handed to the twin's actuators (``TwinInterface.command``). The
   frame behind a command is found from the command's ``t_source``, the detector's receive
-  stamp of the newest frame the operator had used: its send is the generator's latest send on
-  that hand's stream at or before that stamp (the detector takes the newest payload of each
-  poll, so that is the frame it parsed).
+  stamp of the frame the command was made for: its send is the generator's latest send on
+  that hand's stream at or before that stamp.
 - ``latency_driver_ms``: generator send -> the emulated device's driver call that wrote the
   first target derived from it having returned (hardware mirror writer thread). The write's
   time is its hand-off to the mirror plus the mirror's measured hand-off -> write time.
-- ``send_to_detector_ms``: generator send -> the detector's receive stamp (transport plus the
-  detector's 2 ms polling); ``detector_to_twin_ms``: the rest (what the twin's own
-  ``latency_ms`` reports).
+- ``send_to_detector_ms``: generator send -> the detector's receive stamp (the transport and
+  the wake-up); ``detector_to_twin_ms``: the rest (what the twin's own ``latency_ms``
+  reports), in ``stages_ms`` split at the operator's command start and the twin's receipt.
 - ``command_hz``: distinct commands applied to the twin per second for the effector against
   ``target_hz`` = the headset rate (one command per frame); ``write_hz``: distinct driver
   writes per second per device, against the same target (devices no hand effector drives,
@@ -678,7 +679,7 @@ def session_figures(live: LiveSession, floor_latency: dict) -> dict:
     results = live.session.results
     frames = frame_counts(
         {s: len(ts) for s, ts in live.sent.items()},
-        results.get("detector", {}),
+        results.get("detector") or results.get("operator", {}).get("detector", {}),
         results.get("operator", {}),
         live.streams,
     )

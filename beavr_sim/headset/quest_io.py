@@ -111,6 +111,11 @@ class QuestReceiver:
             raise
 
     @property
+    def sockets(self) -> tuple:
+        """The PULL sockets (to poll with an event loop's own poller; then :meth:`poll`)."""
+        return tuple(self._sockets.values())
+
+    @property
     def endpoints(self) -> dict[str, str]:
         return {s: self.config.endpoint(p, bind=True) for s, p in QUEST_STREAMS.items()}
 

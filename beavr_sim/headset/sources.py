@@ -50,6 +50,17 @@ class HandSource(ABC):
             time.sleep(min(remaining, 0.001))
 
     @property
+    def sockets(self) -> tuple:
+        """Sockets whose readiness means a frame may have arrived (an event loop polls them
+        with its own); none for sources that release frames by time (:meth:`next_due`)."""
+        return ()
+
+    def next_due(self) -> float | None:
+        """Real time: when (``time.monotonic()``) the next frame is due, for sources that
+        release frames by time; None when unknown or never."""
+        return None
+
+    @property
     def finished(self) -> bool:
         """True when no frame will ever come again (end of a trace)."""
         return False
@@ -101,6 +112,13 @@ class FrameListSource(HandSource):
         due = self.frames[self._next].t_source + self._offset
         time.sleep(max(0.0, min(due, now + max(0.0, timeout_s)) - now))
         return self.poll(clock())
+
+    def next_due(self) -> float | None:
+        if not self.real_time or self.finished:
+            return None
+        if self._offset is None:
+            return time.monotonic()  # the first poll starts the clock
+        return self.frames[self._next].t_source + self._offset
 
     def rewind(self) -> None:
         """Deliver the frames again from the first (a trace replayed from its start)."""
@@ -156,6 +174,10 @@ class QuestSource(HandSource):
     def wait(self, timeout_s: float, clock=time.monotonic) -> list[HandFrame]:
         """Blocks on the app's sockets: a frame is parsed the moment it arrives."""
         return self.receiver.poll(timeout_s)
+
+    @property
+    def sockets(self) -> tuple:
+        return self.receiver.sockets
 
     def close(self) -> None:
         self.receiver.close()

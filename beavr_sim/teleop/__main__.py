@@ -73,7 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--headset-image-hz", type=float, default=10.0, help="twin images to headset")
     p.add_argument("--headset-image-size", default="640x360", help="WxH of headset images")
     p.add_argument(
-        "--multiprocess", action="store_true", help="detector, operator, twin as processes"
+        "--multiprocess",
+        action="store_true",
+        help="the operator (with the headset input) and the twin as processes",
     )
     p.add_argument("--max-seconds", type=float, default=None, help="stop after this long")
     p.add_argument("--repeat", type=int, default=1, help="trace: play it N times, 0 = until Ctrl-C")

@@ -1,22 +1,24 @@
-"""``--multiprocess``: detector, operator and twin as separate processes over ZeroMQ.
+"""``--multiprocess``: the operator (with the detector) and the twin as processes over ZeroMQ.
 
 The same components as the single-process loop (``pipeline.py``), connected by the transport
-(``transport.py``, ports from ``config.py``):
+(``transport.py``, ports from ``ports.py``):
 
-    detector  --hands_right/hands_left (HandFrameMsg)-->  operator
+    headset   --Quest app's PUSH strings-->  operator (detector + operator)
     operator  --commands (JointCommandMsg, topic = effector)-->  twin
     twin      --robot_state (RobotStateMsg, every tick: its heartbeat)-->  operator, supervisor
     supervisor --session (SessionMsg)-->  operator, twin
 
 The pipeline is event-driven: nothing waits for a fixed clock on the way from a hand frame to
-the actuators. The detector blocks on the headset's sockets and passes on each valid frame as
-it arrives; the operator blocks on the hand streams and, for each frame, observes it and
-commands that hand's effectors at once (frames queued behind a newer one are observed and
-counted as superseded; a side without frames for a control period is commanded on the clock:
-its holds); the twin guards each command when it arrives, writes it to its actuators' targets
-and hands it to the hardware mirror at once, while its physics steps one control period at a
-time on its own real-time clock (the mirror also gets the targets once per period when no
-command came: its heartbeat).
+the actuators. The operator process owns the headset's sockets (``headset/``: parse, validate,
+count) in its event loop, together with the robot state and session streams: each valid frame
+is observed when it arrives and that hand's effectors are commanded at once (frames queued
+behind a newer one are observed and counted as superseded; a side without frames for 1.5
+control periods is commanded on the clock: its holds). The detector is not a process of its
+own: on a small machine every process hop costs more than the detector's work (see
+docs/benchmarks.md, 2026-12-02). The twin guards each command when it arrives, writes it to
+its actuators' targets and hands it to the hardware mirror at once, while its physics steps
+one control period at a time on its own real-time clock (the mirror also gets the targets
+once per period when no command came: its heartbeat).
 
 Each process creates its own ZMQ context, owns its sockets in its main thread, and runs on
 the real clock. Latest-only streams are conflated. Publishers wait for their subscribers
@@ -58,7 +60,7 @@ from beavr_sim.wire.ports import TransportConfig
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 
-PROCESS_NAMES = ("detector", "operator", "twin")
+PROCESS_NAMES = ("operator", "twin")
 #: Seconds without a message after which a stream's producer counts as dead.
 LIVENESS_TIMEOUT_S = 0.5
 HANDSHAKE_TIMEOUT_S = 10.0
@@ -66,8 +68,6 @@ HANDSHAKE_TIMEOUT_S = 10.0
 #: holds). More than one: a 30 Hz headset's frames come a period apart, with jitter, and a
 #: clock command just before each would repeat the last frame's.
 CLOCK_COMMAND_AFTER = 1.5
-#: The detector blocks on its sources at most this long (s) before it looks for a stop.
-DETECTOR_WAKE_S = 0.02
 
 
 def _options_dict(options) -> dict:
@@ -81,101 +81,32 @@ def _stop_requested(session_sub) -> str | None:
     return None if msg is None else msg.command
 
 
-# ---------------------------------------------------------------------------- detector
-def detector_main(options: dict, transport: TransportConfig, conn) -> None:
-    import zmq
-
-    from beavr_sim.headset.sources import QuestSource, TraceSource
-    from beavr_sim.headset.validation import StreamValidator
-    from beavr_sim.wire.messages import HandFrameMsg, SessionMsg
-    from beavr_sim.wire.transport import Publisher, Subscriber
-
-    context = zmq.Context()
-    validator = StreamValidator()
-    pubs = {
-        side: Publisher(context, transport.endpoint(f"hands_{side}", bind=True))
-        for side in ("right", "left")
-    }
-    session = Subscriber(
-        context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
-    )
-    if options["source"] == "trace":
-        source = TraceSource(options["trace"], real_time=True)
-    else:
-        # Every frame is passed on as it arrives (the operator counts what it supersedes).
-        source = QuestSource(context, transport, validator, latest_only=False)
-    sides = options["sides"]
-    for side in sides:
-        pubs[side].wait_for_subscribers(1, HANDSHAKE_TIMEOUT_S)
-    conn.send_bytes(b"ready")
-    received = 0
-    # A trace starts playing when the supervisor says every process is ready ("resume"), so
-    # the operator anchors on its first frames as it would in one process.
-    started = options["source"] != "trace"
-    try:
-        while True:
-            command = _stop_requested(session)
-            if command == "stop":
-                break
-            if not started:
-                started = command == "resume"
-                time.sleep(0.002)
-                continue
-            # Blocks until a frame arrives (the Quest sockets) or is due (a trace); wakes at
-            # least every DETECTOR_WAKE_S for the session's stop.
-            for frame in source.wait(DETECTOR_WAKE_S):
-                received += 1
-                valid = source.validates or validator.check(frame) is None
-                if valid and frame.side in pubs:
-                    pubs[frame.side].send(frame.side.encode(), HandFrameMsg.from_frame(frame))
-    finally:
-        receiver = getattr(source, "receiver", None)
-        conn.send_bytes(
-            json.dumps(
-                {
-                    "frames_received": received,
-                    "frames_rejected": validator.rejected,
-                    "rejected_by_reason": validator.rejected_by_reason,
-                    # Quest source: payloads per stream, and frames replaced by a newer one
-                    # in the same poll (never passed on)
-                    "quest_received": dict(receiver.received) if receiver else {},
-                    "frames_superseded": dict(receiver.superseded) if receiver else {},
-                }
-            ).encode()
-        )
-        source.close()
-        for p in pubs.values():
-            p.close()
-        session.close()
-        context.term()
-
-
 # ---------------------------------------------------------------------------- operator
 def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     import zmq
 
+    from beavr_sim.headset.sources import QuestSource, TraceSource
+    from beavr_sim.headset.validation import StreamValidator
     from beavr_sim.operator.operator import Operator
     from beavr_sim.robots import make_embodiment
-    from beavr_sim.wire.messages import HandFrameMsg, JointCommandMsg, RobotStateMsg, SessionMsg
+    from beavr_sim.wire.messages import JointCommandMsg, RobotStateMsg, SessionMsg
     from beavr_sim.wire.transport import Publisher, Subscriber
 
     context = zmq.Context()
     embodiment = make_embodiment(options["embodiment"])
     dt = 1.0 / options["control_hz"]
     operator = Operator(embodiment, dt)
-    # Hand frames are not conflated: the operator's filters take every frame (drained each
-    # tick); commands and robot state are latest-only.
-    hands = {
-        side: Subscriber(
-            context,
-            transport.endpoint(f"hands_{side}", bind=False),
-            side.encode(),
-            HandFrameMsg,
-            liveness_timeout_s=LIVENESS_TIMEOUT_S,
-            conflate=False,
-        )
-        for side in options["sides"]
-    }
+    # The detector: the headset's sockets (or a trace in real time) in this process's event
+    # loop; every valid frame is observed (none is dropped unseen).
+    validator = StreamValidator()
+    if options["source"] == "trace":
+        source = TraceSource(options["trace"], real_time=True)
+    else:
+        source = QuestSource(context, transport, validator, latest_only=False)
+    # A trace starts playing when the supervisor says every process is ready ("resume"), so
+    # the operator anchors on its first frames as it would in one process.
+    started = options["source"] != "trace"
+    received = 0
     state = Subscriber(
         context,
         transport.endpoint("robot_state", bind=False),
@@ -201,7 +132,7 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     compute_ms: list[float] = []
     holds: dict[str, dict[str, int]] = {}
     errors: dict[str, int] = {}
-    sides = list(hands)
+    sides = list(options["sides"])
     side_effectors = {
         side: [e.name for e in embodiment.effectors if e.side == side] for side in sides
     }
@@ -214,8 +145,8 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     # tracking lost, paused, waiting), so the twin always hears from the operator.
     last_command = dict.fromkeys(sides, time.monotonic())
     poller = zmq.Poller()
-    for sub in (*hands.values(), state, session):
-        poller.register(sub.socket, zmq.POLLIN)
+    for socket in (*source.sockets, state.socket, session.socket):
+        poller.register(socket, zmq.POLLIN)
     overruns = 0
 
     def guarded(what: str, fn, *args) -> tuple[bool, object]:
@@ -272,9 +203,13 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                 ),
             )
 
+    receiver = getattr(source, "receiver", None)
     try:
         while True:
             due = min(last_command.values()) + CLOCK_COMMAND_AFTER * dt
+            frame_due = source.next_due() if started else None
+            if frame_due is not None:
+                due = min(due, frame_due)
             poller.poll(max(0, math.ceil((due - time.monotonic()) * 1000)))
             msg = session.recv(0.0)
             if msg is not None:
@@ -282,22 +217,23 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                     break
                 if msg.command in ("pause", "resume"):
                     operator.set_paused(msg.command == "pause")
+                    started = started or msg.command == "resume"
                 if msg.command == "reset":
                     rehome.expect(msg.epoch)
             latest = state.recv_latest(0.0)
             if latest is not None:
                 guarded("reset", rehome.on_state, latest)
-            for side, sub in hands.items():
-                frames = []
-                while (frame_msg := sub.recv(0.0)) is not None:
-                    frames.append(frame_msg)
-                if not frames:
-                    continue
+            by_side: dict[str, list] = {}
+            for frame in source.poll(time.monotonic()) if started else ():
+                received += 1
+                if (source.validates or validator.check(frame) is None) and frame.side in sides:
+                    by_side.setdefault(frame.side, []).append(frame)
+            for side, frames in by_side.items():
                 t0 = time.perf_counter()
                 ok = True
                 if not rehome.waiting:  # frames from before the reset are dropped
-                    for frame_msg in frames:
-                        ok = guarded("observe", operator.observe, frame_msg.to_frame())[0] and ok
+                    for frame in frames:
+                        ok = guarded("observe", operator.observe, frame)[0] and ok
                     superseded[side] += len(frames) - 1
                     frames_commanded[side] += 1
                 command_side(side, ok)
@@ -323,10 +259,20 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                     "frames_superseded": superseded,
                     "frames_commanded": frames_commanded,
                     "clock_commands": clock_commands,
+                    "detector": {
+                        "frames_received": received,
+                        "frames_rejected": validator.rejected,
+                        "rejected_by_reason": validator.rejected_by_reason,
+                        # Quest source: payloads per stream, and frames replaced by a newer
+                        # one in the same poll (0: every frame is passed on)
+                        "quest_received": dict(receiver.received) if receiver else {},
+                        "frames_superseded": dict(receiver.superseded) if receiver else {},
+                    },
                 }
             ).encode()
         )
-        for s in (*hands.values(), state, session, commands):
+        source.close()
+        for s in (state, session, commands):
             s.close()
         context.term()
 
@@ -725,7 +671,7 @@ def _write_latency_log(path, control_hz, applied_log, submit_log, mirror, stage_
         )
 
 
-TARGETS = {"detector": detector_main, "operator": operator_main, "twin": twin_main}
+TARGETS = {"operator": operator_main, "twin": twin_main}
 
 
 class MultiprocessSession:
@@ -773,7 +719,7 @@ class MultiprocessSession:
             liveness_timeout_s=LIVENESS_TIMEOUT_S,
         )
         self._session_type = SessionMsg
-        for name in ("twin", "operator", "detector"):
+        for name in ("twin", "operator"):
             parent, child = self.ctx.Pipe()
             proc = self.ctx.Process(
                 target=TARGETS[name],
@@ -793,8 +739,8 @@ class MultiprocessSession:
                 from beavr_sim.hardware.device import MirrorError
 
                 raise MirrorError(reply.decode(errors="replace").removeprefix("error: "))
-        self.session_pub.wait_for_subscribers(3, HANDSHAKE_TIMEOUT_S)
-        self.send("resume")  # everyone is ready: the detector starts a trace now
+        self.session_pub.wait_for_subscribers(len(TARGETS), HANDSHAKE_TIMEOUT_S)
+        self.send("resume")  # everyone is ready: the operator starts a trace now
 
     def send(self, command: str) -> None:
         """Send a session command; a ``"reset"`` names the epoch the twin will be in after it
@@ -873,8 +819,8 @@ class MultiprocessSession:
     def summary(self, success: bool = False, died=()) -> TeleopSummary:
         """The session's summary from the processes' final reports (after :meth:`stop`);
         ``died``: processes that died while it ran."""
-        det, twin = self.results.get("detector", {}), self.results.get("twin", {})
-        op = self.results.get("operator", {})
+        op, twin = self.results.get("operator", {}), self.results.get("twin", {})
+        det = op.get("detector", {})
         return TeleopSummary(
             task=twin.get("task", self.options["task"]),
             embodiment=twin.get("embodiment", self.options["embodiment"]),

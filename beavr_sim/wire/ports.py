@@ -7,7 +7,7 @@ Two groups of sockets:
   the headset shows. They bind on :attr:`TransportConfig.headset_host` (loopback by default;
   a LAN address such as ``"0.0.0.0"`` only when the user asks for it).
 - **pipeline** streams carry typed messages (:mod:`beavr_sim.wire.messages`) between the
-  detector, operator and twin processes on :attr:`TransportConfig.host`.
+  operator and twin processes on :attr:`TransportConfig.host`.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ class PortConfig:
     """TCP port of every stream.
 
     Headset ports are fixed by the Quest app's ``Network.json``; change them only together
-    with the app. Pipeline ports are ours (a block from 5570).
+    with the app. Pipeline ports are ours (a block from 5572).
     """
 
     # Headset -> PC (the app connects PUSH, the PC binds PULL).
@@ -48,8 +48,6 @@ class PortConfig:
     headset_camera: int = 10505
     headset_graph: int = 15001
     # Pipeline streams (msgpack messages, PUB/SUB).
-    hands_right: int = 5570
-    hands_left: int = 5571
     commands: int = 5572
     robot_state: int = 5573
     session: int = 5574
