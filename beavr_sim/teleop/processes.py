@@ -76,11 +76,6 @@ def _options_dict(options) -> dict:
     return d
 
 
-def _stop_requested(session_sub) -> str | None:
-    msg = session_sub.recv(0.0)
-    return None if msg is None else msg.command
-
-
 # ---------------------------------------------------------------------------- operator
 def operator_main(options: dict, transport: TransportConfig, conn) -> None:
     import zmq
