@@ -231,7 +231,9 @@ def test_browser_view_renders_pauses_resumes_and_resets(monkeypatch):
                 page.get_by_role("button", name="Reset").click()
                 sess.wait_for(lambda: sess.probe.after_reset is not None, 10, "reset")
                 t_reset, q_reset = sess.probe.after_reset
-                assert t_reset < min(t_before, 0.5)
+                # (<=: when the trace's own --repeat restart came just before the click, the
+                # episode was already at its first tick, and the click restarts it there again)
+                assert t_reset <= min(t_before, 0.5)
                 home = sess.loop.twin.env.joints.home
                 assert np.abs(q_reset - home).max() < 0.05
                 page.wait_for_timeout(1500)

@@ -211,9 +211,9 @@ class _Link:
                 self._held = False
                 self.stats.holding = ""
 
-    def _read_when_idle(self, m: HardwareMirror) -> None:
+    def _read_when_idle(self, m: HardwareMirror, twin: np.ndarray) -> None:
         """No new target for a control period: read the joints back (the writes read at most
-        once a period, so the last one may not have been read)."""
+        once a period, so the last one may not have been read) and watch the divergence."""
         if time.monotonic() - self._t_read < m._period:
             return
         try:
@@ -221,7 +221,31 @@ class _Link:
         except Exception as exc:  # a reader never dies silently: the device fails
             log.exception("%s: read failed", self.name)
             self._fail(exc if isinstance(exc, DeviceError) else DeviceError(repr(exc)))
-        self._t_read = time.monotonic()
+            return
+        finally:
+            self._t_read = time.monotonic()
+        if not m.dry_run:
+            self._watch_divergence(m, self.measured, twin, self._t_read)
+
+    def _watch_divergence(
+        self, m: HardwareMirror, measured: np.ndarray, twin: np.ndarray, now: float
+    ) -> None:
+        """Hold the device when its measured joints stay further than the limit from the
+        twin's for longer than the window."""
+        gap = np.abs(measured - twin[self.index])
+        divergence = float(np.max(gap))
+        if divergence > self.stats.max_divergence_rad:
+            self.stats.max_divergence_rad = divergence
+            self.stats.max_divergence_joint = self.device.joint_names[int(np.argmax(gap))]
+        if divergence <= self.divergence_limit:
+            self._diverged_since = None
+        elif self._diverged_since is None:
+            self._diverged_since = now
+        elif now - self._diverged_since > m.rig.mirror.divergence_window_s:
+            self._hold(
+                f"diverged: measured joints {divergence:.3f} rad from the twin's for "
+                f"{now - self._diverged_since:.2f} s (limit {self.divergence_limit} rad)"
+            )
 
     def _run(self) -> None:
         m = self.mirror
@@ -251,7 +275,7 @@ class _Link:
                 self._hold(f"no fresh command within {m.rig.mirror.command_timeout_s:g} s")
                 continue
             if seq == self._seq_sent:
-                self._read_when_idle(m)
+                self._read_when_idle(m, twin)
                 continue
             self.stats.superseded += max(0, seq - self._seq_sent - 1)
             self._seq_sent = seq
@@ -282,20 +306,7 @@ class _Link:
                 continue
             if m.dry_run or measured is None:
                 continue
-            gap = np.abs(measured - twin[self.index])
-            divergence = float(np.max(gap))
-            if divergence > self.stats.max_divergence_rad:
-                self.stats.max_divergence_rad = divergence
-                self.stats.max_divergence_joint = self.device.joint_names[int(np.argmax(gap))]
-            if divergence <= self.divergence_limit:
-                self._diverged_since = None
-            elif self._diverged_since is None:
-                self._diverged_since = now
-            elif now - self._diverged_since > m.rig.mirror.divergence_window_s:
-                self._hold(
-                    f"diverged: measured joints {divergence:.3f} rad from the twin's for "
-                    f"{now - self._diverged_since:.2f} s (limit {self.divergence_limit} rad)"
-                )
+            self._watch_divergence(m, measured, twin, now)
 
 
 class HardwareMirror:
