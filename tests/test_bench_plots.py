@@ -89,7 +89,11 @@ def test_writers_use_the_documented_file_names(tmp_path):
         tmp_path / "out",
         {"target_operator_p99_ms": 1.0, "target_latency_p50_ms": 1.0},
     )
-    written += plots.write("retarget", {"ours": rng.random(30)}, tmp_path / "out")
+    written += plots.write(
+        "retarget",
+        {"time_ms": {"ours": rng.random(30)}, "tip_error_deg": {"ours": rng.random((30, 4))}},
+        tmp_path / "out",
+    )
     written += plots.write(
         "sim",
         {"env_step_ms": {"xarm7_leap_right": rng.random(30)}, "render_ms": [1, 2]},

@@ -258,3 +258,40 @@ def test_arm_ik_keeps_the_hand_out_of_a_fixture():
     probe.set_obstacles(())  # none: the robot and table only again
     assert probe.model.ngeom == ArmIK(emb, "right", 1 / 30).model.ngeom
     env.close()
+
+
+def test_recovery_pushes_pairs_inside_the_margin_back_out():
+    """Inside ``minimum_distance_from_collisions`` mink's bound is 0 (no deeper); with
+    ``recovery`` r the bound is -r (margin - d) / dt: that much of the intrusion must go."""
+    r = LeapRetargeter("right")
+    cfg = r.configuration
+    spec = lambda: mujoco.MjSpec.from_file(str(mjcf_path(LEAP_HAND.mjcf("right"))))  # noqa: E731
+    geoms = finger_geoms(r.model)
+    fingers = list(geoms)
+    pairs = [(geoms[a], geoms[b]) for i, a in enumerate(fingers) for b in fingers[i + 1 :]]
+    limits = {
+        rec: CollisionLimit(
+            r.model,
+            pairs,
+            spec=spec(),
+            collision_detection_distance=0.03,
+            minimum_distance_from_collisions=0.003,
+            recovery=rec,
+        )
+        for rec in (0.0, 0.5)
+    }
+    seen_inside = 0
+    for q in _hand_samples(r, 150, seed=3):
+        cfg.update(q)
+        _, dist, _, _, _, _, _ = limits[0.0].distances(cfg)
+        _, _, h0 = limits[0.0].active_rows(cfg, 0.1)
+        h0 = h0.copy()
+        _, _, h1 = limits[0.5].active_rows(cfg, 0.1)
+        inside = dist <= 0.003
+        seen_inside += int(inside.sum())
+        np.testing.assert_allclose(h0[inside], 0.0)
+        np.testing.assert_allclose(h1[inside], -0.5 * (0.003 - dist[inside]) / 0.1)
+        np.testing.assert_allclose(h1[~inside], h0[~inside])
+    assert seen_inside > 5, "no sampled pair inside the margin: nothing tested"
+    with pytest.raises(ValueError, match="recovery"):
+        CollisionLimit(r.model, pairs, spec=spec(), recovery=1.5)

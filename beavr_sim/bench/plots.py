@@ -24,6 +24,7 @@ FILES = {
     "teleop_latency_real_time.png": "frame received -> command applied (real-time replay)",
     "teleop_loop_jitter.png": "|tick period - nominal period| of the real-time control loop",
     "retarget_time.png": "LEAP retargeting time per frame, ours and dex-retargeting",
+    "retarget_tip_error.png": "fingertip direction error per finger over the trace, both methods",
     "sim_env_step.png": "env.step time per embodiment (30 Hz control, no rendering)",
     "sim_render.png": "time per rendered 480x640 camera frame",
     "latency_send_to_twin.png": "latency harness: generator send -> command at the twin's actuators",
@@ -219,17 +220,54 @@ def write_teleop(samples: Mapping[str, object], out: Path, result: Mapping | Non
 
 
 def write_retarget(samples: Mapping[str, object], out: Path, result: Mapping | None = None):
-    series = {k: v for k, v in samples.items() if len(v)}
-    if not series:
-        return []
-    path = out / "retarget_time.png"
-    histogram(
-        series,
-        path,
-        title="LEAP retargeting time per frame (human hand trace)",
-        xlabel="time per frame (ms)",
-    )
-    return [path]
+    """``samples``: ``time_ms`` (method -> ms per frame) and ``tip_error_deg`` (method ->
+    frames x 4 fingers, in the order thumb, index, middle, ring)."""
+    written = []
+    series = {k: v for k, v in samples.get("time_ms", {}).items() if len(v)}
+    if series:
+        path = out / "retarget_time.png"
+        histogram(
+            series,
+            path,
+            title="LEAP retargeting time per frame (human hand trace)",
+            xlabel="time per frame (ms)",
+        )
+        written.append(path)
+    errors = {k: np.asarray(v, dtype=float) for k, v in samples.get("tip_error_deg", {}).items()}
+    errors = {k: v for k, v in errors.items() if v.ndim == 2 and len(v)}
+    if errors:
+        path = out / "retarget_tip_error.png"
+        tip_error_over_trace(errors, path)
+        written.append(path)
+    return written
+
+
+def tip_error_over_trace(
+    errors: Mapping[str, np.ndarray],
+    path: Path,
+    fingers: Sequence[str] = ("thumb", "index", "middle", "ring"),
+) -> None:
+    """One panel per finger: the direction error (deg) per frame, a line per method, the
+    method's mean in the legend."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10.5, 2.1 * len(fingers) + 0.6), dpi=100, layout="constrained")
+    axes = fig.subplots(len(fingers), 1, sharex=True)
+    for f, ax in enumerate(np.atleast_1d(axes)):
+        for i, (label, values) in enumerate(errors.items()):
+            ax.plot(
+                values[:, f],
+                color=_COLORS[i % len(_COLORS)],
+                lw=1.0,
+                label=f"{label} (mean {values[:, f].mean():.2f} deg)",
+            )
+        ax.set_ylabel(f"{fingers[f]} (deg)")
+        ax.set_ylim(bottom=0.0)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
+    np.atleast_1d(axes)[-1].set_xlabel("frame of the human hand trace")
+    fig.suptitle("Fingertip direction error: human wrist -> tip against LEAP wrist -> pad")
+    fig.savefig(path)
 
 
 def write_sim(samples: Mapping[str, object], out: Path, result: Mapping | None = None):

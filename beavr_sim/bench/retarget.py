@@ -2,8 +2,18 @@
 
 Both run on the same frames of the real human hand trace in the reference folder
 (``human_hand_trace/human_joint_right_mediapipe21.npz``, MediaPipe 21 landmarks, right hand,
-wrist-attached frame). Joint limits, finger-finger penetration and fingertip direction are
-all measured on our LEAP MJCF, so the two methods are scored identically.
+wrist-attached frame). Joint limits, finger-finger penetration, fingertip direction and pinch
+fidelity are all measured on our LEAP MJCF, so the two methods are scored identically:
+
+- fingertip direction error: the angle between the human's wrist -> tip and LEAP's wrist (the
+  hand frame's origin, the mount) -> fingertip pad, per finger;
+- fingertip position error after scaling: each method's own fingertip target (ours: the
+  human tip through our map; dex-retargeting: 1.6 x the human's wrist -> tip vector from its
+  ``base`` link) against where its fingertip ended up (ours: the pad site; theirs: its
+  ``*_tip_head`` link), per finger;
+- pinch fidelity: frames where the human's thumb and index tips are within
+  :data:`HUMAN_PINCH_M` and LEAP's thumb and index pad sites within :data:`ROBOT_PINCH_M`,
+  and the reverse (a robot pinch without a human one).
 
 The trace's frame is already right-handed with the palm frame's axes (fingers along +z, palm
 facing +x, thumb at +y): :data:`R_CANONICAL_TRACE` is the identity and no reflection is needed.
@@ -43,6 +53,9 @@ _MEDIAPIPE = {
 #: MediaPipe landmarks of the wrist and of each LEAP finger's tip (dex-retargeting's vectors).
 _MEDIAPIPE_TIPS = (4, 8, 12, 16)
 _DEX_TIP_LINKS = ("thumb_tip_head", "index_tip_head", "middle_tip_head", "ring_tip_head")
+#: A human pinch: thumb and index tips within 2 cm; a robot pinch: LEAP's pads within 1 cm.
+HUMAN_PINCH_M = 0.02
+ROBOT_PINCH_M = 0.01
 
 
 def mediapipe_to_canonical(landmarks: np.ndarray) -> np.ndarray:
@@ -109,11 +122,60 @@ class HandScorer:
         )
         return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
-    def score(self, Q: np.ndarray, keypoints_palm: np.ndarray, times_s: np.ndarray) -> dict:
+    def pinch_distance(self, q16: np.ndarray) -> float:
+        """Distance (m) between LEAP's thumb and index fingertip-pad sites."""
+        self.data.qpos[self.retargeter_map.qpos_adr] = q16
+        mujoco.mj_kinematics(self.model, self.data)
+        thumb, index = self._tip_sites[0], self._tip_sites[1]
+        return float(np.linalg.norm(self.data.site_xpos[thumb] - self.data.site_xpos[index]))
+
+    def pinch(self, Q: np.ndarray, keypoints_palm: np.ndarray) -> dict:
+        """Pinch fidelity (thumb-index): human pinch frames, and how many LEAP reproduced."""
+        thumb, index = self._human_tips[0], self._human_tips[1]
+        human = np.linalg.norm(keypoints_palm[:, thumb] - keypoints_palm[:, index], axis=1)
+        robot = np.array([self.pinch_distance(q) for q in Q])
+        human_pinch, robot_pinch = human < HUMAN_PINCH_M, robot < ROBOT_PINCH_M
+        during = robot[human_pinch]
+        return {
+            "human_pinch_frames": int(human_pinch.sum()),
+            "robot_pinch_frames": int(robot_pinch.sum()),
+            "reproduced": int((human_pinch & robot_pinch).sum()),
+            "robot_pinch_without_human": int((robot_pinch & ~human_pinch).sum()),
+            "robot_distance_during_human_pinch_mm": (
+                {
+                    "min": round(float(during.min()) * 1e3, 1),
+                    "mean": round(float(during.mean()) * 1e3, 1),
+                }
+                if during.size
+                else None
+            ),
+            "closest_robot_distance_mm": round(float(robot.min()) * 1e3, 1),
+        }
+
+    def score(
+        self,
+        Q: np.ndarray,
+        keypoints_palm: np.ndarray,
+        times_s: np.ndarray,
+        position_errors: np.ndarray | None = None,
+        per_frame: dict | None = None,
+    ) -> dict:
+        """Scores of joint vectors ``Q`` (N x 16) for ``keypoints_palm`` (N x 26 x 3).
+        ``position_errors``: the method's own fingertip position errors (N x 4, m).
+        ``per_frame``: filled with the direction errors per frame (``tip_error_deg``, N x 4)."""
         lower, upper = self.retargeter_map.range.T
         distances = np.array([self.min_finger_distance(q) for q in Q])
         angles = np.array([self.tip_angles(q, k) for q, k in zip(Q, keypoints_palm, strict=True)])
+        if per_frame is not None:
+            per_frame["tip_error_deg"] = angles
         ms = np.asarray(times_s) * 1e3
+        extra = {}
+        if position_errors is not None:
+            mm = np.asarray(position_errors) * 1e3
+            extra["tip_position_error_mm"] = {
+                f: {"mean": round(float(e.mean()), 1), "p95": round(float(np.percentile(e, 95)), 1)}
+                for f, e in zip(LEAP_FINGERS, mm.T, strict=True)
+            }
         return {
             "time_ms": {
                 "mean": round(float(ms.mean()), 4),
@@ -130,17 +192,28 @@ class HandScorer:
                 f: round(float(a), 2)
                 for f, a in zip(LEAP_FINGERS, angles.mean(axis=0), strict=True)
             },
+            **extra,
+            "pinch": self.pinch(Q, keypoints_palm),
         }
 
 
 def run_ours(keypoints_palm: np.ndarray, config: RetargetConfig | None = None):
+    """Our retargeting of each frame: (joints N x 16, seconds per frame N, fingertip position
+    errors after scaling N x 4 in m: pad site against its mapped human tip)."""
     retargeter = LeapRetargeter("right", config)
-    Q, times = [], []
+    tips = retargeter.map
+    tip_sites = [retargeter.model.site(f"{f}_tip").id for f in LEAP_FINGERS]
+    human_tips = [JOINT_INDEX[f"{f}_tip"] for f in LEAP_FINGERS]
+    scales = np.array([tips.scale(f) for f in LEAP_FINGERS])[:, None]
+    Q, times, errors = [], [], []
     for keypoints in keypoints_palm:
         start = time.perf_counter()
         Q.append(retargeter.retarget(keypoints))
         times.append(time.perf_counter() - start)
-    return np.array(Q), np.array(times)
+        target = tips.origin_offset + scales * keypoints[human_tips]
+        reached = retargeter.configuration.data.site_xpos[tip_sites]
+        errors.append(np.linalg.norm(reached - target, axis=1))
+    return np.array(Q), np.array(times), np.array(errors)
 
 
 def _dex_retargeting(urdf: Path):
@@ -213,20 +286,31 @@ def run_dex(keypoints_palm: np.ndarray, urdf: Path, scorer: HandScorer):
     # Feed dex-retargeting the same human hand, in its base frame: wrist->tip vectors.
     tips = keypoints_palm[:, [JOINT_INDEX[f"{f}_tip"] for f in LEAP_FINGERS]]
     vectors = tips @ R.T
-    Q, times = [], []
+    robot = retargeting.optimizer.robot
+    base = robot.get_link_index("base")
+    tip_links = [robot.get_link_index(n) for n in _DEX_TIP_LINKS]
+    scaling = float(config["scaling_factor"])
+    Q, times, errors = [], [], []
     for v in vectors:
         start = time.perf_counter()
         q_pin = retargeting.retarget(v)
         times.append(time.perf_counter() - start)
         Q.append(np.asarray(q_pin)[order])
-    return np.array(Q), np.array(times), config
+        # Its own objective's residual: base -> tip link against the scaled human vector.
+        robot.compute_forward_kinematics(np.asarray(q_pin))
+        origin = robot.get_link_pose(base)[:3, 3]
+        reached = np.array([robot.get_link_pose(i)[:3, 3] - origin for i in tip_links])
+        errors.append(np.linalg.norm(reached - scaling * v, axis=1))
+    return np.array(Q), np.array(times), config, np.array(errors)
 
 
 def run(
     frames: int | None = None, reference_dir: Path | None = None, samples: dict | None = None
 ) -> dict:
     """Run both retargeters on the trace; returns the JSON-ready result. ``samples``: a dict
-    filled with each method's time per frame (ms arrays, keys ``ours``, ``dex-retargeting``)."""
+    filled with each method's time per frame (``time_ms``: method -> ms array) and fingertip
+    direction error per frame (``tip_error_deg``: method -> N x 4 array, fingers in the order
+    of :data:`LEAP_FINGERS`); the keys of both are ``ours`` and ``dex-retargeting``."""
     samples = {} if samples is None else samples
     reference_dir = reference_dir or find_reference_dir()
     if reference_dir is None:
@@ -240,9 +324,14 @@ def run(
             raise ValueError(f"frames must be >= 1, got {frames}")
         landmarks, keypoints = landmarks[:frames], keypoints[:frames]
     scorer = HandScorer("right")
-    Q, times = run_ours(keypoints)
-    result = {"frames": len(keypoints), "ours": scorer.score(Q, keypoints, times)}
-    samples["ours"] = np.asarray(times) * 1e3
+    Q, times, errors = run_ours(keypoints)
+    per_frame: dict = {}
+    result = {
+        "frames": len(keypoints),
+        "ours": scorer.score(Q, keypoints, times, errors, per_frame),
+    }
+    samples.setdefault("time_ms", {})["ours"] = np.asarray(times) * 1e3
+    samples.setdefault("tip_error_deg", {})["ours"] = per_frame["tip_error_deg"]
     try:
         import dex_retargeting.retargeting_config  # noqa: F401
     except ImportError as error:
@@ -252,9 +341,10 @@ def run(
         )
         return result
     urdf = reference_dir / "dex_urdf_leap_hand" / "leap_hand_right.urdf"
-    Q_dex, times_dex, config = run_dex(keypoints, urdf, scorer)
-    result["dex_retargeting"] = scorer.score(Q_dex, keypoints, times_dex)
-    samples["dex-retargeting"] = np.asarray(times_dex) * 1e3
+    Q_dex, times_dex, config, errors_dex = run_dex(keypoints, urdf, scorer)
+    result["dex_retargeting"] = scorer.score(Q_dex, keypoints, times_dex, errors_dex, per_frame)
+    samples["time_ms"]["dex-retargeting"] = np.asarray(times_dex) * 1e3
+    samples["tip_error_deg"]["dex-retargeting"] = per_frame["tip_error_deg"]
     result["dex_retargeting"]["config"] = {
         k: (v.tolist() if isinstance(v, np.ndarray) else v)
         for k, v in config.items()

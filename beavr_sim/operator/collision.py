@@ -117,8 +117,10 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
     ``pair_detection_distance(geom1, geom2)``: detection distance per geom pair, for pairs
     that can approach each other at different speeds (default: ``collision_detection_distance``
     for all). ``closest_only``: keep only each pair's closest contact (mink's choice: fewer
-    QP rows) rather than every contact MuJoCo reports for it. Other arguments as
-    ``mink.CollisionAvoidanceLimit``.
+    QP rows) rather than every contact MuJoCo reports for it. ``recovery``: fraction of a
+    pair's intrusion into ``minimum_distance_from_collisions`` that a step must undo (0,
+    mink's rows: only no deeper; see :func:`~beavr_sim.operator.kernels.contact_rows`). Other
+    arguments as ``mink.CollisionAvoidanceLimit``.
     """
 
     def __init__(
@@ -129,10 +131,14 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
         spec: mujoco.MjSpec,
         pair_detection_distance: Callable[[int, int], float] | None = None,
         closest_only: bool = False,
+        recovery: float = 0.0,
         **kwargs,
     ):
         super().__init__(model, geom_pairs, broadphase=False, **kwargs)
         self.closest_only = bool(closest_only)
+        if not (np.isfinite(recovery) and 0.0 <= recovery <= 1.0):
+            raise ValueError(f"recovery must be in [0, 1], got {recovery!r}")
+        self.recovery = float(recovery)
         pairs = [(int(a), int(b)) for a, b in self.geom_id_pairs]
         self._distmax = np.array(
             [
@@ -177,7 +183,7 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
                 geom, np.zeros(2 * n)[::2], np.ones((n, 18))[:, :9], np.zeros((n, 6))[:, :3],
                 self._lookup, self._geom_body, self._npairs, self.closest_only,
                 data.cdof, data.subtree_com, jac.root, jac.chain, 1.0, 0.0, 0.0, 1.0,
-                self._pairs_out, self._dists_out, self._rows_out, self._h_out,
+                self._pairs_out, self._dists_out, self._rows_out, self._h_out, self.recovery,
             )  # fmt: skip
 
     def distances(self, configuration: mink.Configuration):
@@ -230,7 +236,7 @@ class CollisionLimit(mink.CollisionAvoidanceLimit):
             data.cdof, data.subtree_com, jac.root, jac.chain,
             float(self.gain), float(self.minimum_distance_from_collisions),
             float(self.bound_relaxation), float(dt),
-            self._pairs_out, self._dists_out, self._rows_out, self._h_out,
+            self._pairs_out, self._dists_out, self._rows_out, self._h_out, self.recovery,
         )  # fmt: skip
         return self._pairs_out[:k], self._dists_out[:k], self._rows_out[:k], self._h_out[:k]
 

@@ -129,11 +129,14 @@ def select_contacts(geom, dist, lookup, npairs, closest_only):
 def contact_rows(
     geom, dist, frame, pos, lookup, geom_body, npairs, closest_only,
     cdof, subtree_com, root, chain, gain, min_distance, relaxation, dt, pairs, dists, rows, h,
+    recovery=0.0,
 ):  # fmt: skip
     """mink's collision-avoidance rows from MuJoCo's contacts, ``G dq <= h``: per kept contact
     (distance d, normal n from geom 1 to geom 2, midpoint p; witness points ``p -/+ d n / 2``)
-    the row ``n^T (J(p1) - J(p2))`` and ``h = gain (d - min_distance) / dt`` (0 once within
-    ``min_distance``) ``+ relaxation``. Writes the first k entries of ``pairs`` (pair
+    the row ``n^T (J(p1) - J(p2))`` and ``h = gain (d - min_distance) / dt`` ``+ relaxation``.
+    Once within ``min_distance``, ``h = -recovery (min_distance - d) / dt`` instead: mink's
+    choice (``recovery`` 0) only forbids going deeper, so a pair that linearisation errors let
+    inside stays there; ``recovery`` > 0 undoes that fraction of the intrusion per step. Writes the first k entries of ``pairs`` (pair
     indices), ``dists``, ``rows`` and ``h`` (capacity: at least one per contact) and returns
     k, or -1 (nothing written) when they are too short."""
     keep, kept_pairs = select_contacts(geom, dist, lookup, npairs, closest_only)
@@ -154,7 +157,10 @@ def contact_rows(
         _normal_term(
             cdof, subtree_com, root, chain, b2, px + hx, py + hy, pz + hz, nx, ny, nz, -1.0, rows[r]
         )
-        h[r] = (gain * (d - min_distance) / dt if d > min_distance else 0.0) + relaxation
+        if d > min_distance:
+            h[r] = gain * (d - min_distance) / dt + relaxation
+        else:
+            h[r] = -recovery * (min_distance - d) / dt + relaxation
         dists[r] = d
         pairs[r] = kept_pairs[r]
     return k

@@ -552,9 +552,7 @@ class EffectorOperator:
             fingers = self.retargeter.targets(self._palm_keypoints)
             fingers = fingers @ T_world_hand[:3, :3].T + T_world_hand[:3, 3]
             T_at = self._T_target if self._T_target is not None else T_world_hand
-            p_hand = hand_map.origin_offset + self.retargeter.config.finger_scale * (
-                self._palm_keypoints
-            )
+            p_hand = hand_map.skeleton(self._palm_keypoints)
             skeleton = p_hand @ T_at[:3, :3].T + T_at[:3, 3]
         return EffectorTargets(
             effector=self.effector.name,

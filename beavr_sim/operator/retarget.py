@@ -2,22 +2,29 @@
 
 The human hand arrives as the 26 canonical joints in the palm frame
 (:func:`beavr_sim.operator.palm.keypoints_in_palm`: origin at the wrist, +z along the fingers,
-+x out of the palm), whose axes are those of the LEAP ``hand`` frame. A human point maps to
-the LEAP hand frame by
++x out of the palm), whose axes are those of the LEAP ``hand`` frame (the mount frame, whose
+origin is LEAP's wrist). A human point of finger ``f`` maps to the LEAP hand frame by
 
-    p_hand = origin_offset + scale * p_palm
+    p_hand = origin_offset + scale_f * p_palm
 
-with ``scale`` = ``thumb_scale`` for thumb joints and ``finger_scale`` otherwise. By default
-``origin_offset`` puts the scaled middle knuckle of :data:`HUMAN_TEMPLATE_RIGHT` (a typical adult
-hand) on LEAP's middle knuckle (the MCP flexion axis, origin of body ``middle_base``).
+By default ``origin_offset`` is 0 (the human wrist on LEAP's wrist) and ``scale_f`` is the
+ratio of LEAP's reach to the human's for that finger: the length of LEAP's wrist -> fingertip
+(pad site) at its home pose (open hand) over that of the same finger of
+:data:`HUMAN_TEMPLATE_RIGHT` (a typical adult hand, relaxed): 1.18 for the thumb, 1.35 index,
+1.27 middle, 1.40 ring. So the template's open hand maps onto LEAP's open hand, the targets
+lie where LEAP's fingers can reach, and a fingertip on its target points from the wrist where
+the human's does. (An earlier map scaled the human hand 1.8x about its middle knuckle, put on
+LEAP's: that put the human wrist 6 cm behind LEAP's and most fingertip targets out of reach,
+and the fingers pointed up to 15 degrees away from the human's; docs/benchmarks.md.)
 
 :class:`LeapRetargeter` solves, with mink on a hand-only copy of the LEAP MJCF, for joints that
 put each LEAP finger's fingertip-pad site and distal-joint point (origin of ``<finger>_distal``)
 on the mapped human tip and distal (DIP, thumb IP) joints, and with a smaller weight its
 intermediate point (origin of ``<finger>_middle``) on the human PIP (thumb MCP), under joint
-limits and finger-finger
-collision avoidance, warm-started from the previous solution. LEAP has no little finger: the
-human little finger is ignored. :func:`human_keypoints_for` is the inverse, for synthetic traces.
+limits and finger-finger collision avoidance (a pair that ends up inside the kept gap is
+pushed back out, :attr:`RetargetConfig.collision_recovery`), warm-started from the previous
+solution. LEAP has no little finger: the human little finger is ignored.
+:func:`human_keypoints_for` is the inverse, for synthetic traces.
 """
 
 from __future__ import annotations
@@ -87,8 +94,6 @@ NEVER_CLOSE_LINKS: frozenset[frozenset[str]] = frozenset(
         ("index_base", "ring_base"),
     )
 )
-#: LEAP body whose origin is the middle knuckle (MCP flexion axis), the default alignment point.
-LEAP_KNUCKLE_BODY = "middle_base"
 
 
 #: A typical adult right hand in its palm frame (metres, wrist at the origin). The wrist and
@@ -139,8 +144,10 @@ def human_template(side: str) -> np.ndarray:
 class RetargetConfig:
     """Human -> LEAP map and solver settings (see the module docstring for the map).
 
-    ``origin_offset``: LEAP hand-frame point (m) of the human wrist; None puts the scaled
-    template middle knuckle on LEAP's middle knuckle, per side. Weights: ``tip_weight`` and
+    ``finger_scale`` (index, middle, ring) and ``thumb_scale``: human -> LEAP scale; None (the
+    default) derives each finger's from the models (LEAP's home reach over the template's, see
+    the module docstring). ``origin_offset``: LEAP hand-frame point (m) of the human wrist;
+    None is LEAP's wrist (the hand frame's origin). Weights: ``tip_weight`` and
     ``distal_weight`` per metre of position error, ``posture_weight`` per radian from
     ``posture`` (None: all zeros, open hand). ``iterations``: QP steps per frame (warm-started).
     ``damping``: Levenberg-Marquardt damping of each step; ``max_step``: largest joint change
@@ -151,11 +158,13 @@ class RetargetConfig:
     steps: 3 cm for 0.1 rad steps); pairs without the thumb use ``finger_detection_distance``
     (the fingers only approach each other through their spread joints: under 1.5 cm per 0.1
     rad step for two fingers); ``collision_gain``: fraction
-    of the remaining gap a step may close (mink's velocity-damper gain).
+    of the remaining gap a step may close (mink's velocity-damper gain);
+    ``collision_recovery``: fraction of an intrusion into ``min_finger_distance`` a step must
+    undo (linearisation errors near box edges otherwise let a pair creep inside and stay).
     """
 
-    finger_scale: float = 1.8
-    thumb_scale: float = 1.7
+    finger_scale: float | None = None
+    thumb_scale: float | None = None
     origin_offset: tuple[float, float, float] | None = None
     tip_weight: float = 1.0
     distal_weight: float = 0.5
@@ -169,10 +178,13 @@ class RetargetConfig:
     collision_detection_distance: float = 0.03
     finger_detection_distance: float = 0.015
     collision_gain: float = 0.5
+    collision_recovery: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("finger_scale", "thumb_scale", "tip_weight", "max_step", "collision_gain"):
             value = getattr(self, name)
+            if value is None and name in ("finger_scale", "thumb_scale"):
+                continue
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RetargetConfig.{name} must be finite and > 0, got {value!r}")
         for name in (
@@ -188,6 +200,11 @@ class RetargetConfig:
         if self.collision_gain > 1:
             raise ValueError(
                 f"RetargetConfig.collision_gain must be in (0, 1], got {self.collision_gain!r}"
+            )
+        if not (np.isfinite(self.collision_recovery) and 0 <= self.collision_recovery <= 1):
+            raise ValueError(
+                "RetargetConfig.collision_recovery must be in [0, 1], got "
+                f"{self.collision_recovery!r}"
             )
         if not (
             self.collision_detection_distance
@@ -219,9 +236,6 @@ class RetargetConfig:
                     f"(rad, motor-id order) or None, got {self.posture!r}"
                 )
 
-    def scale(self, finger: str) -> float:
-        return self.thumb_scale if finger == "thumb" else self.finger_scale
-
 
 class HandMap:
     """The human palm frame -> LEAP hand frame point map of one side, and the hand-only model."""
@@ -234,20 +248,43 @@ class HandMap:
         #: qpos address of each motor id.
         self.qpos_adr = np.array([self.model.joint(j).qposadr[0] for j in LEAP_HAND.joints])
         self.range = self.model.jnt_range[[self.model.joint(j).id for j in LEAP_HAND.joints]]
-        if config.origin_offset is None:
-            mujoco.mj_kinematics(self.model, self.data)
-            knuckle = self.data.body(LEAP_KNUCKLE_BODY).xpos
-            self.origin_offset = (
-                knuckle - config.finger_scale * human_template(side)[JOINT_INDEX["middle_proximal"]]
-            )
-        else:
-            self.origin_offset = np.asarray(config.origin_offset, dtype=float)
+        self.origin_offset = (
+            np.zeros(3)
+            if config.origin_offset is None
+            else np.asarray(config.origin_offset, dtype=float)
+        )
+        #: Human -> LEAP scale of each LEAP finger.
+        self.scales = {f: self._scale(f) for f in LEAP_FINGERS}
+        #: Scale of each of the 26 canonical joints (the finger's; the middle finger's for the
+        #: wrist, palm, metacarpals and the little finger, which LEAP lacks).
+        self.joint_scales = np.full(N_JOINTS, self.scales["middle"])
+        for finger, scale in self.scales.items():
+            for name, i in JOINT_INDEX.items():
+                if name.startswith(f"{finger}_") and not name.endswith("metacarpal"):
+                    self.joint_scales[i] = scale
+
+    def _scale(self, finger: str) -> float:
+        given = self.config.thumb_scale if finger == "thumb" else self.config.finger_scale
+        if given is not None:
+            return float(given)
+        # LEAP's reach over the template's: wrist (mount origin) -> fingertip pad, open hand.
+        self.forward(np.asarray(LEAP_HAND.home, dtype=float))
+        leap = np.linalg.norm(self.data.site(f"{finger}_tip").xpos)
+        human = np.linalg.norm(human_template(self.side)[JOINT_INDEX[f"{finger}_tip"]])
+        return float(leap / human)
+
+    def scale(self, finger: str) -> float:
+        return self.scales[finger]
 
     def to_leap(self, p_palm: np.ndarray, finger: str) -> np.ndarray:
-        return self.origin_offset + self.config.scale(finger) * p_palm
+        return self.origin_offset + self.scales[finger] * p_palm
 
     def to_human(self, p_hand: np.ndarray, finger: str) -> np.ndarray:
-        return (p_hand - self.origin_offset) / self.config.scale(finger)
+        return (p_hand - self.origin_offset) / self.scales[finger]
+
+    def skeleton(self, keypoints_palm: np.ndarray) -> np.ndarray:
+        """All 26 joints mapped to the LEAP hand frame (each with its finger's scale)."""
+        return self.origin_offset + self.joint_scales[:, None] * keypoints_palm
 
     def forward(self, q16: np.ndarray) -> mujoco.MjData:
         """Kinematics of the hand at joint values ``q16`` (motor-id order)."""
@@ -349,7 +386,7 @@ class LeapRetargeter:
                 self._human_ids.append(JOINT_INDEX[f"{finger}_{human}"])
                 self._finger_of_point.append(finger)
         self._human_ids = np.array(self._human_ids, dtype=np.int64)
-        self._scales = np.array([self.config.scale(f) for f in self._finger_of_point])[:, None]
+        self._scales = np.array([self.map.scale(f) for f in self._finger_of_point])[:, None]
         self._point_scales = self._scales.ravel()
         self.points = _PointsTask(model, frames, np.array(costs))
         self._posture = np.zeros(model.nq)
@@ -373,6 +410,7 @@ class LeapRetargeter:
             closest_only=True,  # ~2.5 contacts per box pair: one row per pair is enough
             collision_detection_distance=self.config.collision_detection_distance,
             gain=self.config.collision_gain,
+            recovery=self.config.collision_recovery,
         )
         self._held = np.zeros(model.nv, dtype=bool)
         self._any_held = self._held_any_before = False
@@ -504,6 +542,10 @@ class LeapRetargeter:
         )  # fmt: skip
         _, A, h = self.collision_limit.active_rows(cfg, 1.0)
         dq = qp.solve(A, h)
+        if dq is None and (h < 0.0).any():
+            # Pushing every pair inside the gap back out at once can be more than one step
+            # can do: settle for no deeper (mink's rows) this step.
+            dq = qp.solve(A, np.maximum(h, 0.0))
         if dq is None:  # no solution (fingers already too close, a solver failure): hold
             return False
         if self._any_held:
