@@ -19,11 +19,15 @@ help:
 	@echo "make bench  - run the simulation benchmark (JSON)"
 	@echo "make lint   - ruff"
 
-$(STAMP): pyproject.toml
+# LeRobot plugins (plugins/*: --env.type / --robot.type=beavr_sim, --teleop.type=beavr_quest);
+# LeRobot imports each by its distribution name, so they are installed, not just on the path.
+PLUGINS := $(wildcard plugins/lerobot_*_beavr_sim)
+
+$(STAMP): pyproject.toml $(addsuffix /pyproject.toml,$(PLUGINS))
 	@if [ -z "$(PYTHON312)" ]; then echo "python3.12 not found: install Python 3.12 (e.g. pyenv install 3.12) or set PYTHON312=/path/to/python3.12" >&2; exit 1; fi
 	@test -x $(PY) || $(PYTHON312) -m venv $(VENV)
 	$(PY) -m pip install --upgrade --quiet pip
-	$(PY) -m pip install --quiet -e ".[$(EXTRAS)]"
+	$(PY) -m pip install --quiet -e ".[$(EXTRAS)]" $(addprefix -e ,$(PLUGINS))
 	@touch $(STAMP)
 
 venv: $(STAMP) sysdeps
@@ -74,8 +78,8 @@ traces: venv
 	@for t in $(RX1_TRACE_TASKS); do MUJOCO_GL=egl $(PY) -m beavr_sim.traces synth --task $$t --embodiment rx1 --seed 0 --tries 10 --out assets/traces/rx1/$$t.mcap || exit 1; done
 
 lint: venv
-	$(PY) -m ruff check beavr_sim tests
-	$(PY) -m ruff format --check beavr_sim tests
+	$(PY) -m ruff check beavr_sim tests plugins
+	$(PY) -m ruff format --check beavr_sim tests plugins
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

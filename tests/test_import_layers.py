@@ -37,6 +37,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("datasets", "viz"),  # beside the runners: recorder, browser view, rerun log
     ("teleop",),  # the runners
     ("synthetic", "eval"),  # what drives the runners: synthetic operator, policy evaluation
+    ("integrations",),  # LeRobot's env, robot and teleoperator plugins over all of the above
     ("bench", "demo"),  # measurements and the scripted demo
 )
 RANK = {unit: rank for rank, units in enumerate(LAYERS) for unit in units}
