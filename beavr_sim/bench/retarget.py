@@ -192,6 +192,10 @@ class HandScorer:
                 f: round(float(a), 2)
                 for f, a in zip(LEAP_FINGERS, angles.mean(axis=0), strict=True)
             },
+            "tip_direction_error_p95_deg": {
+                f: round(float(a), 2)
+                for f, a in zip(LEAP_FINGERS, np.percentile(angles, 95, axis=0), strict=True)
+            },
             **extra,
             "pinch": self.pinch(Q, keypoints_palm),
         }
