@@ -322,6 +322,35 @@ def test_teleoperator_plays_a_bundled_trace_on_the_tick_clock(tmp_path):
     assert again[-1] == actions[-1]
 
 
+def test_teleoperator_and_sim_robot_complete_the_bundled_pickup_box_trace(tmp_path):
+    """The plugin pair reproduces the native replay: every action of the bundled PickupBox
+    trace passes the guard and the twin reports task success before the trace ends."""
+    from beavr_sim.integrations.robot import BeavrSimRobot
+    from beavr_sim.integrations.teleoperator import BeavrQuestTeleop
+
+    robot = BeavrSimRobot(
+        BeavrSimRobotConfig(task="PickupBox", camera_names=[], calibration_dir=tmp_path)
+    )
+    teleop = BeavrQuestTeleop(
+        BeavrQuestTeleopConfig(source="trace", task="PickupBox", calibration_dir=tmp_path)
+    )
+    robot.connect()
+    teleop.connect()
+    try:
+        env = robot.twin.env
+        success_at = None
+        for step in range(400):  # the trace is 9 s: 270 ticks at 30 Hz
+            robot.send_action(teleop.get_action())
+            if env.task.evaluate(env.model, env.data).success:
+                success_at = step
+                break
+        assert success_at is not None, "the trace did not complete PickupBox"
+        assert robot.actions_refused == 0
+    finally:
+        teleop.disconnect()
+        robot.disconnect()
+
+
 def test_teleoperator_takes_the_quest_apps_sockets(tmp_path):
     """source=quest: the bundled trace's right hand sent as the Quest app sends it (PUSH
     sockets, keypoint strings) to the teleoperator's sockets, on free ports."""
