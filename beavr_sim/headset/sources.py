@@ -9,6 +9,8 @@ headset sends malformed are rejected inside the source and counted by its valida
 - :class:`TraceSource`: a recorded VR trace (MCAP), on the virtual clock (deterministic:
   frame ``t_source`` is trace time) or in real time (trace time offset to ``time.monotonic``).
 - :class:`QuestSource`: the BEAVR Quest app over ZeroMQ (``beavr_sim.headset.quest_io``).
+- :class:`WebXRSource`: any WebXR headset's browser, on a page this process serves
+  (``beavr_sim.headset.webxr_server``; a server thread, frames handed over thread-safely).
 """
 
 from __future__ import annotations
@@ -181,6 +183,39 @@ class QuestSource(HandSource):
 
     def close(self) -> None:
         self.receiver.close()
+
+
+class WebXRSource(HandSource):
+    """A WebXR headset's browser: the page and WebSocket of ``webxr_server`` (own thread)."""
+
+    real_time = True
+
+    def __init__(self, config=None, validator=None):
+        from beavr_sim.headset.webxr_server import WebXRServer
+
+        self.validates = validator is not None
+        self.server = WebXRServer(config, validator=validator)
+
+    @property
+    def url(self) -> str:
+        return self.server.url
+
+    def poll(self, now: float) -> list[HandFrame]:
+        return self.server.take(0.0)
+
+    def wait(self, timeout_s: float, clock=time.monotonic) -> list[HandFrame]:
+        """Blocks until the server thread hands over a message's frames."""
+        return self.server.take(timeout_s)
+
+    def twin_feed(self, model, data, operator=None, info: dict | None = None):
+        """A tick listener that shows the twin on the page (``webxr_scene.TwinFeed``)."""
+        from beavr_sim.headset.webxr_scene import TwinFeed
+
+        rate = self.server.config.twin_rate_hz
+        return TwinFeed(self.server, model, data, rate, operator=operator, info=info)
+
+    def close(self) -> None:
+        self.server.close()
 
 
 def monotonic() -> float:

@@ -1,6 +1,6 @@
 """``python -m beavr_sim.teleop --task pour``: VR hand tracking drives the twin.
 
-    python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace] [--trace F]
+    python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace|webxr] [--trace F]
         [--headless] [--no-viser] [--multiprocess] [--max-seconds N] [--summary-json F]
         [--rerun F.rrd [--rerun-image-hz 5]] [--leap-variant full|lite]
         [--record DIR --repo-id NAME --episodes N --episode-seconds S --fps 30
@@ -9,7 +9,10 @@
 Sources: ``quest`` (default) binds the BEAVR Quest app's PULL sockets (8087 right, 8110 left,
 8095 resolution, 8100 pause) on ``--headset-host`` (127.0.0.1 unless you give the PC's LAN
 address, e.g. 0.0.0.0, so the headset can connect); ``trace`` replays a recorded VR trace
-(``--trace F``, default: the task's bundled trace in ``assets/traces``). The browser view
+(``--trace F``, default: the task's bundled trace in ``assets/traces``); ``webxr`` serves a page
+for any WebXR headset's browser on ``--webxr-host`` / ``--webxr-port`` (http://127.0.0.1:8443;
+HTTPS with a self-signed certificate on a LAN address) that sends the hands and draws the twin
+(see docs/webxr.md). The browser view
 (viser; http://127.0.0.1:8080, ``--viser-host`` / ``--viser-port``) is on unless
 ``--no-viser``; the rendered twin goes to the headset (PUB on 10505)
 unless ``--headless``. With ``--record DIR`` the episodes are written as a LeRobot dataset,
@@ -32,7 +35,7 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
 
-SOURCES = ("quest", "trace")
+SOURCES = ("quest", "trace", "webxr")
 CLOCKS = ("real", "virtual", "paced")
 
 
@@ -69,6 +72,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--headset-host",
         default="127.0.0.1",
         help="address the headset sockets bind (a LAN address or 0.0.0.0 for a real headset)",
+    )
+    p.add_argument(
+        "--webxr-host",
+        default="127.0.0.1",
+        help="--source webxr: address the page is served on (a LAN address or 0.0.0.0 for a "
+        "headset on the network: HTTPS with a self-signed certificate)",
+    )
+    p.add_argument(
+        "--webxr-port", type=int, default=None, help="--source webxr: port (default 8443)"
     )
     p.add_argument("--headset-image-hz", type=float, default=10.0, help="twin images to headset")
     p.add_argument("--headset-image-size", default="640x360", help="WxH of headset images")

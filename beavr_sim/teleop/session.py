@@ -19,7 +19,7 @@ from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, ThreadedListene
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
 
-SOURCES = ("quest", "trace")
+SOURCES = ("quest", "trace", "webxr")
 
 
 @dataclass
@@ -71,6 +71,10 @@ class SessionOptions:
     #: the rig's hands decide (``LeapHandConfig.variant``; giving another is an error); else
     #: default "full".
     leap_variant: str | None = None
+    #: ``--source webxr``: where the page is served (loopback unless a LAN address is given:
+    #: then HTTPS, self-signed) and its port (default ``PortConfig.webxr``).
+    webxr_host: str = "127.0.0.1"
+    webxr_port: int | None = None
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -91,6 +95,10 @@ class SessionOptions:
                 raise FileNotFoundError(f"trace file not found: {self.trace}")
         elif self.trace is not None:
             raise ValueError("--trace needs --source trace")
+        if self.source == "webxr":
+            self.webxr_config()  # raises on a bad host or port
+            if self.multiprocess:
+                raise ValueError("--source webxr runs in one process; leave out --multiprocess")
         if self.mirror_hardware:
             if self.clock == "virtual":
                 raise ValueError(
@@ -144,6 +152,13 @@ class SessionOptions:
                 raise ValueError("--rerun runs in one process; leave out --multiprocess")
         if not 0 <= self.rerun_image_hz < float("inf"):
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
+
+    def webxr_config(self):
+        """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
+        from beavr_sim.headset.webxr_server import WebXRConfig
+
+        port = self.transport.ports.webxr if self.webxr_port is None else self.webxr_port
+        return WebXRConfig(host=self.webxr_host, port=port)
 
     def _twin_leap_variant(self) -> str:
         """The twin's LEAP variant: the mirrored rig's hands', else the chosen one, else full."""
@@ -206,6 +221,8 @@ class SessionOptions:
             hardware_config=getattr(args, "hardware_config", None),
             leap_variant=getattr(args, "leap_variant", None),
             dry_run=getattr(args, "dry_run", False),
+            webxr_host=getattr(args, "webxr_host", "127.0.0.1"),
+            webxr_port=getattr(args, "webxr_port", None),
         )
 
 
@@ -262,12 +279,16 @@ def build_loop(options: SessionOptions, context=None):
             raise ValueError(f"trace {options.trace} drives {trace_embodiment}, not {embodiment}")
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
+    elif options.source == "webxr":
+        from beavr_sim.headset.sources import WebXRSource
+
+        source = WebXRSource(options.webxr_config(), validator)
     else:
         # Every frame reaches the loop (it counts the frames a newer one supersedes).
         source = QuestSource(context, options.transport, validator, latest_only=False)
     embodiment = embodiment or DEFAULT_EMBODIMENT
     kwargs = {}
-    if options.source == "quest":
+    if options.source != "trace":
         kwargs["max_episode_seconds"] = 1e9  # live: episodes end by the operator, not a timer
     if options.leap_variant:
         kwargs["hand_variant"] = options.leap_variant
@@ -345,6 +366,15 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 loop.listeners.append(BrowserEstop(view, mirror))
             closers.append(view.close)
             print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+        if options.source == "webxr":
+            url = loop.source.url
+            print(f"WebXR page (open it in the headset's browser): {url}", file=sys.stderr)
+            if not options.headless:  # the twin drawn in the headset
+                env = loop.twin.env
+                info = {"task": env.task.name, "embodiment": env.embodiment.name}
+                loop.listeners.append(
+                    loop.source.twin_feed(env.model, env.data, loop.operator, info)
+                )
         if not options.headless and options.source == "quest":
             from beavr_sim.headset.quest_io import HeadsetImagePublisher
 

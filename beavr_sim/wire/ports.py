@@ -8,6 +8,9 @@ Two groups of sockets:
   a LAN address such as ``"0.0.0.0"`` only when the user asks for it).
 - **pipeline** streams carry typed messages (:mod:`beavr_sim.wire.messages`) between the
   operator and twin processes on :attr:`TransportConfig.host`.
+
+The WebXR page's server (``--source webxr``: HTTP(S) and one WebSocket, not ZeroMQ) takes its
+default port from :attr:`PortConfig.webxr`; its host is its own option (``--webxr-host``).
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ class PortConfig:
     # PC -> headset (the PC binds PUB, the app connects SUB).
     headset_camera: int = 10505
     headset_graph: int = 15001
+    # The WebXR page and its WebSocket (beavr_sim.headset.webxr_server; HTTPS off loopback).
+    webxr: int = 8443
     # Pipeline streams (msgpack messages, PUB/SUB).
     commands: int = 5572
     robot_state: int = 5573
