@@ -53,6 +53,16 @@ sysdeps:
 	    echo "The browser-view test needs: sudo apt-get install chromium (it skips without)" >&2; \
 	  fi; \
 	fi
+	@# The WebXR test (tests/test_webxr_browser.py) installs Meta's WebXR emulator (iwer) with npm
+	@# into ~/.cache/beavr_sim/iwer; without npm that test skips.
+	@if ! command -v npm >/dev/null; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing nodejs and npm for the WebXR test"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm >/dev/null; \
+	  else \
+	    echo "The WebXR test needs: sudo apt-get install nodejs npm (it skips without)" >&2; \
+	  fi; \
+	fi
 
 # The main job on a bundled VR trace, in real time, with the browser view (Ctrl-C to stop).
 DEMO_TASK ?= pour

@@ -1,0 +1,151 @@
+"""The WebXR source in a real browser: a live ``teleop --task pour --source webxr`` session and
+Debian's headless chromium on its page, with Meta's Immersive Web Emulation Runtime (iwer,
+from npm, injected by this test only) emulating a Quest 3 in hand-tracking mode.
+
+Checks that the page loads and Start opens an immersive session, that the server receives
+frames of both hands, that moving the emulated right hand moves the twin's arm target and its
+arm, that the page's Pause / Resume pause the operator, and that closing the page leaves the
+robot holding (tracking lost). A screenshot goes to ``test-artifacts/webxr/``.
+
+Skips when playwright, chromium or npm is missing, or when ``npm install iwer`` fails (it
+installs once into ``~/.cache/beavr_sim/iwer``, ``BEAVR_IWER_DIR`` to move it).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sync_api = pytest.importorskip(
+    "playwright.sync_api", reason="playwright (extra 'dev') not installed: pip install playwright"
+)
+
+from beavr_sim.bench.webxr import (  # noqa: E402
+    CHROMIUM_ARGS,
+    IWER_SETUP,
+    SessionThread,
+    ensure_iwer,
+    find_chromium,
+)
+
+CHROMIUM = find_chromium()
+if CHROMIUM is None:
+    pytest.skip(
+        "chromium not found: sudo apt-get install chromium (or set BEAVR_CHROMIUM)",
+        allow_module_level=True,
+    )
+
+ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "webxr"
+
+
+@pytest.fixture(scope="module")
+def iwer_bundle() -> Path:
+    try:
+        return ensure_iwer()
+    except RuntimeError as exc:
+        pytest.skip(f"iwer (the WebXR emulator, from npm) is not available: {exc}")
+
+
+class _Frames:
+    """A tick listener: the sides of the well-tracked hand frames the loop used."""
+
+    def __init__(self):
+        self.sides: set[str] = set()
+
+    def __call__(self, tick) -> None:
+        self.sides.update(f.side for f in tick.frames if f.tracked.sum() >= 20)
+
+
+def _target(sess) -> np.ndarray | None:
+    T = sess.loop.operator.targets()["right"].T_world_target
+    return None if T is None else T[:3, 3].copy()
+
+
+def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bundle):
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.wire.ports import free_tcp_ports
+
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    options = SessionOptions(
+        task="pour", source="webxr", viser=False, progress=False, webxr_port=free_tcp_ports(1)[0]
+    )
+    assert options.webxr_config().host == "127.0.0.1" and not options.webxr_config().use_tls
+    sess = SessionThread(options)
+    frames = _Frames()
+    sess.loop.listeners.append(frames)
+    server = sess.server
+    arm = sess.loop.twin.slices["right"]
+    try:
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(
+                executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS
+            )
+            try:
+                page = browser.new_page(viewport={"width": 640, "height": 360})
+                errors: list[str] = []
+                page.on("pageerror", lambda exc: errors.append(str(exc)))
+                page.add_init_script(path=str(iwer_bundle))
+                page.add_init_script(script=IWER_SETUP)
+                page.goto(server.url)
+
+                # (a) The page loads, connects and gets the twin; Start opens the session.
+                start = page.get_by_role("button", name="Start")
+                page.wait_for_function("!document.getElementById('start').disabled", timeout=30_000)
+                start.click()
+                sess.wait_for(lambda: server.stats.sessions_started == 1, 20, "XR session")
+                page.wait_for_function(
+                    "document.getElementById('status').textContent.includes('in session')",
+                    timeout=10_000,
+                )
+
+                # (b) Frames of both hands arrive and pass the validator.
+                sess.wait_for(lambda: frames.sides == {"left", "right"}, 30, "both hands")
+                sess.wait_for(lambda: _target(sess) is not None, 30, "the arm target anchored")
+                assert not server.stats.rejected, server.stats.rejected
+                assert sess.loop.validator.rejected == 0, sess.loop.validator.rejected_by_reason
+
+                # (c) Moving the emulated right hand 10 cm moves the arm target 10 cm (relative
+                # motion at scale 1, in the hand frame anchored at the start: the direction in
+                # the world depends on the robot hand's pose then), the arm with it, and moving
+                # the hand back brings the target back.
+                time.sleep(0.5)
+                target0, q0 = _target(sess), sess.loop.twin.action[arm].copy()
+                page.evaluate("window.__moveHand('right', 0, 0.10, 0, 1.5)")
+                time.sleep(2.5)
+                target1, q1 = _target(sess), sess.loop.twin.action[arm].copy()
+                moved = np.linalg.norm(target1 - target0)
+                assert 0.07 < moved < 0.12, f"arm target moved {moved:.3f} m for a 0.10 m hand move"
+                assert np.abs(q1 - q0).max() > 0.02, "the arm did not follow its target"
+                page.screenshot(path=ARTIFACTS / "1_in_session.png")
+                page.evaluate("window.__moveHand('right', 0, -0.10, 0, 1.5)")
+                time.sleep(2.5)
+                back = np.linalg.norm(_target(sess) - target0)
+                assert back < 0.02, f"hand back at the start, target {back:.3f} m from its start"
+
+                # (d) The page's Pause holds the operator (the pause flag of every frame);
+                # Resume releases it.
+                page.get_by_role("button", name="Pause").dispatch_event("click")
+                sess.wait_for(lambda: sess.loop.operator.paused, 5, "pause")
+                page.get_by_role("button", name="Resume").dispatch_event("click")
+                sess.wait_for(lambda: not sess.loop.operator.paused, 5, "resume")
+                assert not errors, errors
+
+                # (e) Closing the page: no frames, the right arm holds (tracking lost).
+                lost0 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
+                page.close()
+                time.sleep(1.0)
+                q_closed = sess.loop.twin.action[arm].copy()
+                time.sleep(0.5)
+                np.testing.assert_array_equal(sess.loop.twin.action[arm], q_closed)
+                lost1 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
+                assert lost1 > lost0 + 5, (lost0, lost1)
+                assert not server.driving
+            finally:
+                browser.close()
+    finally:
+        sess.stop()
+    assert sess.error is None, sess.error
+    assert server.stats.hand_messages > 30

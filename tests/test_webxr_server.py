@@ -1,0 +1,227 @@
+"""The WebXR page's server without a browser: loopback by default, the page and nothing else
+over HTTP, hand messages through a WebSocket to validated frames on the calling thread
+(malformed ones counted and dropped, the connection kept), twin messages out, one driving
+page, clean stop; the self-signed certificate for a LAN host; the teleop options."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import ssl
+import subprocess
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+from beavr_sim.headset.layouts import LAYOUTS
+from beavr_sim.headset.sources import WebXRSource
+from beavr_sim.headset.validation import StreamValidator
+from beavr_sim.headset.webxr_protocol import encode_hands
+from beavr_sim.headset.webxr_server import WebXRConfig, WebXRServer
+from beavr_sim.headset.webxr_tls import ensure_certificate
+from beavr_sim.naming import UnknownNameError
+from beavr_sim.wire.hand import N_JOINTS
+from beavr_sim.wire.ports import PortConfig
+
+T_MS = 1.7e12
+
+
+def _hand() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    canonical = np.array([0.3, 0.0, 1.1]) + rng.uniform(-0.09, 0.09, size=(N_JOINTS, 3))
+    return LAYOUTS["webxr25"].from_canonical(canonical)
+
+
+def _ws_url(server: WebXRServer) -> str:
+    return server.url.replace("http", "ws", 1) + "ws"
+
+
+def _take(server: WebXRServer, n: int, timeout_s: float = 5.0) -> list:
+    frames, end = [], time.monotonic() + timeout_s
+    while len(frames) < n and time.monotonic() < end:
+        frames += server.take(0.1)
+    return frames
+
+
+@pytest.fixture
+def server():
+    s = WebXRServer(WebXRConfig(port=0), validator=StreamValidator())
+    yield s
+    s.close()
+
+
+def test_defaults_bind_loopback_plain_http_on_the_configured_port():
+    config = WebXRConfig()
+    assert config.host == "127.0.0.1" and config.port == PortConfig().webxr == 8443
+    assert not config.use_tls
+    assert WebXRConfig(host="192.168.1.20").use_tls and WebXRConfig(host="0.0.0.0").use_tls
+    assert not WebXRConfig(host="192.168.1.20", tls="off").use_tls
+    with pytest.raises(ValueError, match=r"0\.0\.0\.0"):
+        WebXRConfig(host="*")
+    with pytest.raises(ValueError, match="IPv4"):
+        WebXRConfig(host="300.1.2.3")
+    with pytest.raises(ValueError, match=r"0\.\.65535"):
+        WebXRConfig(port=70000)
+    with pytest.raises(UnknownNameError, match="auto"):
+        WebXRConfig(tls="yes")
+
+
+def test_serves_the_page_bound_to_loopback_and_nothing_else(server):
+    assert server._thread.is_alive()
+    assert server.url.startswith("http://127.0.0.1:")
+    with urllib.request.urlopen(server.url, timeout=5) as r:
+        page = r.read().decode()
+        assert r.headers["Content-Type"].startswith("text/html")
+        assert "default-src 'self'" in r.headers["Content-Security-Policy"]
+    assert ">Start</button>" in page and "webxr.js" in page
+    for name in ("webxr.js", "twin_gl.js"):
+        with urllib.request.urlopen(server.url + name, timeout=5) as r:
+            assert r.headers["Content-Type"].startswith("text/javascript")
+            script = r.read().decode()
+            assert "http://" not in script and "https://" not in script  # nothing fetched
+    for path in ("nope.js", "../webxr_server.py", "%2e%2e/webxr_server.py"):
+        with pytest.raises(urllib.error.HTTPError) as info:
+            urllib.request.urlopen(server.url + path, timeout=5)
+        assert info.value.code == 404
+    with pytest.raises(urllib.error.HTTPError) as info:  # a page from another site
+        urllib.request.urlopen(
+            urllib.request.Request(_ws_url(server).replace("ws", "http", 1), headers={
+                "Origin": "http://evil.example", "Connection": "Upgrade", "Upgrade": "websocket",
+            }),
+            timeout=5,
+        )  # fmt: skip
+    assert info.value.code == 403
+
+
+def test_hands_become_validated_frames_and_bad_messages_are_counted(server):
+    validator = server.validator
+    hand = _hand()
+    with connect(_ws_url(server)) as ws:
+        assert json.loads(ws.recv())["type"] == "welcome"
+        for i in range(3):
+            ws.send(encode_hands(T_MS + 10 * i, {"right": hand, "left": None}, seq=i))
+        frames = _take(server, 6)
+        assert [f.side for f in frames] == ["right", "left"] * 3
+        assert all(f.tracked.sum() == N_JOINTS - 1 for f in frames[::2])  # palm is derived
+        assert not any(f.tracked.any() for f in frames[1::2])  # left: absent -> untracked
+        ws.send("not json")
+        ws.send(b"\x80\x04binary")  # a pickle's first bytes: never unpickled
+        ws.send('{"v": 9, "type": "hands"}')
+        ws.send(encode_hands(T_MS, {"right": hand}))  # older than the last: out of order
+        ws.send(encode_hands(T_MS + 100, {"right": hand}))  # still fine afterwards
+        frames = _take(server, 2)
+        assert len(frames) == 2 and frames[0].t_source == (T_MS + 100) / 1e3
+    assert dict(server.stats.rejected) == {"not_json": 1, "binary": 1, "unknown_version": 1}
+    assert validator.rejected_by_reason == {
+        "not_json": 1,
+        "binary": 1,
+        "unknown_version": 1,
+        "out_of_order": 2,  # both sides of that message
+    }
+    assert validator.accepted == 8 and server.stats.hand_messages == 5
+
+
+def test_one_page_drives_and_twin_messages_reach_every_page(server):
+    hand = _hand()
+    with connect(_ws_url(server)) as first, connect(_ws_url(server)) as second:
+        for ws in (first, second):
+            assert json.loads(ws.recv())["type"] == "welcome"
+        first.send(encode_hands(T_MS, {"right": hand}))
+        assert len(_take(server, 2)) == 2 and server.driving
+        second.send(encode_hands(T_MS + 10, {"right": hand}))
+        time.sleep(0.2)
+        assert server.take(0.1) == [] and server.stats.rejected["second_page"] == 1
+        server.publish("twin", {"v": 1, "type": "twin", "t": 1.0, "pose": np.arange(3.0)})
+        for ws in (first, second):
+            msg = json.loads(ws.recv(timeout=5))
+            assert msg["type"] == "twin" and msg["pose"] == [0.0, 1.0, 2.0]
+    time.sleep(0.2)
+    assert not server.driving
+    # A page that connects later gets the latest twin message at once.
+    with connect(_ws_url(server)) as late:
+        assert [json.loads(late.recv(timeout=5))["type"] for _ in range(2)] == ["welcome", "twin"]
+
+
+def test_wait_blocks_until_frames_arrive_and_close_stops_the_thread():
+    source = WebXRSource(WebXRConfig(port=0), StreamValidator())
+    try:
+        t0 = time.monotonic()
+        assert source.wait(0.2) == [] and time.monotonic() - t0 >= 0.15
+        with connect(_ws_url(source.server)) as ws:
+            ws.recv()
+            ws.send(encode_hands(T_MS, {"right": _hand(), "left": _hand()}))
+            frames = source.wait(5.0)
+            frames += source.poll(0.0)
+        assert [f.side for f in frames] == ["right", "left"]
+        assert source.validates and source.real_time
+    finally:
+        t0 = time.monotonic()
+        source.close()
+    assert not source.server._thread.is_alive() and time.monotonic() - t0 < 5
+    source.server.publish("twin", {})  # after close: ignored, no error
+
+
+def test_port_in_use_is_a_clear_error(server):
+    with pytest.raises(OSError, match="webxr-port"):
+        WebXRServer(WebXRConfig(port=server.port))
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
+def test_https_certificate_for_a_lan_host(tmp_path):
+    cert, key = ensure_certificate("192.168.77.5", tmp_path)
+    assert cert.parent == tmp_path and key.stat().st_mode & 0o077 == 0
+    names = subprocess.run(
+        ["openssl", "x509", "-in", str(cert), "-noout", "-ext", "subjectAltName"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "IP Address:192.168.77.5" in names and "DNS:localhost" in names
+    assert ensure_certificate("192.168.77.5", tmp_path) == (cert, key)  # cached
+    mtime = cert.stat().st_mtime_ns
+    ensure_certificate("192.168.77.5", tmp_path)
+    assert cert.stat().st_mtime_ns == mtime
+    ensure_certificate("10.0.0.9", tmp_path)  # another address: made again, naming both
+    names = subprocess.run(
+        ["openssl", "x509", "-in", str(cert), "-noout", "-ext", "subjectAltName"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "192.168.77.5" in names and "10.0.0.9" in names
+    # Served over HTTPS (forced on loopback here, so the test needs no LAN address).
+    server = WebXRServer(WebXRConfig(port=0, tls="on", cert_dir=tmp_path))
+    try:
+        assert server.url.startswith("https://127.0.0.1:")
+        context = ssl.create_default_context(cafile=str(cert))
+        with urllib.request.urlopen(server.url, context=context, timeout=5) as r:
+            assert b"Start" in r.read()
+        with connect(_ws_url(server), ssl=context) as ws:
+            assert json.loads(ws.recv())["type"] == "welcome"
+    finally:
+        server.close()
+
+
+def test_teleop_options_for_the_webxr_source():
+    from beavr_sim.teleop.__main__ import build_parser
+    from beavr_sim.teleop.session import SessionOptions
+
+    args = build_parser().parse_args(["--task", "pour", "--source", "webxr"])
+    options = SessionOptions.from_args(args)
+    assert options.source == "webxr" and options.clock == "real"
+    assert options.webxr_config() == WebXRConfig()
+    args = build_parser().parse_args(
+        ["--task", "pour", "--source", "webxr", "--webxr-host", "0.0.0.0", "--webxr-port", "9443"]
+    )
+    config = SessionOptions.from_args(args).webxr_config()
+    assert (config.host, config.port, config.use_tls) == ("0.0.0.0", 9443, True)
+    with pytest.raises(ValueError, match="multiprocess"):
+        SessionOptions(task="pour", source="webxr", multiprocess=True)
+    with pytest.raises(ValueError, match="IPv4"):
+        SessionOptions(task="pour", source="webxr", webxr_host="1.2.3.999")
+    with pytest.raises(UnknownNameError, match="webxr"):
+        SessionOptions(task="pour", source="webxrr")
