@@ -128,7 +128,7 @@ def test_unknown_names_list_the_valid_choices():
         BeavrSimRobotConfig(hardware="no_such_rig.toml")
     with pytest.raises(ValueError, match="dry_run needs hardware"):
         BeavrSimRobotConfig(dry_run=True)
-    with pytest.raises(UnknownNameError, match="quest, trace"):
+    with pytest.raises(UnknownNameError, match="quest, trace, webxr"):
         BeavrQuestTeleopConfig(source="vr")
     with pytest.raises(ValueError, match=r"--teleop\.task"):
         BeavrQuestTeleopConfig(source="trace")
@@ -349,6 +349,38 @@ def test_teleoperator_and_sim_robot_complete_the_bundled_pickup_box_trace(tmp_pa
     finally:
         teleop.disconnect()
         robot.disconnect()
+
+
+def test_teleoperator_serves_the_webxr_page_and_holds_without_a_headset(tmp_path):
+    """``source=webxr``: the page is served on loopback, and with no headset connected every
+    action is the home pose (the operator waits for hands; nothing moves)."""
+    import urllib.request
+
+    from beavr_sim.integrations.teleoperator import BeavrQuestTeleop
+
+    with pytest.raises(ValueError, match="webxr host"):
+        BeavrQuestTeleopConfig(source="webxr", webxr_host="*")
+    with pytest.raises(ValueError, match="real clock"):
+        BeavrQuestTeleopConfig(source="webxr", clock="tick")
+    teleop = BeavrQuestTeleop(
+        BeavrQuestTeleopConfig(
+            source="webxr", task="PickupBox", webxr_port=0, calibration_dir=tmp_path
+        )
+    )
+    teleop.connect()
+    try:
+        url = teleop.source.url
+        assert url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(url, timeout=5) as response:
+            assert response.status == 200
+            assert b"Start" in response.read()
+        first = teleop.get_action()
+        for _ in range(5):
+            action = teleop.get_action()
+        assert action == first
+        assert teleop.frames_received == 0
+    finally:
+        teleop.disconnect()
 
 
 def test_teleoperator_takes_the_quest_apps_sockets(tmp_path):

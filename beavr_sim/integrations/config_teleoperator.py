@@ -19,7 +19,7 @@ from beavr_sim.naming import check_name
 
 #: The teleoperator type on LeRobot's command line (``--teleop.type=beavr_quest``).
 TELEOP_TYPE = "beavr_quest"
-SOURCES = ("quest", "trace")
+SOURCES = ("quest", "trace", "webxr")
 #: ``tick``: each get_action advances the source's clock by 1/fps (traces only);
 #: ``real``: the wall clock.
 CLOCKS = ("tick", "real")
@@ -54,6 +54,18 @@ class BeavrQuestTeleopConfig(TeleoperatorConfig):
     #: The app's four ports if its Network.json changed them: [right hand, left hand,
     #: resolution, pause] (default: 8087, 8110, 8095, 8100).
     quest_ports: list[int] | None = None
+    #: ``source=webxr``: where the page is served (loopback unless a LAN address is given:
+    #: then HTTPS with a self-signed certificate) and its port (default 8443; 0: any free).
+    webxr_host: str = "127.0.0.1"
+    webxr_port: int | None = None
+
+    def webxr_config(self):
+        """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
+        from beavr_sim.headset.webxr_server import WebXRConfig
+
+        if self.webxr_port is None:
+            return WebXRConfig(host=self.webxr_host)
+        return WebXRConfig(host=self.webxr_host, port=self.webxr_port)
 
     def transport(self):
         """The headset sockets' :class:`~beavr_sim.wire.ports.TransportConfig`."""
@@ -96,6 +108,11 @@ class BeavrQuestTeleopConfig(TeleoperatorConfig):
                 raise ValueError("trace needs source=trace")
             self.clock = self.clock or "real"
             if self.clock != "real":
-                raise ValueError("the headset (source=quest) runs on the real clock: clock=real")
-            self.transport()  # raises on a bad host or ports
+                raise ValueError(
+                    f"the headset (source={self.source}) runs on the real clock: clock=real"
+                )
+            if self.source == "webxr":
+                self.webxr_config()  # raises on a bad host or port
+            else:
+                self.transport()  # raises on a bad host or ports
         check_name("clock", self.clock, CLOCKS)

@@ -1,5 +1,5 @@
 """``--teleop.type=beavr_quest``: the Quest hand-tracking pipeline as a LeRobot
-``Teleoperator``.
+``Teleoperator`` (the Quest app's sockets, any WebXR headset's browser, or a VR trace).
 
 The detector (a :class:`~beavr_sim.headset.sources.HandSource`: the Quest app's sockets or a VR
 trace, frames validated by :class:`~beavr_sim.headset.validation.StreamValidator`) and the
@@ -127,6 +127,11 @@ class BeavrQuestTeleop(Teleoperator):
             from beavr_sim.headset.sources import TraceSource
 
             self.source = TraceSource(cfg.trace, real_time=cfg.clock == "real")
+        elif cfg.source == "webxr":
+            from beavr_sim.headset.sources import WebXRSource
+
+            self.source = WebXRSource(cfg.webxr_config(), self._validator)
+            log.info("%s: open %s in the headset's browser and press Start", self, self.source.url)
         else:
             import zmq
 
