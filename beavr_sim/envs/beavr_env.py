@@ -90,6 +90,7 @@ class BeavrEnv(gym.Env):
             self.camera_width,
             self.hand_variant,
             DEFAULT_CONTACT if contact is None else contact,
+            visuals=True,
         )
         self.task.build(spec)
         self.control_hz = float(control_hz)

@@ -134,10 +134,13 @@ def build_scene_spec(
     width: int,
     hand_variant: str = DEFAULT_HAND_VARIANT,
     contact: ContactSettings = DEFAULT_CONTACT,
+    visuals: bool = False,
 ) -> mujoco.MjSpec:
     """The scene without task objects: everything every task shares. The hands are the
     ``hand_variant`` of their hardware (their torque cap: :func:`apply_hand_variant`);
-    ``contact``: the global contact options."""
+    ``contact``: the global contact options; ``visuals``: the robots' visual geometry too
+    (what the env and its views draw; the physics is the same without it, and the
+    operator's and guards' private models leave it out)."""
     check_hand_variant(embodiment, hand_variant)
     spec = mujoco.MjSpec()
     spec.modelname = f"beavr_sim_{embodiment.name}"
@@ -216,7 +219,7 @@ def build_scene_spec(
             size=[0.17, 0.17, z / 2],
             pos=[x, y, z / 2],
         )
-    embodiment.attach_to(spec)
+    embodiment.attach_to(spec, visuals=visuals)
     apply_hand_variant(spec, embodiment, hand_variant)
     if embodiment.spec.body is None:
         for effector in embodiment.spec.effectors:

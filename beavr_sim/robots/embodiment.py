@@ -29,6 +29,7 @@ from beavr_sim.robots.parts import (
     HandModel,
     HandMount,
 )
+from beavr_sim.robots.visuals import add_visuals
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
 
@@ -257,19 +258,25 @@ class Embodiment:
         by_name = {e.name: e for e in self.effectors}
         return by_name[check_name("effector", name, by_name)]
 
-    def attach_to(self, scene: mujoco.MjSpec) -> None:
+    def attach_to(self, scene: mujoco.MjSpec, visuals: bool = False) -> None:
         """Add the body (if any), every arm (at its base pose, or at the body's site for its
-        side) and its hand (on the flange) to ``scene``."""
+        side) and its hand (on the flange) to ``scene``. ``visuals``: with the parts' visual
+        geometry (:mod:`beavr_sim.robots.visuals`; no effect on the physics)."""
+
+        def load(part: str) -> mujoco.MjSpec:
+            spec = mujoco.MjSpec.from_file(str(mjcf_path(part)))
+            if visuals:
+                add_visuals(spec, part)
+            return spec
+
         body = self.spec.body
         if body is not None:
             frame = scene.worldbody.add_frame(pos=list(self.spec.body_pos))
-            scene.attach(
-                mujoco.MjSpec.from_file(str(mjcf_path(body.mjcf))), prefix=BODY_PREFIX, frame=frame
-            )
+            scene.attach(load(body.mjcf), prefix=BODY_PREFIX, frame=frame)
             for camera in body.cameras:  # the robot's cameras keep their own names
                 scene.camera(BODY_PREFIX + camera).name = camera
         for spec in self.spec.effectors:
-            arm = mujoco.MjSpec.from_file(str(mjcf_path(spec.arm.mjcf_for(spec.side))))
+            arm = load(spec.arm.mjcf_for(spec.side))
             if body is not None:
                 site = scene.site(BODY_PREFIX + body.arm_sites_by_side[spec.side])
                 base = site.parent.add_frame(pos=list(site.pos), quat=list(_site_quat(site)))
@@ -278,7 +285,7 @@ class Embodiment:
                     pos=list(spec.base_pos), quat=list(_yaw_quat(spec.base_yaw_deg))
                 )
             scene.attach(arm, prefix=spec.prefix, frame=base)
-            hand = mujoco.MjSpec.from_file(str(mjcf_path(spec.hand.mjcf(spec.side))))
+            hand = load(spec.hand.mjcf(spec.side))
             flange = scene.site(spec.prefix + spec.arm.ee_site)
             pos, quat = (
                 np.add(flange.pos, spec.mount.pos),

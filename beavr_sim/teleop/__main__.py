@@ -63,6 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--viser-host", default="127.0.0.1")
     p.add_argument("--viser-port", type=int, default=8080)
     p.add_argument(
+        "--show-collision",
+        action="store_true",
+        help="browser view: draw the robots' collision geometry too (a panel checkbox toggles it)",
+    )
+    p.add_argument(
         "--viser-rate-hz",
         type=float,
         default=30.0,

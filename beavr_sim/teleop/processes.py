@@ -443,6 +443,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 env.model, {n: joints.names[sl] for n, sl in joints.slices.items()}
             ),
             rate_hz=options.get("viser_rate_hz", 30.0),
+            show_collision=options.get("show_collision", False),
             mirroring=mirror is not None,
         )
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)

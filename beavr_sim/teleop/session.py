@@ -36,6 +36,8 @@ class SessionOptions:
     viser_port: int = 8080
     #: Browser view updates per wall second at most (the loop itself is never slowed).
     viser_rate_hz: float = 30.0
+    #: The browser view draws the robots' collision geometry over their visual geometry.
+    show_collision: bool = False
     headset_host: str = "127.0.0.1"
     headset_image_hz: float = 10.0
     headset_image_size: tuple[int, int] = (640, 360)
@@ -203,6 +205,7 @@ class SessionOptions:
             viser_host=args.viser_host,
             viser_port=args.viser_port,
             viser_rate_hz=getattr(args, "viser_rate_hz", 30.0),
+            show_collision=getattr(args, "show_collision", False),
             headset_host=args.headset_host,
             headset_image_hz=args.headset_image_hz,
             headset_image_size=(int(size[0]), int(size[1])),
@@ -359,6 +362,7 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 control,
                 mirroring=mirror is not None,
                 rate_hz=options.viser_rate_hz,
+                show_collision=options.show_collision,
             )
             if mirror is not None:
                 from beavr_sim.teleop.mirroring import BrowserEstop

@@ -102,10 +102,12 @@ def attach_view(
     *,
     mirroring: bool = False,
     rate_hz: float = DEFAULT_RATE_HZ,
+    show_collision: bool = False,
 ) -> TwinView:
     """A :class:`TwinView` of ``loop``'s twin, driven by a :class:`ViewListener` appended to
     the loop's listeners. ``mirroring``: the session drives hardware; the view gets an
-    emergency-stop button whose state (``view.estop_requested``) the session follows."""
+    emergency-stop button whose state (``view.estop_requested``) the session follows.
+    ``show_collision``: the robots' collision geometry drawn too (a panel checkbox toggles it)."""
     env = loop.twin.env
     joints = env.joints
     by_effector = {name: joints.names[sl] for name, sl in joints.slices.items()}
@@ -122,6 +124,7 @@ def attach_view(
         effector_bodies=subtree_bodies(env.model, by_effector),
         mirroring=mirroring,
         rate_hz=rate_hz,
+        show_collision=show_collision,
     )
     loop.listeners.append(ViewListener(view, loop, progress, control))
     return view

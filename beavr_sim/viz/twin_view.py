@@ -28,12 +28,16 @@ from itertools import pairwise
 import mujoco
 import numpy as np
 
+from beavr_sim.robots.visuals import COLLISION_GROUP, RENDER_GEOM_GROUPS
 from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
 #: Scene updates per wall second at most (the control loop may tick faster).
 DEFAULT_RATE_HZ = 30.0
+#: Geom groups uploaded: the scene, the robots' visuals, their collision geometry (hidden
+#: unless ``show_collision``).
+DRAWN_GROUPS = (*RENDER_GEOM_GROUPS, COLLISION_GROUP)
 #: Colour of an effector's geoms while the collision guard blocks it.
 WARNING_RGB = (230, 30, 30)
 #: Hand skeleton colour per side; fingertip targets.
@@ -288,6 +292,7 @@ class TwinView:
         effector_bodies: Mapping[str, Iterable[int]] | None = None,
         mirroring: bool = False,
         rate_hz: float = DEFAULT_RATE_HZ,
+        show_collision: bool = False,
     ):
         import viser  # optional dependency (extra "viz")
 
@@ -301,8 +306,10 @@ class TwinView:
         self.server.scene.add_grid("/floor", width=4.0, height=4.0, cell_size=0.25)
         self.body_frames: dict[int, object] = {}
         self.geom_handles: list[object] = []
+        #: The robots' collision geometry (geom group 3): hidden unless shown.
+        self.collision_handles: list[object] = []
         self._geom_bodies: list[tuple[object, int, tuple[int, int, int]]] = []
-        self._add_geoms()
+        self._add_geoms(show_collision)
         # Bodies that can move (world-body geoms never do) and the poses last sent: an update
         # sends only the poses that changed (one vectorised comparison, not one per setter).
         self._moving = np.array([b for b in self.body_frames if b != 0], dtype=int)
@@ -361,6 +368,11 @@ class TwinView:
                 record.on_click(lambda _: episode_control.request("toggle", "browser"))
                 discard = gui.add_button("Discard episode")
                 discard.on_click(lambda _: episode_control.request("discard", "browser"))
+        with gui.add_folder("View"):
+            self.collision_checkbox = gui.add_checkbox("Show collision geometry", show_collision)
+            self.collision_checkbox.on_update(
+                lambda _: self.set_show_collision(self.collision_checkbox.value)
+            )
         with gui.add_folder("Loop"):
             self.readout = gui.add_markdown("loop rate -  \nlatency p50 -")
 
@@ -416,12 +428,25 @@ class TwinView:
         """Whether an update is due (at most ``rate_hz`` per wall second)."""
         return self._throttle.due(now)
 
-    def _add_geoms(self) -> None:
+    def set_show_collision(self, shown: bool) -> None:
+        """Show or hide the robots' collision geometry (drawn over the visual geometry)."""
+        self.show_collision = bool(shown)
+        for handle in self.collision_handles:
+            if handle.visible != self.show_collision:
+                handle.visible = self.show_collision
+
+    def _add_geoms(self, show_collision: bool) -> None:
+        """Every drawn geom once: the scene, the robots' visual geometry (meshes uploaded
+        here, once) and their collision geometry (visible if ``show_collision``)."""
         m = self.model
         scene = self.server.scene
+        self.show_collision = bool(show_collision)
         for g in range(m.ngeom):
-            if m.geom_group[g] > 2 or m.geom_rgba[g, 3] == 0:
+            group = int(m.geom_group[g])
+            if group not in DRAWN_GROUPS or m.geom_rgba[g, 3] == 0:
                 continue
+            collision = group == COLLISION_GROUP
+            visible = self.show_collision or not collision
             gtype, size, color = (
                 mujoco.mjtGeom(int(m.geom_type[g])),
                 m.geom_size[g],
@@ -435,7 +460,20 @@ class TwinView:
             name = f"/twin/b{body}/g{g}"
             pose = {"position": m.geom_pos[g], "wxyz": m.geom_quat[g]}
             added = []
-            if gtype == mujoco.mjtGeom.mjGEOM_BOX:
+            if gtype == mujoco.mjtGeom.mjGEOM_MESH:
+                mesh = int(m.geom_dataid[g])
+                v0, nv = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
+                f0, nf = m.mesh_faceadr[mesh], m.mesh_facenum[mesh]
+                added.append(
+                    scene.add_mesh_simple(
+                        name,
+                        np.asarray(m.mesh_vert[v0 : v0 + nv], dtype=np.float32),
+                        np.asarray(m.mesh_face[f0 : f0 + nf], dtype=np.uint32),
+                        color=color,
+                        **pose,
+                    )
+                )
+            elif gtype == mujoco.mjtGeom.mjGEOM_BOX:
                 added.append(scene.add_box(name, color, tuple(2 * size), **pose))
             elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
                 added.append(scene.add_icosphere(name, float(size[0]), color, **pose))
@@ -456,6 +494,11 @@ class TwinView:
                                 position=m.geom_pos[g] + sign * axis,
                             )
                         )
+            if not visible:
+                for handle in added:
+                    handle.visible = False
+            if collision:
+                self.collision_handles += added
             self.geom_handles += added
             self._geom_bodies += [(h, body, color) for h in added]
 
