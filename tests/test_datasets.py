@@ -141,6 +141,8 @@ def test_sigkill_during_an_episode_keeps_the_earlier_ones(tmp_path):
         "--cameras",
         "none",
         "--quiet",
+        "--workers",  # the serial writer: each episode durable in the dataset as it ends
+        "1",
     ]
     proc = subprocess.Popen(
         cmd,

@@ -13,7 +13,11 @@ line.
 
 ``python -m beavr_sim.bench contact [--contact CONE:IMPRATIO,...] [--tasks T,...]
 [--episodes N]``: contact settings compared on the grasping experts (success, slip of the held
-object in the hand, ms per env step; ``bench/contact.py``); JSON."""
+object in the hand, ms per env step; ``bench/contact.py``); JSON.
+
+``python -m beavr_sim.bench scaling [--episodes N] [--workers 1,2] [--ray] ...``: generation
+with 1 and N local workers (and Ray), and where a replay tick goes (``bench/scaling.py``,
+its own options: ``python -m beavr_sim.bench scaling --help``); JSON on the last line."""
 
 from __future__ import annotations
 
@@ -33,10 +37,16 @@ BENCHMARKS = (
     "latency",
     "tracking",
     "contact",
+    "scaling",
 )
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["scaling"]:  # options of its own
+        from beavr_sim.bench.scaling import main as scaling_main
+
+        return scaling_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
     parser.add_argument(

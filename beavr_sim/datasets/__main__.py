@@ -1,7 +1,11 @@
-"""``python -m beavr_sim.datasets generate --task T --episodes N --seed S --out DIR``.
+"""``python -m beavr_sim.datasets generate --task T --episodes N --seed S --out DIR
+[--workers N | --ray [--ray-address ADDRESS]]``.
 
 Generates LeRobot demonstrations headless from synthesized VR traces run through the full
-teleop pipeline (see :mod:`beavr_sim.synthetic.generate`). Prints, last, one JSON line.
+teleop pipeline (see :mod:`beavr_sim.synthetic.generate`). ``--workers N`` (default: one per
+core) runs episodes in N local worker processes, ``--ray`` as Ray tasks; each episode is a shard,
+merged in seed order with LeRobot's ``aggregate_datasets`` into the same dataset a serial run
+(``--workers 1``) writes. Prints, last, one JSON line.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from pathlib import Path
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.datasets.cli import add_recording_args, recording_config
 from beavr_sim.naming import UnknownNameError
+from beavr_sim.scaling.cli import add_scale_args, scale_config
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,8 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_args(g)
+    add_scale_args(g)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
+    from beavr_sim.scaling.executors import JobFailed
     from beavr_sim.synthetic.generate import generate
 
     try:
@@ -47,8 +54,9 @@ def main(argv: list[str] | None = None) -> int:
             keep_failed=args.keep_failed,
             overwrite=args.overwrite,
             progress=not args.quiet,
+            scale=scale_config(args),
         )
-    except (UnknownNameError, ValueError, FileExistsError, ImportError) as exc:
+    except (UnknownNameError, ValueError, FileExistsError, ImportError, JobFailed) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(asdict(summary)))

@@ -221,20 +221,37 @@ def evaluate(
     finally:
         cameras.close()
         env.close()
+    return summarize(results, task, embodiment, policy.type, asynchronous, env.control_hz)
+
+
+def summarize(
+    results: list[EpisodeResult],
+    task: str,
+    embodiment: str,
+    policy_type: str,
+    asynchronous: bool,
+    control_hz: float,
+) -> dict:
+    """The summary of one (policy, task): success rate with its Wilson 95 % interval, mean
+    episode time; with ``asynchronous`` the control loop's jitter and starved ticks."""
+    from beavr_sim.scaling.stats import wilson_interval
+
     successes = sum(r.success for r in results)
+    low, high = wilson_interval(successes, len(results))
     summary = {
         "task": task,
         "embodiment": embodiment,
-        "policy": policy.type,
+        "policy": policy_type,
         "episodes": len(results),
         "successes": successes,
         "success_rate": successes / len(results),
+        "success_ci95": [round(low, 4), round(high, 4)],
         "mean_time_s": round(float(np.mean([r.seconds for r in results])), 3),
         "mode": "async" if asynchronous else "sync",
     }
     if asynchronous:
         periods = np.array([p for r in results for p in r.periods_ms])
-        dt_ms = 1e3 / env.control_hz
+        dt_ms = 1e3 / control_hz
         error = np.abs(periods - dt_ms) if periods.size else np.zeros(1)
         summary["control_jitter_ms"] = {
             "p50": round(float(np.percentile(error, 50)), 3),

@@ -1,0 +1,2 @@
+"""Work beyond one process: local worker processes and Ray tasks, with retries (see
+``docs/scaling.md``)."""
