@@ -253,11 +253,19 @@ class WebXRServer:
 
     # ------------------------------------------------------------------ control thread
     def take(self, timeout_s: float = 0.0) -> list[HandFrame]:
-        """Hand frames that arrived (waiting at most ``timeout_s`` for the first), oldest
-        first, each accepted by the validator; rejections are counted there."""
-        if not self._events and timeout_s > 0:
-            self._arrived.wait(timeout_s)
-        self._arrived.clear()
+        """Hand frames that arrived (waiting at most ``timeout_s`` for the first; events
+        without frames, such as a page connecting, do not end the wait), oldest first, each
+        accepted by the validator; rejections are counted there."""
+        deadline = time.monotonic() + max(timeout_s, 0.0)
+        while True:
+            self._arrived.clear()  # before draining: an event pushed meanwhile sets it again
+            frames = self._drain()
+            remaining = deadline - time.monotonic()
+            if frames or remaining <= 0:
+                return frames
+            self._arrived.wait(remaining)
+
+    def _drain(self) -> list[HandFrame]:
         frames: list[HandFrame] = []
         while True:
             try:
