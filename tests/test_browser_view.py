@@ -10,8 +10,6 @@ root installs both; never ``playwright install``).
 from __future__ import annotations
 
 import io
-import os
-import shutil
 import socket
 import threading
 import time
@@ -25,14 +23,11 @@ sync_api = pytest.importorskip(
     "playwright.sync_api", reason="playwright (extra 'dev') not installed: pip install playwright"
 )
 
-CHROMIUM = (
-    os.environ.get("BEAVR_CHROMIUM")
-    or shutil.which("chromium")
-    or shutil.which("chromium-browser")
-    or next(
-        (p for p in ("/usr/bin/chromium", "/usr/lib/chromium/chromium") if Path(p).exists()), None
-    )
-)
+# The chromium search and its headless-WebGL flags (SwiftShader through ANGLE) are shared with
+# the WebXR browser test and benchmark.
+from beavr_sim.bench.webxr import CHROMIUM_ARGS, find_chromium  # noqa: E402
+
+CHROMIUM = find_chromium()
 if CHROMIUM is None:
     pytest.skip(
         "chromium not found: sudo apt-get install chromium (or set BEAVR_CHROMIUM)",
@@ -42,15 +37,6 @@ if CHROMIUM is None:
 from beavr_sim.teleop.pipeline import StopTeleop  # noqa: E402
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "browser"
-#: Headless WebGL without a GPU: SwiftShader through ANGLE.
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-dev-shm-usage",
-    "--use-angle=swiftshader",
-    "--use-gl=angle",
-    "--enable-unsafe-swiftshader",
-    "--ignore-gpu-blocklist",
-]
 
 
 def _free_port() -> int:
