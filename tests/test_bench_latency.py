@@ -59,6 +59,10 @@ def test_latency_harness_config_1_reports_every_field(capsys, tmp_path):
     floor = result["floor"]
     assert floor["received"] == floor["sent"] > 0 and finite_positive(floor["latency_ms"])
     assert eff["over_floor"]["p50"] > 1 and eff["over_floor"]["p99"] > 0
+    cold = result["machine"]["cold"]
+    assert cold["gap_ms"] == pytest.approx(1000.0 / result["headset_hz"])
+    for work in cold["workloads"].values():
+        assert work["hot_us"] > 0 and work["after_gap_us"] > 0 and work["factor"] > 0
     assert {p.rsplit("/", 1)[-1] for p in result["plots"]} == {
         "latency_send_to_twin.png",
         "latency_send_to_driver.png",
@@ -247,3 +251,13 @@ def test_sweep_pools_concurrent_sessions_and_reports_growth():
     assert growth["send_to_twin"] == 1.5 and growth["send_to_driver"] == 1.5
     assert growth["within_target"] is True
     assert sweep_growth([one])["send_to_twin"] is None
+
+
+def test_cold_factor_measures_both_workloads_and_rejects_bad_arguments():
+    from beavr_sim.bench.machine import WORKLOADS, cold_factor
+
+    result = cold_factor(gap_ms=1.0, repeats=5)
+    assert set(result["workloads"]) == set(WORKLOADS)
+    assert result["factor"] == max(w["factor"] for w in result["workloads"].values())
+    with pytest.raises(ValueError, match="positive"):
+        cold_factor(gap_ms=0.0)

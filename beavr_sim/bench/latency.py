@@ -703,6 +703,31 @@ def _pop_samples(figures: dict, samples: dict | None, prefix: str = "") -> None:
                 samples[f"{key}_{prefix}{name}"] = lat
 
 
+def machine_cold_factor(rate_hz: float, seconds: float) -> dict:
+    """:func:`beavr_sim.bench.machine.cold_factor` at the headset's frame period: how much
+    slower per-frame code runs on this machine once per frame than back to back (about 1 s
+    of a 10 s run; fewer repeats for short runs)."""
+    from beavr_sim.bench.machine import cold_factor
+
+    gap_ms = 1000.0 / rate_hz
+    repeats = int(max(20, min(100, seconds * 1000.0 / gap_ms / 10)))
+    return cold_factor(gap_ms, repeats)
+
+
+def _cold_line(result: dict) -> str:
+    cold = result.get("machine", {}).get("cold")
+    if not cold:
+        return ""
+    parts = ", ".join(
+        f"{name} {w['hot_us']:.1f} -> {w['after_gap_us']:.1f} us"
+        for name, w in cold["workloads"].items()
+    )
+    return (
+        f"machine: the same work after a {cold['gap_ms']:.1f} ms gap is x{cold['factor']} "
+        f"slower than back to back ({parts}); near 1 on a dedicated core"
+    )
+
+
 def run(
     config: int = 1,
     seconds: float = 10.0,
@@ -719,6 +744,7 @@ def run(
     # pipeline it catches the processes' shutdown).
     floor = transport_floor(_max_payload([live]), rate_hz, floor_seconds or min(seconds, 5.0))
     floor_samples = floor.pop("samples_ms")
+    cold = machine_cold_factor(rate_hz, seconds)
     start_session(live)
     try:
         drive([live], seconds)
@@ -752,7 +778,7 @@ def run(
         # commands that held (not applied, so not in the rates): effector -> reason -> n
         "operator_holds": session.results.get("operator", {}).get("holds", {}),
         "beavr_table_v": BEAVR_TABLE_V,
-        "machine": {"cpus": os.cpu_count(), "platform": sys.platform},
+        "machine": {"cpus": os.cpu_count(), "platform": sys.platform, "cold": cold},
     }
 
 
@@ -864,6 +890,7 @@ def run_sweep(
     ]
     floor = transport_floor(_max_payload(every), SWEEP_HZ, floor_seconds or min(seconds, 5.0))
     floor_samples = floor.pop("samples_ms")
+    cold = machine_cold_factor(SWEEP_HZ, seconds)
     points = []
     for n in counts:
         lives = [prepare(e, SWEEP_TASK, SWEEP_HZ, mirror) for e in plan[n]]
@@ -911,7 +938,7 @@ def run_sweep(
         "floor": floor,
         "sweep": points,
         "p99_growth_1_to_4": sweep_growth(points),
-        "machine": {"cpus": cpus, "platform": sys.platform},
+        "machine": {"cpus": cpus, "platform": sys.platform, "cold": cold},
     }
 
 
@@ -991,6 +1018,8 @@ def table(result: dict) -> str:
         lines.append(f"devices failed (every device then holds): {failed}")
     fl = r["floor"]
     lines.append(_row("floor: bare ZMQ hop", fl["rate_hz"], None, None, fl["latency_ms"], None))
+    if _cold_line(r):
+        lines.append(_cold_line(r))
     lines.append(
         "latencies in ms; rates over distinct commands (writes), % of the headset rate; jitter = "
         "std of the interval between them (ms); rep = repeats (same t_source), left out"
@@ -1026,6 +1055,8 @@ def sweep_table(result: dict) -> str:
         f"p99 growth {g['from']} -> {g['to']} effectors: send->twin {_f(g['send_to_twin'])}x, "
         f"send->driver {_f(g['send_to_driver'])}x (target <= {g['target']:g}x)"
     )
+    if _cold_line(r):
+        lines.append(_cold_line(r))
     lines.append(
         "latencies in ms, pooled over all effectors (devices) of all sessions of a count; dev "
         "err: devices the mirror saw fail (then every device of that rig holds: no writes)"
