@@ -222,3 +222,24 @@ def test_control_period_is_exact(control_hz):
     u = gym.make("beavr_sim/Playground-v0", control_hz=control_hz).unwrapped
     assert u.model.opt.timestep * u.n_substeps == pytest.approx(1 / control_hz)
     assert u.model.opt.timestep <= 0.002
+
+
+def test_advance_is_step_without_the_observation():
+    """The twin steps with ``advance``: the same physics, success and info as ``step``."""
+    from beavr_sim.envs.beavr_env import BeavrEnv
+
+    envs = [BeavrEnv(task="Pour", embodiment="xarm7_leap_right") for _ in range(2)]
+    try:
+        for env in envs:
+            env.reset(seed=3)
+        rng = np.random.default_rng(0)
+        home = envs[0].agent_pos.copy()
+        for _ in range(5):
+            action = (home + rng.normal(0.0, 0.05, home.shape)).astype(np.float32)
+            _, reward, terminated, truncated, info = envs[0].step(action)
+            assert envs[1].advance(action) == (terminated, truncated, info)
+            np.testing.assert_array_equal(envs[0].data.qpos, envs[1].data.qpos)
+            assert reward == float(info["is_success"])
+    finally:
+        for env in envs:
+            env.close()

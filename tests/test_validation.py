@@ -99,3 +99,18 @@ def test_logging_is_rate_limited_per_reason(caplog):
 def test_bad_interval():
     with pytest.raises(ValueError, match="log_interval_s"):
         StreamValidator(log_interval_s=-1.0)
+
+
+def test_with_times_keeps_the_validated_arrays_and_checks_the_times():
+    joints = np.random.default_rng(0).normal(size=(N_JOINTS, 3))
+    joints[4] = np.nan
+    frame = HandFrame("left", 1.0, 1.5, joints, pinch=True, resolution="low")
+    moved = frame.with_times(2.0, 2.25)
+    assert (moved.t_source, moved.t_receive) == (2.0, 2.25)
+    assert (frame.t_source, frame.t_receive) == (1.0, 1.5)  # the original is unchanged
+    assert moved.joints is frame.joints and moved.tracked is frame.tracked
+    assert not moved.joints.flags.writeable and not moved.tracked[4]
+    assert (moved.side, moved.pinch, moved.resolution) == ("left", True, "low")
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="finite"):
+            frame.with_times(bad, 0.0)

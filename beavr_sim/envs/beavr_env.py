@@ -178,6 +178,14 @@ class BeavrEnv(gym.Env):
         return self._observation(), self._info(clipped=())
 
     def step(self, action):
+        terminated, truncated, info = self.advance(action)
+        return self._observation(), 0.0 + float(self._status.success), terminated, truncated, info
+
+    def advance(self, action) -> tuple[bool, bool, dict[str, Any]]:
+        """:meth:`step` without building the observation: ``(terminated, truncated, info)``.
+
+        For callers that read the state themselves (the twin): the observation's task state
+        and camera images are work they would throw away."""
         target = self._validate_action(action)
         clipped_target = np.clip(target, self.joints.lower, self.joints.upper)
         clipped = tuple(self.joints.names[i] for i in np.flatnonzero(clipped_target != target))
@@ -204,13 +212,7 @@ class BeavrEnv(gym.Env):
         self._status = self.task.evaluate(self.model, self.data)
         terminated = bool(self._status.success or self._status.failure)
         truncated = bool(self.elapsed_seconds >= self.max_episode_seconds - 1e-9) and not terminated
-        return (
-            self._observation(),
-            0.0 + float(self._status.success),
-            terminated,
-            truncated,
-            self._info(clipped),
-        )
+        return terminated, truncated, self._info(clipped)
 
     def render(self):
         if self.render_mode != "rgb_array":

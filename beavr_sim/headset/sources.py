@@ -18,7 +18,6 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 
 from beavr_sim.wire.hand import HandFrame
@@ -98,7 +97,8 @@ class FrameListSource(HandSource):
         ):
             frame = self.frames[self._next]
             t = frame.t_source + (self._offset or 0.0) if self.real_time else frame.t_source
-            out.append(replace(frame, t_source=t, t_receive=now if self.real_time else t))
+            t_receive = now if self.real_time else t
+            out.append(frame.with_times(t, t_receive))
             self._next += 1
         return out
 

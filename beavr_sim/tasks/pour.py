@@ -68,10 +68,12 @@ def inside_cup(
     R_world_cup: np.ndarray,
     inner_radius: float,
     height: float,
-) -> bool:
-    """Whether a point lies in a cup's inner volume (see the module docstring)."""
-    p_cup = R_world_cup.T @ (p_world - cup_pos)
-    return bool(np.hypot(p_cup[0], p_cup[1]) < inner_radius and 0.0 <= p_cup[2] <= height)
+) -> np.ndarray:
+    """Whether points (``(..., 3)``, world frame) lie in a cup's inner volume (see the module
+    docstring): a bool array of the leading shape (a numpy bool for one point)."""
+    p_cup = (np.asarray(p_world) - cup_pos) @ R_world_cup  # rows: R_world_cup.T @ (p - pos)
+    radial = np.hypot(p_cup[..., 0], p_cup[..., 1])
+    return (radial < inner_radius) & (p_cup[..., 2] >= 0.0) & (p_cup[..., 2] <= height)
 
 
 def particle_offsets() -> np.ndarray:
@@ -141,6 +143,10 @@ class Pour(TabletopTask):
     def bind(self, model: mujoco.MjModel) -> None:
         super().bind(model)
         self.particles = [FreeObject.bind(model, particle_name(i)) for i in range(N_PARTICLES)]
+        # qpos addresses of every drop's position, one gather per check.
+        self._particle_qpos = np.array(
+            [[p.qpos_adr + k for k in range(3)] for p in self.particles], dtype=np.intp
+        )
 
     def place_objects(self, data: mujoco.MjData, rng: np.random.Generator) -> None:
         (source_xy,), target_xy = self.layout_with_target(
@@ -155,14 +161,17 @@ class Pour(TabletopTask):
         for particle, offset in zip(self.particles, particle_offsets(), strict=True):
             particle.set_pose(data, source_pos + offset)
 
-    def held_by_source(self, data: mujoco.MjData, p_world: np.ndarray) -> bool:
+    def held_by_source(self, data: mujoco.MjData, p_world: np.ndarray) -> np.ndarray:
+        """Whether points (``(..., 3)``) are in the source cup and it opens upwards."""
         source = self.objects["source_cup"]
         R_world_source = source.R_world_body(data)
-        return bool(R_world_source[2, 2] > 0.0) and inside_cup(
+        inside = inside_cup(
             p_world, source.pos(data), R_world_source, SOURCE_INNER_RADIUS, SOURCE_HEIGHT
         )
+        return inside & bool(R_world_source[2, 2] > 0.0)
 
-    def in_target(self, data: mujoco.MjData, p_world: np.ndarray) -> bool:
+    def in_target(self, data: mujoco.MjData, p_world: np.ndarray) -> np.ndarray:
+        """Whether points (``(..., 3)``) are in the target cup."""
         target = self.fixtures["target_cup"]
         R_world_target = np.zeros(9)
         mujoco.mju_quat2Mat(R_world_target, data.mocap_quat[target.mocap_id])
@@ -175,13 +184,10 @@ class Pour(TabletopTask):
         )
 
     def check(self, model: mujoco.MjModel, data: mujoco.MjData) -> TaskStatus:
-        held = poured = 0
-        for particle in self.particles:
-            p_world = particle.pos(data)
-            is_held = self.held_by_source(data, p_world)
-            held += is_held
-            poured += self.in_target(data, p_world) and not is_held
+        drops = data.qpos[self._particle_qpos]  # N_PARTICLES x 3, world frame
+        held = self.held_by_source(data, drops)
+        poured = self.in_target(data, drops) & ~held
         return TaskStatus(
-            success=poured >= MIN_POURED,
-            details={"poured": poured, "held_by_source": held},
+            success=int(poured.sum()) >= MIN_POURED,
+            details={"poured": int(poured.sum()), "held_by_source": int(held.sum())},
         )

@@ -186,7 +186,7 @@ class TwinInterface:
                 self.guard.still()
         blocked, self._blocked_since_step, self._moved = self._blocked_since_step, (), False
         self._stepped = self.action.copy()
-        _, _, terminated, truncated, info = self.env.step(self.action.astype(np.float32))
+        terminated, truncated, info = self.env.advance(self.action.astype(np.float32))
         data = self.env.data
         return TwinState(
             t=self.env.elapsed_seconds,
