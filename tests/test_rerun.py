@@ -156,6 +156,104 @@ def test_guard_blocks_holds_and_success_are_events(tmp_path):
     assert times[-1] == pytest.approx(8 * loop.dt, abs=1e-5)
 
 
+def _quat_xyzw(wxyz) -> np.ndarray:
+    return np.asarray(wxyz, dtype=float)[[1, 2, 3, 0]]
+
+
+def test_the_twin_in_3d_meshes_once_and_body_poses_per_tick(tmp_path):
+    """Every visual mesh once (static ``Mesh3D`` with the model mesh's vertex and face
+    counts) under its body's entity, whose pose is logged each tick; the collision geometry
+    under its own path; the static bodies' poses once."""
+    import mujoco
+
+    from beavr_sim.viz.rerun_log import COLLISION_PATH, TWIN_PATH, RerunLogger, geom_entity
+
+    path = tmp_path / "twin.rrd"
+    loop = build_loop(_options(tmp_path))
+    ticks = 5
+    try:
+        model, data = loop.twin.env.model, loop.twin.env.data
+        with RerunLogger(path, loop, image_hz=0) as logger:
+            loop.listeners.append(logger)
+            for _ in range(ticks):
+                loop.tick()
+        link = model.body("right/link1").id
+        xpos, xquat = data.xpos[link].copy(), data.xquat[link].copy()
+    finally:
+        loop.source.close()
+        loop.twin.env.close()
+    _verify(path)
+    rows, batches = _contents(path)
+    assert logger.twin_errors == 0
+    escape = rr.escape_entity_path_part
+    twin, collision = f"/{TWIN_PATH}/", f"/{COLLISION_PATH}/"
+
+    # Each visual mesh geom: one static Mesh3D with its mesh's vertex and face counts.
+    meshes = [
+        g
+        for g in range(model.ngeom)
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and model.geom_group[g] == 2
+    ]
+    assert meshes
+    for g in meshes:
+        entity = f"{twin}{geom_entity(model, g)}"
+        assert entity in batches and rows[entity] == 0, entity  # static only
+        vertices = _column(batches[entity], "Mesh3D:vertex_positions")
+        faces = _column(batches[entity], "Mesh3D:triangle_indices")
+        k = model.geom_dataid[g]
+        assert len(vertices) == 1 and len(vertices[0]) == model.mesh_vertnum[k], entity
+        assert len(faces[0]) == model.mesh_facenum[k], entity
+        offset = _column(batches[entity], "Transform3D:translation")[0][0]
+        np.testing.assert_allclose(offset, model.geom_pos[g], atol=1e-6)
+
+    # A moving body: its world pose every tick, the last one the twin's.
+    body = f"{twin}{escape('right/link1')}"
+    assert rows[body] == ticks
+    translation = _column(batches[body], "Transform3D:translation")
+    quaternion = _column(batches[body], "Transform3D:quaternion")
+    np.testing.assert_allclose(translation[-1][0], xpos, atol=1e-6)
+    q = np.array(quaternion[-1][0])
+    assert min(np.abs(q - _quat_xyzw(xquat)).max(), np.abs(q + _quat_xyzw(xquat)).max()) < 1e-6
+    # The collision geometry: its own subtree, the same bodies' poses, wireframes.
+    assert rows[f"{collision}{escape('right/link1')}"] == ticks
+    collision_geoms = [e for e in batches if e.startswith(collision) and e.count("/") > 3]
+    assert collision_geoms and not any(e.startswith(twin) and "collision" in e for e in batches)
+    # A body that never moves (the table): its pose once, static.
+    statics = [e for e in batches if e.startswith(twin) and e.count("/") == 3 and not rows[e]]
+    assert statics and all(
+        "Transform3D:translation" in rb.schema.names for e in statics for rb in batches[e]
+    )
+
+
+def test_twin_errors_in_the_tick_path_are_counted_never_raised(tmp_path):
+    from beavr_sim.viz.rerun_log import RerunLogger
+
+    path = tmp_path / "twin_errors.rrd"
+    loop = build_loop(_options(tmp_path))
+    try:
+        with RerunLogger(path, loop, image_hz=0, twin_hz=1000) as logger:
+            logger._twin_bodies = np.array([10**6])  # not a body: every tick fails
+            for _ in range(3):
+                logger(loop.tick())
+        assert logger.twin_errors == 3
+        assert not loop.listener_errors
+        with RerunLogger(tmp_path / "no_twin.rrd", loop, image_hz=0, twin_hz=0) as quiet:
+            logger_ticks = loop.tick()
+            quiet(logger_ticks)
+        assert quiet.poses is None
+    finally:
+        loop.source.close()
+        loop.twin.env.close()
+    _, batches = _contents(path)
+    events = [v[0] for v in _column(batches["/events"], "TextLog:text")]
+    assert any("the twin's poses not logged" in e for e in events), events
+    assert any("3 errors in all" in e for e in events), events
+    _, batches = _contents(tmp_path / "no_twin.rrd")
+    assert not any(e.startswith("/world/twin") for e in batches)
+    with pytest.raises(ValueError, match="twin rate"):
+        RerunLogger(tmp_path / "bad.rrd", loop, image_hz=0, twin_hz=-1)
+
+
 def test_bad_rerun_paths_are_clear_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         _options(tmp_path, rerun=tmp_path / "missing" / "f.rrd")
@@ -166,6 +264,8 @@ def test_bad_rerun_paths_are_clear_errors(tmp_path):
         _options(tmp_path, rerun=tmp_path / "d.rrd")
     with pytest.raises(ValueError, match="rerun-image-hz"):
         _options(tmp_path, rerun=tmp_path / "f.rrd", rerun_image_hz=-1)
+    with pytest.raises(ValueError, match="rerun-twin-hz"):
+        _options(tmp_path, rerun=tmp_path / "f.rrd", rerun_twin_hz=float("nan"))
     with pytest.raises(ValueError, match="one process"):
         _options(tmp_path, rerun=tmp_path / "f.rrd", multiprocess=True)
 
@@ -191,6 +291,8 @@ def test_cli_rerun_flag_writes_a_verified_log(tmp_path):
             str(path),
             "--rerun-image-hz",
             "2",
+            "--rerun-twin-hz",
+            "10",
         ],
         capture_output=True,
         text=True,
@@ -202,3 +304,5 @@ def test_cli_rerun_flag_writes_a_verified_log(tmp_path):
     rows, _ = _contents(path)
     assert rows["/robot/joints/right/joint1/position"] == 30
     assert rows["/camera/front"] == 2
+    # --rerun-twin-hz 10 over 1 s of session time: about 10 poses per moving body.
+    assert 9 <= rows["/world/twin/right\\/link1"] <= 11, rows.get("/world/twin/right\\/link1")

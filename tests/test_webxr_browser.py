@@ -2,8 +2,8 @@
 Debian's headless chromium on its page, with Meta's Immersive Web Emulation Runtime (iwer,
 from npm, injected by this test only) emulating a Quest 3 in hand-tracking mode.
 
-Checks that the page loads and Start opens an immersive session, that the server receives
-frames of both hands, that moving the emulated right hand moves the twin's arm target and its
+Checks that the page loads, draws the twin's meshes (and a damaged mesh as its box, without
+an error) and Start opens an immersive session, that the server receives frames of both hands, that moving the emulated right hand moves the twin's arm target and its
 arm, that the page's Pause / Resume pause the operator, and that closing the page leaves the
 robot holding (tracking lost). A screenshot goes to ``test-artifacts/webxr/``.
 
@@ -59,6 +59,19 @@ class _Frames:
         self.sides.update(f.side for f in tick.frames if f.tracked.sum() >= 20)
 
 
+def _wait_for(page, script: str, timeout_s: float, what: str) -> None:
+    """Polls ``script`` (an expression) in the page: its CSP forbids the eval that
+    ``page.wait_for_function`` falls back to while it polls."""
+    end = time.monotonic() + timeout_s
+    while not page.evaluate(script):
+        if time.monotonic() > end:
+            raise TimeoutError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+SCENE_STATUS = "document.getElementById('scene-status').textContent"
+
+
 def _target(sess) -> np.ndarray | None:
     T = sess.loop.operator.targets()["right"].T_world_target
     return None if T is None else T[:3, 3].copy()
@@ -91,7 +104,11 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
                 page.add_init_script(script=IWER_SETUP)
                 page.goto(server.url)
 
-                # (a) The page loads, connects and gets the twin; Start opens the session.
+                # (a) The page loads, connects and gets the twin with every mesh; Start opens
+                # the session.
+                _wait_for(page, f"{SCENE_STATUS}.includes('meshes')", 30, "the twin's meshes")
+                scene = page.evaluate(SCENE_STATUS)
+                assert " 0 meshes" not in scene and "could not be read" not in scene, scene
                 start = page.get_by_role("button", name="Start")
                 page.wait_for_function("!document.getElementById('start').disabled", timeout=30_000)
                 start.click()
@@ -149,3 +166,46 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
         sess.stop()
     assert sess.error is None, sess.error
     assert server.stats.hand_messages > 30
+
+
+def test_page_draws_the_meshes_and_a_damaged_one_as_its_box():
+    """No session: the page alone, given a scene whose first mesh is cut short."""
+    import gymnasium as gym
+
+    import beavr_sim  # noqa: F401
+    from beavr_sim.headset.webxr_scene import TwinGeometry
+    from beavr_sim.headset.webxr_server import WebXRConfig, WebXRServer
+
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    env = gym.make("beavr_sim/Pour-v0").unwrapped
+    env.reset(seed=0)
+    message = TwinGeometry.from_model(env.model).scene_message(env.data, task="Pour")
+    env.close()
+    meshes = message["meshes"]
+    damaged = meshes[0]["name"]
+    meshes[0] = {**meshes[0], "data": meshes[0]["data"][:-8]}
+    server = WebXRServer(WebXRConfig(port=0))
+    try:
+        server.publish("scene", message)
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(
+                executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS
+            )
+            try:
+                page = browser.new_page(viewport={"width": 640, "height": 360})
+                errors: list[str] = []
+                page.on("pageerror", lambda exc: errors.append(str(exc)))
+                page.on("console", lambda m: m.type == "error" and errors.append(m.text))
+                page.goto(server.url)
+                _wait_for(page, f"{SCENE_STATUS}.includes('meshes')", 30, "the twin's meshes")
+                scene = page.evaluate(SCENE_STATUS)
+                assert f"{len(meshes) - 1} meshes" in scene, scene
+                assert f"1 could not be read, drawn as boxes: {damaged}:" in scene, scene
+                page.evaluate("document.getElementById('overlay').style.display = 'none'")
+                page.wait_for_timeout(300)
+                page.screenshot(path=ARTIFACTS / "0_preview_damaged_mesh.png")
+                assert not errors, errors
+            finally:
+                browser.close()
+    finally:
+        server.close()

@@ -204,7 +204,8 @@ def test_twin_geometry_messages():
     env.reset(seed=0)
     geometry = TwinGeometry.from_model(env.model)
     n = len(geometry.geom_ids)
-    assert n > 20 and set(geometry.shapes) <= {"box", "sphere", "capsule", "cylinder", "ellipsoid"}
+    shapes = {"box", "sphere", "capsule", "cylinder", "ellipsoid", "mesh"}
+    assert n > 20 and set(geometry.shapes) <= shapes  # meshes: tests/test_webxr_scene.py
     scene = json.loads(
         json.dumps(geometry.scene_message(env.data, task="Pour"), default=lambda a: a.tolist())
     )

@@ -146,6 +146,30 @@ def test_one_page_drives_and_twin_messages_reach_every_page(server):
         assert [json.loads(late.recv(timeout=5))["type"] for _ in range(2)] == ["welcome", "twin"]
 
 
+def test_the_scene_with_its_meshes_reaches_a_page_that_connects_later(server):
+    import gymnasium as gym
+
+    import beavr_sim  # noqa: F401
+    from beavr_sim.headset.webxr_scene import TwinFeed
+
+    env = gym.make("beavr_sim/Pour-v0").unwrapped
+    env.reset(seed=0)
+    try:
+        feed = TwinFeed(server, env.model, env.data, info={"task": "Pour"})
+        time.sleep(0.2)
+        with connect(_ws_url(server), max_size=None) as ws:
+            assert json.loads(ws.recv(timeout=5))["type"] == "welcome"
+            text = ws.recv(timeout=10)
+    finally:
+        env.close()
+    scene = json.loads(text)
+    assert scene["type"] == "scene" and scene["meshes"]
+    assert len(scene["meshes"]) == len(feed.geometry.meshes)
+    assert [e["faces"] for e in scene["meshes"]] == [e["faces"] for e in feed.geometry.meshes]
+    # Sent once, as the page's first twin message: well past a twin update, under 2 MB.
+    assert 20_000 < len(text) < 2_000_000
+
+
 def test_wait_blocks_until_frames_arrive_and_close_stops_the_thread():
     source = WebXRSource(WebXRConfig(port=0), StreamValidator())
     try:

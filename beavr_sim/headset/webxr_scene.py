@@ -1,8 +1,11 @@
 """The twin in the headset: its geometry once, then its live poses, for the WebXR page to draw.
 
 :class:`TwinGeometry` picks the geoms a viewer shows (groups 0-2, not transparent; planes
-left out: the headset has its own floor) and describes each as a simple shape the page draws
-with WebGL (box, sphere, capsule, cylinder, ellipsoid; a mesh as its bounding box).
+left out: the headset has its own floor) and describes each as a shape the page draws with
+WebGL: box, sphere, capsule, cylinder, ellipsoid, or mesh. A mesh's triangles are sent once,
+in the ``scene`` message (:func:`encode_mesh`: vertices quantised to 16 bits over the mesh's
+bounding box, faces as 16- or 32-bit indices, base64), shared by every geom that uses it; its
+pose and size are its bounding box's, which the page draws where a mesh cannot be read.
 :class:`TwinFeed` is a tick listener: at most ``rate_hz`` times a wall second it copies the
 poses of the geoms that move (a few hundred numbers, on the control thread) and hands them to
 the server, which encodes and sends them on its own thread.
@@ -14,6 +17,7 @@ the world frame (Z up): position, then ``R_world_geom`` row by row.
 
 from __future__ import annotations
 
+import base64
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,19 +34,73 @@ SHAPES = {
     int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule",
     int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
     int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
-    int(mujoco.mjtGeom.mjGEOM_MESH): "box",
+    int(mujoco.mjtGeom.mjGEOM_MESH): "mesh",
 }
 VISIBLE_GROUPS = (0, 1, 2)
 #: Decimals sent: 0.1 mm, 1e-4 of a rotation matrix entry.
 DECIMALS = 4
+#: A mesh vertex is sent as three int16 in [-QUANT, QUANT]: its position in the mesh's
+#: bounding box, centre 0, faces at +-QUANT (1/65534 of the box: 3 um on a 20 cm link).
+QUANT = 32767
+#: Meshes of at most this many vertices send their faces as uint16, larger ones as uint32.
+U16_VERTICES = 65536
+#: MuJoCo's default geom colour: a geom with a material and this colour takes the material's.
+_DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], dtype=np.float32)
+
+
+def encode_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """``(data, centre, half)`` of a triangle mesh: ``data`` is the vertices quantised over
+    their bounding box (int16 little-endian, x y z per vertex, ``v = centre + half * q /
+    QUANT``), zero-padded to a multiple of 4 bytes, then the faces (3 indices each, uint16
+    little-endian up to :data:`U16_VERTICES` vertices, uint32 beyond)."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces).reshape(-1, 3)
+    if len(v) == 0 or len(f) == 0:
+        raise ValueError("a mesh needs vertices and faces")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"face indices out of range 0..{len(v) - 1}")
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    q = np.round((v - centre) / np.maximum(half, 1e-12) * QUANT)
+    data = np.clip(q, -QUANT, QUANT).astype("<i2").tobytes()
+    data += b"\0" * (-len(data) % 4)
+    index = "<u2" if len(v) <= U16_VERTICES else "<u4"
+    return data + f.astype(index).tobytes(), centre, half
+
+
+def decode_mesh(entry: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(unit_vertices, faces)`` of a ``meshes`` entry of the scene message (the page's
+    decoding, for tests): vertices in [-1, 1] of the bounding box (times the geom's ``sizes``,
+    at its pose: the world), faces as vertex indices."""
+    n, m = int(entry["vertices"]), int(entry["faces"])
+    data = base64.b64decode(entry["data"])
+    start = 6 * n + (-6 * n % 4)
+    index = "<u2" if n <= U16_VERTICES else "<u4"
+    if len(data) != start + 3 * m * np.dtype(index).itemsize:
+        raise ValueError(f"mesh {entry.get('name')!r}: {len(data)} bytes do not match its counts")
+    q = np.frombuffer(data, dtype="<i2", count=3 * n).reshape(n, 3)
+    faces = np.frombuffer(data, dtype=index, offset=start).reshape(m, 3)
+    return q.astype(np.float64) / QUANT, faces.astype(np.int64)
+
+
+def _rgba(model: mujoco.MjModel, g: int) -> np.ndarray:
+    """A geom's colour as MuJoCo draws it: its own, or its material's if it has one and its
+    own is the default."""
+    mat = int(model.geom_matid[g])
+    if mat >= 0 and np.array_equal(model.geom_rgba[g], _DEFAULT_RGBA):
+        return model.mat_rgba[mat].astype(np.float64)
+    return model.geom_rgba[g].astype(np.float64)
 
 
 @dataclass(frozen=True, eq=False)
 class TwinGeometry:
     """The drawn geoms of a model: ``geom_ids`` (model ids), their ``shapes``, ``sizes``
-    (the shape's half extents / radius, half length), ``rgba``, ``centres`` (the shape's
-    centre in the geom frame: a mesh's bounding box is off its origin) and ``dynamic``
-    (indices into ``geom_ids`` of the geoms that can move)."""
+    (the shape's half extents / radius, half length; a mesh's bounding box half extents),
+    ``rgba``, ``centres`` (the shape's centre in the geom frame: a mesh's bounding box is off
+    its origin), ``dynamic`` (indices into ``geom_ids`` of the geoms that can move),
+    ``mesh_index`` (per geom, its entry in ``meshes``, -1 for a primitive) and ``meshes``
+    (each distinct mesh once: ``name``, ``vertices``, ``faces``, ``data``: base64 of
+    :func:`encode_mesh`)."""
 
     geom_ids: np.ndarray
     shapes: tuple[str, ...]
@@ -50,10 +108,15 @@ class TwinGeometry:
     rgba: np.ndarray
     centres: np.ndarray
     dynamic: np.ndarray
+    mesh_index: np.ndarray
+    meshes: tuple[dict, ...] = ()
 
     @classmethod
     def from_model(cls, model: mujoco.MjModel) -> TwinGeometry:
-        ids, shapes, sizes, centres = [], [], [], []
+        ids, shapes, sizes, centres, mesh_index = [], [], [], [], []
+        meshes: list[dict] = []
+        by_mesh: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # model mesh -> entry
+        by_data: dict[bytes, int] = {}  # identical meshes (both arms' links) sent once
         for g in range(model.ngeom):
             kind = int(model.geom_type[g])
             if (
@@ -65,9 +128,15 @@ class TwinGeometry:
             ids.append(g)
             shapes.append(SHAPES[kind])
             if kind == mujoco.mjtGeom.mjGEOM_MESH:
-                centres.append(model.geom_aabb[g, :3].copy())
-                sizes.append(model.geom_aabb[g, 3:].copy())
+                k = int(model.geom_dataid[g])
+                if k not in by_mesh:
+                    by_mesh[k] = _add_mesh(model, k, meshes, by_data)
+                entry, centre, half = by_mesh[k]
+                mesh_index.append(entry)
+                centres.append(centre)
+                sizes.append(half)
             else:
+                mesh_index.append(-1)
                 centres.append(np.zeros(3))
                 sizes.append(model.geom_size[g].copy())
         geom_ids = np.array(ids, dtype=int)
@@ -77,9 +146,11 @@ class TwinGeometry:
             geom_ids=geom_ids,
             shapes=tuple(shapes),
             sizes=np.array(sizes, dtype=np.float64).reshape(-1, 3),
-            rgba=model.geom_rgba[geom_ids].astype(np.float64),
+            rgba=np.array([_rgba(model, g) for g in geom_ids], dtype=np.float64).reshape(-1, 4),
             centres=np.array(centres, dtype=np.float64).reshape(-1, 3),
             dynamic=np.flatnonzero(moves),
+            mesh_index=np.array(mesh_index, dtype=int),
+            meshes=tuple(meshes),
         )
 
     def poses(self, data: mujoco.MjData, which: np.ndarray | None = None) -> np.ndarray:
@@ -100,6 +171,8 @@ class TwinGeometry:
             "rgba": np.round(self.rgba, 3).ravel(),
             "pose": np.round(self.poses(data), DECIMALS).ravel(),
             "dynamic": self.dynamic,
+            "mesh": self.mesh_index,
+            "meshes": list(self.meshes),
         }
 
     def twin_message(self, data: mujoco.MjData, t: float, **status: object) -> dict:
@@ -110,6 +183,27 @@ class TwinGeometry:
             "pose": np.round(self.poses(data, self.dynamic), DECIMALS).ravel(),
             **status,
         }
+
+
+def _add_mesh(
+    model: mujoco.MjModel, k: int, meshes: list[dict], by_data: dict[bytes, int]
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """Model mesh ``k`` as an entry of ``meshes`` (a new one unless the same data is there):
+    ``(entry index, centre, half extents)`` of its bounding box in the geom frame."""
+    v0, nv = int(model.mesh_vertadr[k]), int(model.mesh_vertnum[k])
+    f0, nf = int(model.mesh_faceadr[k]), int(model.mesh_facenum[k])
+    data, centre, half = encode_mesh(model.mesh_vert[v0 : v0 + nv], model.mesh_face[f0 : f0 + nf])
+    if data not in by_data:
+        by_data[data] = len(meshes)
+        meshes.append(
+            {
+                "name": mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_MESH, k) or f"mesh{k}",
+                "vertices": nv,
+                "faces": nf,
+                "data": base64.b64encode(data).decode("ascii"),
+            }
+        )
+    return by_data[data], centre, half
 
 
 class TwinFeed:

@@ -2,7 +2,7 @@
 
     python -m beavr_sim.teleop --task T [--embodiment E] [--source quest|trace|webxr] [--trace F]
         [--headless] [--no-viser] [--multiprocess] [--max-seconds N] [--summary-json F]
-        [--rerun F.rrd [--rerun-image-hz 5]] [--leap-variant full|lite]
+        [--rerun F.rrd [--rerun-image-hz 5] [--rerun-twin-hz 30]] [--leap-variant full|lite]
         [--record DIR --repo-id NAME --episodes N --episode-seconds S --fps 30
          --cameras front,overhead --image-size 480x640]
 
@@ -111,6 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=5.0,
         help="camera images in the Rerun log per second of session time (default 5; 0: none)",
+    )
+    p.add_argument(
+        "--rerun-twin-hz",
+        type=float,
+        default=30.0,
+        help="twin body poses (3D) in the Rerun log per second of session time (default 30; "
+        "0: no 3D twin)",
     )
     hw = p.add_argument_group("hardware mirroring (docs/hardware.md)")
     hw.add_argument(

@@ -62,6 +62,8 @@ class SessionOptions:
     rerun: Path | None = None
     #: Camera images in the Rerun log per second of session time (0: none).
     rerun_image_hz: float = 5.0
+    #: Twin body poses (the 3D twin) in the Rerun log per second of session time (0: none).
+    rerun_twin_hz: float = 30.0
     #: Send every guarded command to the rig's hardware too (implies the real clock).
     mirror_hardware: bool = False
     #: Rig file (TOML) or "emulated" (protocol emulators for every device); default
@@ -154,6 +156,8 @@ class SessionOptions:
                 raise ValueError("--rerun runs in one process; leave out --multiprocess")
         if not 0 <= self.rerun_image_hz < float("inf"):
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
+        if not 0 <= self.rerun_twin_hz < float("inf"):
+            raise ValueError(f"--rerun-twin-hz must be >= 0 (0: none), got {self.rerun_twin_hz}")
 
     def webxr_config(self):
         """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
@@ -220,6 +224,7 @@ class SessionOptions:
             auto_start=args.auto_start,
             rerun=getattr(args, "rerun", None),
             rerun_image_hz=getattr(args, "rerun_image_hz", 5.0),
+            rerun_twin_hz=getattr(args, "rerun_twin_hz", 30.0),
             mirror_hardware=getattr(args, "mirror_hardware", False),
             hardware_config=getattr(args, "hardware_config", None),
             leap_variant=getattr(args, "leap_variant", None),
@@ -346,7 +351,11 @@ def run_session(options: SessionOptions) -> TeleopSummary:
             from beavr_sim.viz.rerun_log import RerunLogger
 
             logger = RerunLogger(
-                options.rerun, loop, image_hz=options.rerun_image_hz, source=options.source
+                options.rerun,
+                loop,
+                image_hz=options.rerun_image_hz,
+                twin_hz=options.rerun_twin_hz,
+                source=options.source,
             )
             closers.append(logger.close)
             loop.listeners.append(logger)

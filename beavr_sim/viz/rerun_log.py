@@ -6,6 +6,9 @@ spawned) and logs, on the ``session_time`` timeline (seconds
 from the first tick, continuing across episode resets) and the ``tick`` sequence:
 
 - the operator's hands and the effectors' targets (3D, world frame, Z-up);
+- the twin in 3D: every drawn geom once (static: meshes as ``Mesh3D``, primitives as boxes,
+  ellipsoids, capsules, cylinders) under an entity per body, whose pose goes out per tick at
+  ``twin_hz`` of session time; the collision geometry as wireframes under a separate path;
 - the robot's joint positions and commands, holds, guard blocks, task success and latencies
   (scalars);
 - events (episode starts, holds, guard blocks, success) as text logs, and the twin's camera
@@ -31,6 +34,7 @@ import mujoco
 import numpy as np
 import rerun as rr
 
+from beavr_sim.robots.visuals import COLLISION_GROUP, RENDER_GEOM_GROUPS
 from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, SIDES
 
 TIMELINE = "session_time"
@@ -57,6 +61,11 @@ _SIDE_COLORS = {"right": (230, 120, 40), "left": (60, 140, 230)}
 _TARGET_COLOR = (40, 200, 120)
 _SKELETON_COLOR = (200, 200, 200)
 _ALL_JOINTS = np.arange(len(JOINT_NAMES))
+#: The twin: an entity per body (its world pose), a child per geom (its pose in the body).
+TWIN_PATH = "world/twin"
+#: The collision geometry, the same bodies' poses: one subtree to show or hide.
+COLLISION_PATH = "world/collision"
+_COLLISION_COLOR = (255, 140, 0, 200)
 
 
 def check_rrd_path(path: str | Path) -> Path:
@@ -158,12 +167,80 @@ class _Columns:
             self.send(path)
 
 
+class _BodyPoses:
+    """The moving bodies' world poses: one array per tick (a copy of ``xpos`` and ``xquat``
+    of those bodies), sent as columns per body entity (and the same to its collision entity)
+    once ``rows`` ticks are buffered, one body every few ticks, so that the cost per tick stays
+    small and steady."""
+
+    def __init__(self, rec: rr.RecordingStream, paths: list[tuple[str, ...]], rows: int):
+        self.rec = rec
+        self.paths = paths  # per body: its entity paths
+        self.rows = max(1, int(rows))
+        self._buffer: tuple[list, list, list, list] = ([], [], [], [])
+        self._sending: tuple | None = None
+        self._next = 0
+        self._steps = 0
+
+    def add(self, t: float, tick: int, positions: np.ndarray, quaternions_xyzw: np.ndarray):
+        times, ticks, pos, quat = self._buffer
+        times.append(t)
+        ticks.append(tick)
+        pos.append(positions)
+        quat.append(quaternions_xyzw)
+        if len(times) >= self.rows and self._sending is None:
+            self._sending, self._next = self._take(), 0
+
+    def _take(self) -> tuple | None:
+        times, ticks, pos, quat = self._buffer
+        if not times:
+            return None
+        self._buffer = ([], [], [], [])
+        return (
+            [
+                rr.TimeColumn(TIMELINE, duration=np.asarray(times, dtype=np.float64)),
+                rr.TimeColumn(TICK_TIMELINE, sequence=np.asarray(ticks, dtype=np.int64)),
+            ],
+            np.stack(pos),
+            np.stack(quat),
+        )
+
+    def _send_next(self) -> None:
+        indexes, pos, quat = self._sending
+        i = self._next
+        self._next += 1  # first: a body that fails to send is not tried again and again
+        if self._next >= len(self.paths):
+            self._sending = None
+        columns = rr.Transform3D.columns(translation=pos[:, i], quaternion=quat[:, i])
+        for path in self.paths[i]:
+            self.rec.send_columns(path, indexes=indexes, columns=columns)
+
+    def step(self) -> None:
+        """Once a tick: the next body of the batch being sent, every few ticks."""
+        self._steps += 1
+        if self._sending is None or self._steps % max(1, self.rows // len(self.paths)):
+            return
+        self._send_next()
+
+    def send_all(self) -> None:
+        while self._sending is not None:
+            self._send_next()
+        self._sending, self._next = self._take(), 0
+        while self._sending is not None:
+            self._send_next()
+
+
 class RerunLogger:
     """A :class:`TeleopLoop` tick listener that logs the session to ``path`` (``.rrd``).
 
     ``image_hz``: rate (session time) of the camera images, 0 for none; ``cameras``: which
     of the scene's cameras, rendered at ``image_size`` (height, width) and JPEG-encoded.
-    Close it (or use it as a context manager) to flush the file.
+    ``twin_hz``: rate (session time) of the twin's body poses, 0 for no twin at all (the
+    default, 30, is every tick at the default control rate); ``collision``: log the collision
+    geometry too. Close it (or use it as a context manager) to flush the file.
+
+    Nothing in the per-tick path raises for the twin: an error there is counted
+    (:attr:`twin_errors`), the first one logged to ``events`` and stderr.
     """
 
     def __init__(
@@ -176,9 +253,13 @@ class RerunLogger:
         image_size: tuple[int, int] = (240, 320),
         jpeg_quality: int = 80,
         source: str | None = None,
+        twin_hz: float = 30.0,
+        collision: bool = True,
     ):
         if not (image_hz >= 0 and np.isfinite(image_hz)):
             raise ValueError(f"image rate must be >= 0 (0: no images), got {image_hz}")
+        if not (twin_hz >= 0 and np.isfinite(twin_hz)):
+            raise ValueError(f"twin rate must be >= 0 (0: no twin), got {twin_hz}")
         self.path = Path(path)
         self.loop = loop
         env = loop.twin.env
@@ -212,7 +293,19 @@ class RerunLogger:
         self._hold_reason: dict[str, str] = {}
         self._guard: tuple[str, ...] = ()
         self._success = False
+        self.twin_period = 1.0 / twin_hz if twin_hz > 0 else None
+        self._next_twin_t = 0.0
+        #: Per-tick twin errors (never raised), and the moving bodies' entity paths.
+        self.twin_errors = 0
+        self._twin_bodies = np.zeros(0, dtype=int)
+        self.poses: _BodyPoses | None = None
         self._log_static(source)
+        if self.twin_period is not None:
+            try:
+                self._log_twin_static(collision)
+            except Exception as exc:  # a viewer's extra: the session goes on without it
+                self._twin_failed("the twin's geometry", exc)
+                self.twin_period = None
 
     # ------------------------------------------------------------------ static
     def _log_static(self, source: str | None) -> None:
@@ -335,6 +428,11 @@ class RerunLogger:
             if self._next_image_t <= t:
                 self._next_image_t = t + self.image_period
             self._log_images()
+        if self.twin_period is not None and t >= self._next_twin_t - 1e-9:
+            self._next_twin_t += self.twin_period
+            if self._next_twin_t <= t:
+                self._next_twin_t = t + self.twin_period
+            self._log_twin(t, k)
         cols.step()
         self._ticks += 1
 
@@ -368,6 +466,67 @@ class RerunLogger:
             if tg.keypoints_world is not None:
                 cols.points(f"{base}/skeleton", t, k, tg.keypoints_world)
 
+    # ------------------------------------------------------------------ the twin in 3D
+    def _log_twin_static(self, collision: bool) -> None:
+        """Every drawn geom once, static: ``{TWIN_PATH}/{body}/{geom}`` (visual geometry) and
+        ``{COLLISION_PATH}/{body}/{geom}`` (collision geometry, wireframes), each with its pose
+        in the body; the bodies that never move get their world pose here, once."""
+        m, d = self.env.model, self.env.data
+        groups = {int(g) for g in RENDER_GEOM_GROUPS}
+        bodies: dict[int, str] = {}
+        for g in range(m.ngeom):
+            group, kind = int(m.geom_group[g]), int(m.geom_type[g])
+            is_collision = group == COLLISION_GROUP
+            if (
+                kind == mujoco.mjtGeom.mjGEOM_PLANE
+                or m.geom_rgba[g, 3] <= 0
+                or not (group in groups or (collision and is_collision))
+            ):
+                continue
+            shape = _geom_archetype(m, g, is_collision)
+            if shape is None:
+                continue
+            b = int(m.geom_bodyid[g])
+            bodies[b] = body_entity(m, b)
+            path = f"{COLLISION_PATH if is_collision else TWIN_PATH}/{geom_entity(m, g)}"
+            self.rec.log(path, _transform(m.geom_pos[g], m.geom_quat[g]), shape, static=True)
+        roots = (TWIN_PATH, COLLISION_PATH) if collision else (TWIN_PATH,)
+        moving, paths = [], []
+        for b, name in sorted(bodies.items()):
+            if m.body_weldid[b] != 0 or m.body_mocapid[b] >= 0:
+                moving.append(b)
+                paths.append(tuple(f"{root}/{name}" for root in roots))
+            else:
+                for root in roots:
+                    pose = _transform(d.xpos[b], d.xquat[b])
+                    self.rec.log(f"{root}/{name}", pose, static=True)
+        self._twin_bodies = np.array(moving, dtype=int)
+        if moving:
+            self.poses = _BodyPoses(self.rec, paths, self.columns.rows)
+
+    def _log_twin(self, t: float, k: int) -> None:
+        """The moving bodies' world poses (buffered columns); never raises."""
+        if self.poses is None:
+            return
+        try:
+            d, ids = self.env.data, self._twin_bodies
+            self.poses.add(t, k, d.xpos[ids], d.xquat[ids][:, [1, 2, 3, 0]])  # copies; xyzw
+            self.poses.step()
+        except Exception as exc:
+            self._twin_failed("the twin's poses", exc)
+
+    def _twin_failed(self, what: str, exc: Exception) -> None:
+        self.twin_errors += 1
+        if self.twin_errors == 1:
+            print(f"warning: rerun log: {what} not logged: {exc!r}", file=sys.stderr)
+            try:
+                self.rec.log(
+                    "events",
+                    rr.TextLog(f"{what} not logged: {exc!r}", level=rr.TextLogLevel.WARN),
+                )
+            except Exception:
+                pass
+
     def _log_images(self) -> None:
         from PIL import Image
 
@@ -395,7 +554,15 @@ class RerunLogger:
             return
         self._closed = True
         try:
+            if self.twin_errors > 1:
+                text = f"the twin: {self.twin_errors} errors in all (the first one above)"
+                self.rec.log("events", rr.TextLog(text, level=rr.TextLogLevel.WARN))
             self.columns.send_all()
+            if self.poses is not None:
+                try:
+                    self.poses.send_all()
+                except Exception as exc:
+                    self._twin_failed("the twin's last poses", exc)
             self.rec.flush()
             self.rec.disconnect()
         finally:
@@ -407,3 +574,82 @@ class RerunLogger:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def body_entity(model: mujoco.MjModel, b: int) -> str:
+    """A body's entity path under :data:`TWIN_PATH` / :data:`COLLISION_PATH`: its name as one
+    path part (``right/link1`` -> ``right\\/link1``), ``body{id}`` if it has none."""
+    return rr.escape_entity_path_part(model.body(b).name or f"body{b}")
+
+
+def geom_entity(model: mujoco.MjModel, g: int) -> str:
+    """A geom's entity path under :data:`TWIN_PATH` / :data:`COLLISION_PATH`: its body's, then
+    its name (``geom{id}`` if it has none)."""
+    name = rr.escape_entity_path_part(model.geom(g).name or f"geom{g}")
+    return f"{body_entity(model, int(model.geom_bodyid[g]))}/{name}"
+
+
+def _transform(position, quat_wxyz) -> rr.Transform3D:
+    q = np.asarray(quat_wxyz, dtype=np.float64)
+    return rr.Transform3D(
+        translation=np.asarray(position, dtype=np.float32), quaternion=q[[1, 2, 3, 0]]
+    )
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (unit; a vertex of no face gets +z)."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    face_normals = np.cross(b - a, c - a)
+    normals = np.zeros_like(vertices)
+    for i in range(3):
+        np.add.at(normals, faces[:, i], face_normals)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.where(length > 0, normals / np.maximum(length, 1e-30), [0.0, 0.0, 1.0])
+    return normals.astype(np.float32)
+
+
+def _geom_archetype(model: mujoco.MjModel, g: int, collision: bool):
+    """The geom in its own frame as a Rerun archetype (None for a kind not drawn): collision
+    geometry as wireframes in one colour, visual geometry solid in its own."""
+    kind = mujoco.mjtGeom(int(model.geom_type[g]))
+    size = model.geom_size[g]
+    if collision:
+        color, fill = _COLLISION_COLOR, rr.components.FillMode.MajorWireframe
+    else:
+        rgba = model.geom_rgba[g]
+        mat = int(model.geom_matid[g])
+        if mat >= 0 and np.allclose(rgba, [0.5, 0.5, 0.5, 1.0]):  # MuJoCo: the material's
+            rgba = model.mat_rgba[mat]
+        color = tuple(int(round(255 * float(c))) for c in rgba)
+        fill = rr.components.FillMode.Solid
+    if kind == mujoco.mjtGeom.mjGEOM_MESH:
+        k = int(model.geom_dataid[g])
+        v0, nv = int(model.mesh_vertadr[k]), int(model.mesh_vertnum[k])
+        f0, nf = int(model.mesh_faceadr[k]), int(model.mesh_facenum[k])
+        vertices = np.asarray(model.mesh_vert[v0 : v0 + nv], dtype=np.float32)
+        faces = np.asarray(model.mesh_face[f0 : f0 + nf], dtype=np.uint32)
+        return rr.Mesh3D(
+            vertex_positions=vertices,
+            triangle_indices=faces,
+            vertex_normals=_vertex_normals(vertices.astype(np.float64), faces),
+            albedo_factor=color,
+        )
+    if kind == mujoco.mjtGeom.mjGEOM_BOX:
+        return rr.Boxes3D(half_sizes=[size], colors=[color], fill_mode=fill)
+    if kind == mujoco.mjtGeom.mjGEOM_SPHERE:
+        return rr.Ellipsoids3D(half_sizes=[[size[0]] * 3], colors=[color], fill_mode=fill)
+    if kind == mujoco.mjtGeom.mjGEOM_ELLIPSOID:
+        return rr.Ellipsoids3D(half_sizes=[size], colors=[color], fill_mode=fill)
+    if kind == mujoco.mjtGeom.mjGEOM_CAPSULE:  # Rerun's starts at its translation, along +z
+        return rr.Capsules3D(
+            lengths=[2 * size[1]],
+            radii=[size[0]],
+            translations=[[0.0, 0.0, -size[1]]],
+            colors=[color],
+            fill_mode=fill,
+        )
+    if kind == mujoco.mjtGeom.mjGEOM_CYLINDER:
+        return rr.Cylinders3D(
+            lengths=[2 * size[1]], radii=[size[0]], colors=[color], fill_mode=fill
+        )
+    return None

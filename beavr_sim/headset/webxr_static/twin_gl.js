@@ -1,4 +1,4 @@
-// The twin drawn with plain WebGL 2: each geom as a simple shape, lit from above.
+// The twin drawn with plain WebGL 2: each geom as a simple shape or its mesh, lit from above.
 //
 // Poses come from the simulator in its world frame (Z up: x forward, y left, metres), 12
 // numbers per geom: position, then R_world_geom row by row. T_xr_world places that world in
@@ -12,7 +12,11 @@ const T_XR_WORLD_OFFSET = [0, 0, -WORLD_AHEAD_M];
 
 // One draw call per mesh and view: every geom of a shape is an instance (a rotation and
 // translation in rows, a scale, a colour). Draw calls, not pixels, are what a phone-class GPU
-// (and a software one) pays for.
+// (and a software one) pays for. The robot's meshes come once with the scene (docs/formats.md):
+// each is a unit mesh in [-1, 1] of its bounding box, drawn like the cube (scale: the box's half
+// extents), flat shaded from the screen-space derivatives of its position (no normals to send
+// or store, and each vertex shared by its triangles); a mesh that cannot be read is drawn as
+// its box.
 const VERTEX_SHADER = `#version 300 es
 layout(location = 0) in vec3 aPosition;
 layout(location = 1) in vec3 aNormal;
@@ -24,6 +28,7 @@ layout(location = 6) in vec4 aColor;
 uniform mat4 uProjection;
 uniform mat4 uView;
 out vec3 vNormal;
+out highp vec3 vPosition;
 out vec4 vColor;
 void main() {
   vec3 p = aPosition * aScale;
@@ -31,17 +36,22 @@ void main() {
   vec3 w = vec3(dot(aRow0.xyz, p) + aRow0.w, dot(aRow1.xyz, p) + aRow1.w,
                 dot(aRow2.xyz, p) + aRow2.w);
   vNormal = vec3(dot(aRow0.xyz, n), dot(aRow1.xyz, n), dot(aRow2.xyz, n));
+  vPosition = w;
   vColor = aColor;
   gl_Position = uProjection * uView * vec4(w, 1.0);
 }`;
 
 const FRAGMENT_SHADER = `#version 300 es
 precision mediump float;
+uniform bool uFlat;
 in vec3 vNormal;
+in highp vec3 vPosition;
 in vec4 vColor;
 out vec4 outColor;
 void main() {
-  vec3 n = normalize(vNormal);
+  // Flat: the triangle's normal, facing the viewer (highp: a pixel spans well under 1 mm).
+  highp vec3 face = cross(dFdx(vPosition), dFdy(vPosition));
+  vec3 n = uFlat ? vec3(normalize(face)) : normalize(vNormal);
   float light = 0.35 + 0.65 * max(dot(n, normalize(vec3(0.3, 1.0, 0.5))), 0.0);
   outColor = vec4(vColor.rgb * light, vColor.a);
 }`;
@@ -49,6 +59,11 @@ void main() {
 // Floats per instance: 3 rows of (rotation | translation), scale (3), colour (4).
 const STRIDE = 19;
 const HAND_COLOUR = [0.2, 0.85, 1.0, 1.0];
+// Mesh payloads (webxr_scene.encode_mesh): int16 vertices over the bounding box, then faces.
+const QUANT = 32767;
+const U16_VERTICES = 65536;
+const MAX_TRIANGLES = 1 << 20;
+const LITTLE_ENDIAN = new Uint8Array(new Uint16Array([1]).buffer)[0] === 1;
 
 function compile(gl, type, source) {
   const shader = gl.createShader(type);
@@ -147,6 +162,56 @@ function cylinderMesh(segments = 12) {
   return { positions, normals, indices };
 }
 
+function base64Bytes(text) {
+  if (Uint8Array.fromBase64) return Uint8Array.fromBase64(text);
+  const binary = atob(text);
+  const bytes = new Uint8Array(binary.length);
+  for (let i = 0; i < binary.length; i++) bytes[i] = binary.charCodeAt(i);
+  return bytes;
+}
+
+// A scene message's mesh entry -> a unit mesh: positions in [-1, 1] of its bounding box, triangle
+// indices, no normals (drawn flat). Throws saying why when the entry is not a valid mesh.
+export function decodeMesh(entry) {
+  if (!entry || typeof entry !== "object") throw new Error("not an object");
+  const n = entry.vertices, m = entry.faces;
+  if (!Number.isInteger(n) || !Number.isInteger(m) || n < 3 || m < 1 || m > MAX_TRIANGLES) {
+    throw new Error(`bad counts (${n} vertices, ${m} faces)`);
+  }
+  if (typeof entry.data !== "string") throw new Error("no data");
+  const bytes = base64Bytes(entry.data);
+  const start = 6 * n + ((4 - ((6 * n) % 4)) % 4);
+  const wide = n > U16_VERTICES;
+  if (bytes.length !== start + 3 * m * (wide ? 4 : 2)) {
+    throw new Error(`${bytes.length} bytes for ${n} vertices and ${m} faces`);
+  }
+  // The payload is little-endian, as is every platform WebXR runs on (else: read it byte-wise).
+  const view = new DataView(bytes.buffer);
+  const raw = LITTLE_ENDIAN ? new Int16Array(bytes.buffer, 0, 3 * n) : null;
+  const q = new Float32Array(3 * n);
+  for (let i = 0; i < 3 * n; i++) {
+    const v = raw ? raw[i] : view.getInt16(2 * i, true);
+    if (v < -QUANT) throw new Error("vertex out of range");
+    q[i] = v / QUANT;
+  }
+  let faces;
+  if (LITTLE_ENDIAN) {
+    faces = wide ? new Uint32Array(bytes.buffer, start, 3 * m)
+      : new Uint16Array(bytes.buffer, start, 3 * m);
+  } else {
+    faces = new Uint32Array(3 * m);
+    for (let i = 0; i < 3 * m; i++) {
+      faces[i] = wide ? view.getUint32(start + 4 * i, true) : view.getUint16(start + 2 * i, true);
+    }
+  }
+  for (let i = 0; i < 3 * m; i++) {
+    if (faces[i] >= n) throw new Error(`face ${Math.floor(i / 3)}: vertex ${faces[i]} of ${n}`);
+  }
+  // Indices into a fresh array: the payload's bytes are not kept.
+  return { positions: q, normals: null, indices: wide ? Uint32Array.from(faces)
+    : Uint16Array.from(faces) };
+}
+
 export class TwinRenderer {
   // gl: a WebGL2 context.
   constructor(gl) {
@@ -161,6 +226,7 @@ export class TwinRenderer {
     this.program = program;
     this.uProjection = gl.getUniformLocation(program, "uProjection");
     this.uView = gl.getUniformLocation(program, "uView");
+    this.uFlat = gl.getUniformLocation(program, "uFlat");
     this.meshes = { cube: this.upload(cubeMesh()), sphere: this.upload(sphereMesh()),
       cylinder: this.upload(cylinderMesh()) };
     this.scene = { cube: new Instances(), sphere: new Instances(), cylinder: new Instances() };
@@ -170,6 +236,10 @@ export class TwinRenderer {
     this.rgba = [];
     this.pose = new Float64Array(0);
     this.dynamic = [];
+    this.meshIndex = [];
+    // The scene's meshes: { mesh, instances } per entry, null where one could not be read.
+    this.sceneMeshes = [];
+    this.meshStats = { meshes: 0, failed: 0, triangles: 0, ms: 0, errors: [] };
   }
 
   upload(mesh) {
@@ -182,14 +252,23 @@ export class TwinRenderer {
       gl.bufferData(target, data, gl.STATIC_DRAW);
       return b;
     };
-    buffer(gl.ARRAY_BUFFER, new Float32Array(mesh.positions));
+    const floats = (a) => (a instanceof Float32Array ? a : new Float32Array(a));
+    const buffers = [];
+    buffers.push(buffer(gl.ARRAY_BUFFER, floats(mesh.positions)));
     gl.enableVertexAttribArray(0);
     gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
-    buffer(gl.ARRAY_BUFFER, new Float32Array(mesh.normals));
-    gl.enableVertexAttribArray(1);
-    gl.vertexAttribPointer(1, 3, gl.FLOAT, false, 0, 0);
-    buffer(gl.ELEMENT_ARRAY_BUFFER, new Uint16Array(mesh.indices));
+    const flat = mesh.normals === null;
+    if (!flat) {
+      buffers.push(buffer(gl.ARRAY_BUFFER, floats(mesh.normals)));
+      gl.enableVertexAttribArray(1);
+      gl.vertexAttribPointer(1, 3, gl.FLOAT, false, 0, 0);
+    }
+    const indices = ArrayBuffer.isView(mesh.indices) ? mesh.indices
+      : new Uint16Array(mesh.indices);
+    buffers.push(buffer(gl.ELEMENT_ARRAY_BUFFER, indices));
+    const indexType = indices instanceof Uint32Array ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT;
     const instances = gl.createBuffer();
+    buffers.push(instances);
     gl.bindBuffer(gl.ARRAY_BUFFER, instances);
     const layout = [[2, 4, 0], [3, 4, 4], [4, 4, 8], [5, 3, 12], [6, 4, 15]];
     for (const [location, size, offset] of layout) {
@@ -198,7 +277,37 @@ export class TwinRenderer {
       gl.vertexAttribDivisor(location, 1);
     }
     gl.bindVertexArray(null);
-    return { vao, instances, count: mesh.indices.length };
+    return { vao, instances, count: indices.length, indexType, flat, buffers };
+  }
+
+  release(mesh) {
+    const gl = this.gl;
+    gl.deleteVertexArray(mesh.vao);
+    for (const b of mesh.buffers) gl.deleteBuffer(b);
+  }
+
+  // The scene's meshes, each on its own: one that cannot be read is left null (its geoms are
+  // drawn as their boxes) and counted in meshStats, with why.
+  loadMeshes(entries) {
+    for (const loaded of this.sceneMeshes) if (loaded) this.release(loaded.mesh);
+    const began = performance.now();
+    const stats = { meshes: 0, failed: 0, triangles: 0, ms: 0, errors: [] };
+    this.sceneMeshes = (Array.isArray(entries) ? entries : []).map((entry, k) => {
+      try {
+        const mesh = this.upload(decodeMesh(entry));
+        stats.meshes++;
+        stats.triangles += entry.faces;
+        return { mesh, instances: new Instances() };
+      } catch (err) {
+        const name = entry && typeof entry.name === "string" ? entry.name : `#${k}`;
+        stats.failed++;
+        stats.errors.push(`${name}: ${err.message || err}`);
+        console.warn(`twin mesh ${name} not drawn (its box instead): ${err.message || err}`);
+        return null;
+      }
+    });
+    stats.ms = performance.now() - began;
+    this.meshStats = stats;
   }
 
   get geomCount() {
@@ -211,6 +320,8 @@ export class TwinRenderer {
     this.rgba = msg.rgba;
     this.pose = Float64Array.from(msg.pose);
     this.dynamic = msg.dynamic;
+    this.meshIndex = Array.isArray(msg.mesh) ? msg.mesh : [];
+    this.loadMeshes(msg.meshes);
     this.rebuild();
   }
 
@@ -226,6 +337,7 @@ export class TwinRenderer {
   // The geoms' instances in the session's space: R_xr_geom = R_xr_world R_world_geom.
   rebuild() {
     for (const group of Object.values(this.scene)) group.clear();
+    for (const loaded of this.sceneMeshes) if (loaded) loaded.instances.clear();
     const P = this.pose, R = new Array(9), t = [0, 0, 0], end = [0, 0, 0];
     for (let i = 0; i < this.shapes.length; i++) {
       const o = 12 * i;
@@ -239,7 +351,10 @@ export class TwinRenderer {
       }
       const z = this.sizes.slice(3 * i, 3 * i + 3), rgba = this.rgba.slice(4 * i, 4 * i + 4);
       const shape = this.shapes[i];
-      if (shape === "box") {
+      if (shape === "mesh") {
+        const loaded = this.sceneMeshes[this.meshIndex[i]];
+        (loaded ? loaded.instances : this.scene.cube).push(R, t, z, rgba);
+      } else if (shape === "box") {
         this.scene.cube.push(R, t, z, rgba);
       } else if (shape === "sphere") {
         this.scene.sphere.push(R, t, [z[0], z[0], z[0]], rgba);
@@ -264,7 +379,8 @@ export class TwinRenderer {
     gl.bindBuffer(gl.ARRAY_BUFFER, mesh.instances);
     gl.bufferData(gl.ARRAY_BUFFER, instances.data.subarray(0, STRIDE * instances.count),
       gl.DYNAMIC_DRAW);
-    gl.drawElementsInstanced(gl.TRIANGLES, mesh.count, gl.UNSIGNED_SHORT, 0, instances.count);
+    gl.uniform1i(this.uFlat, mesh.flat ? 1 : 0);
+    gl.drawElementsInstanced(gl.TRIANGLES, mesh.count, mesh.indexType, 0, instances.count);
   }
 
   // projection, view: column-major 4x4 (an XRView's projectionMatrix, transform.inverse.matrix).
@@ -279,6 +395,9 @@ export class TwinRenderer {
     gl.uniformMatrix4fv(this.uView, false, view);
     this.drawInstances(this.meshes.cube, this.scene.cube);
     this.drawInstances(this.meshes.cylinder, this.scene.cylinder);
+    for (const loaded of this.sceneMeshes) {
+      if (loaded) this.drawInstances(loaded.mesh, loaded.instances);
+    }
     const spheres = this.hands;
     spheres.clear();
     const scene = this.scene.sphere;

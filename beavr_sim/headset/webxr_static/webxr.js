@@ -25,7 +25,7 @@ const byId = (id) => document.getElementById(id);
 const ui = {
   status: byId("status"), start: byId("start"), pause: byId("pause"), ar: byId("ar"),
   arLabel: byId("ar-label"), twin: byId("twin-status"), stats: byId("stats"),
-  canvas: byId("view"), overlay: byId("overlay"),
+  scene: byId("scene-status"), canvas: byId("view"), overlay: byId("overlay"),
 };
 
 const state = {
@@ -74,6 +74,7 @@ function connect() {
       state.server = msg;
     } else if (msg.type === "scene" && renderer) {
       renderer.setScene(msg);
+      showScene();
     } else if (msg.type === "twin") {
       state.twin = msg;
       if (renderer) renderer.setPoses(msg.pose);
@@ -236,6 +237,15 @@ function updateUi() {
     ? `frames sent ${state.sent}, skipped ${state.skipped}; XR frame ${state.frameMs.toFixed(1)} ms` +
       `, page work ${state.workMs.toFixed(1)} ms`
     : "";
+}
+
+// What the twin is drawn with; meshes that could not be read are drawn as their boxes.
+function showScene() {
+  const s = renderer.meshStats;
+  let text = `twin: ${renderer.geomCount} shapes, ${s.meshes} meshes ` +
+    `(${s.triangles} triangles, read in ${s.ms.toFixed(0)} ms)`;
+  if (s.failed) text += `; ${s.failed} could not be read, drawn as boxes: ${s.errors.join("; ")}`;
+  ui.scene.textContent = text;
 }
 
 // Outside a session: the twin from behind the robot, redrawn when its poses change.
