@@ -70,7 +70,7 @@ demo: venv
 	MUJOCO_GL=egl $(PY) -m beavr_sim.teleop --task $(DEMO_TASK) --source trace --headless --repeat 0
 
 test: venv
-	MUJOCO_GL=egl $(PY) -m pytest -q
+	MUJOCO_GL=egl $(PY) -m pytest -q --durations=25
 
 bench: venv
 	MUJOCO_GL=egl $(PY) -m beavr_sim.bench sim

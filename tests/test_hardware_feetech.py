@@ -677,12 +677,14 @@ def test_multi_turn_servo_without_full_angle_feedback_refuses_to_connect():
 
 def test_missing_servo_ids_are_named():
     with FeetechEmulator([i for i in _ids("right_arm") if i not in (13, 16)]) as e:
-        bus = FeetechBus(_cfg(e.port, timeout_s=0.1, reply_timeout_s=0.05))
+        # Present servos get the suite's reply timeout (a loaded machine can delay the
+        # emulator by tens of ms); the missing ones are given up on after timeout_s each.
+        bus = FeetechBus(_cfg(e.port, timeout_s=0.3))
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match=r"servo id\(s\) \[13, 16\] .*power.*1 Mbaud") as err:
             bus.connect()
         assert e.port in str(err.value) and "rx1_right_arm" in str(err.value)
-        assert time.monotonic() - t0 < 1.5
+        assert time.monotonic() - t0 < 3.0
         assert not bus.connected
         assert all(s.torque_enable == 0 and s.writes == [] for s in e.servos.values())
 
@@ -729,7 +731,7 @@ def test_vanished_port_raises_device_error_quickly(emu, arm):
 
 @pytest.mark.parametrize("retries", [0, 1])
 def test_a_lost_reply_is_retried(emu, retries):
-    with FeetechBus(_cfg(emu.port, retries=retries, reply_timeout_s=0.05)) as bus:
+    with FeetechBus(_cfg(emu.port, retries=retries)) as bus:
         emu.drop_replies(1)
         if retries:
             assert bus.read_positions().shape == (7,)
