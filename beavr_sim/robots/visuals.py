@@ -33,7 +33,7 @@ COLLISION_GROUP = 3
 RENDER_GEOM_GROUPS = (0, 1, VISUAL_GROUP)
 
 XARM_WHITE = (0.93, 0.93, 0.92, 1.0)
-XARM_GREY = (0.56, 0.57, 0.6, 1.0)
+XARM_GREY = (0.42, 0.43, 0.46, 1.0)
 LEAP_BLACK = (0.13, 0.13, 0.14, 1.0)
 LEAP_WHITE = (0.93, 0.93, 0.9, 1.0)
 ALUMINIUM = (0.62, 0.63, 0.66, 1.0)
@@ -100,9 +100,13 @@ def _leap(side: str) -> PartVisuals:
 
 
 _XARM = PartVisuals(
-    tuple(
-        MeshVisual(body, f"xarm7/{body}", XARM_GREY if body == "link7" else XARM_WHITE)
-        for body in ("link_base", *(f"link{i}" for i in range(1, 8)))
+    (
+        MeshVisual("link_base", "xarm7/link_base_shell", XARM_WHITE),
+        *(
+            MeshVisual(body, f"xarm7/{body}_{part}", colour)
+            for body in (f"link{i}" for i in range(1, 8))
+            for part, colour in (("shell", XARM_WHITE), ("housing", XARM_GREY))
+        ),
     )
 )
 _HALF_TURN_X = (0.7071067811865476, 0.7071067811865476, 0.0, 0.0)  # cylinder axis z -> -y
