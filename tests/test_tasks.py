@@ -286,3 +286,41 @@ def test_tight_layouts_fall_back_to_largest_first_and_stay_valid():
     assert fell_back > 100  # the fallback was exercised
     with pytest.raises(RuntimeError, match="could not lay out"):
         workspace.sample_layout(np.random.default_rng(0), [0.09] * 3, gap, max_tries=20)
+
+
+def test_in_contact_matches_a_contact_by_contact_reading():
+    """The contact test against MuJoCo's contact structs read one by one, on every pair of
+    body geom sets of a Pour scene whose cup, drops and table touch (some contacts excluded
+    by hand, as a constraint-excluded contact would be)."""
+    from beavr_sim.envs.beavr_env import BeavrEnv
+    from beavr_sim.tasks.checks import in_contact
+
+    env = BeavrEnv(task="Pour", embodiment="xarm7_leap_right")
+    try:
+        env.reset(seed=0)
+        model, data = env.model, env.data
+        for _ in range(3):
+            env.step(env.agent_pos)
+        assert data.ncon > 5
+        data.contact.exclude[: data.ncon : 4] = 1
+
+        def by_hand(a, b) -> bool:
+            a, b = set(int(g) for g in a), set(int(g) for g in b)
+            for i in range(data.ncon):
+                c = data.contact[i]
+                g1, g2 = int(c.geom[0]), int(c.geom[1])
+                if c.exclude == 0 and ((g1 in a and g2 in b) or (g1 in b and g2 in a)):
+                    return True
+            return False
+
+        groups = [np.flatnonzero(model.geom_bodyid == b) for b in range(model.nbody)]
+        groups = [g for g in groups if len(g)]
+        answers = []
+        for a in groups:
+            for b in groups:
+                answers.append(in_contact(model, data, a, b))
+                assert answers[-1] == by_hand(a, b)
+        assert any(answers) and not all(answers)
+        assert in_contact(model, data, [], groups[0]) is False
+    finally:
+        env.close()

@@ -51,11 +51,14 @@ def inside_rectangle(xy, centre_xy, half_xy, yaw: float = 0.0, margin: float = 0
 
 def in_contact(model: mujoco.MjModel, data: mujoco.MjData, geoms_a, geoms_b) -> bool:
     """Whether any active contact touches one geom of ``geoms_a`` and one of ``geoms_b``."""
+    n = data.ncon
+    if n == 0:
+        return False
     a, b = set(int(g) for g in geoms_a), set(int(g) for g in geoms_b)
-    for i in range(data.ncon):
-        c = data.contact[i]
-        g1, g2 = int(c.geom[0]), int(c.geom[1])
-        if c.exclude == 0 and ((g1 in a and g2 in b) or (g1 in b and g2 in a)):
+    contacts = data.contact  # the contact arrays read once (a struct per contact costs more)
+    pairs, excluded = contacts.geom[:n].tolist(), contacts.exclude[:n].tolist()
+    for (g1, g2), exclude in zip(pairs, excluded, strict=True):
+        if exclude == 0 and ((g1 in a and g2 in b) or (g1 in b and g2 in a)):
             return True
     return False
 
