@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         from beavr_sim.viz.twin_view import TwinView
 
         view = TwinView(
-            u.model,
+            u.render_model,
             host=args.viser_host,
             port=args.viser_port,
             title=f"beavr_sim — Playground — {args.embodiment}",

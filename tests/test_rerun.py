@@ -172,7 +172,7 @@ def test_the_twin_in_3d_meshes_once_and_body_poses_per_tick(tmp_path):
     loop = build_loop(_options(tmp_path))
     ticks = 5
     try:
-        model, data = loop.twin.env.model, loop.twin.env.data
+        model, data = loop.twin.env.render_model, loop.twin.env.data
         with RerunLogger(path, loop, image_hz=0) as logger:
             loop.listeners.append(logger)
             for _ in range(ticks):

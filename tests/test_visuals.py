@@ -115,14 +115,53 @@ def test_cameras_draw_the_visual_meshes_not_the_collision_geometry():
     env = beavr_env.BeavrEnv(task="PickupBox", camera_height=48, camera_width=64)
     try:
         env.reset(seed=0)
-        shown = OffscreenCameras(env.model, 48, 64).render(env.data, "front")
-        collision = OffscreenCameras(env.model, 48, 64, show_collision=True)
-        with_collision = collision.render(env.data, "front")
-        hidden = OffscreenCameras(env.model, 48, 64)
+        model, data = env.render_model, env.render_data()
+        shown = OffscreenCameras(model, 48, 64).render(data, "front")
+        collision = OffscreenCameras(model, 48, 64, show_collision=True)
+        with_collision = collision.render(data, "front")
+        hidden = OffscreenCameras(model, 48, 64)
         hidden.option.geomgroup[VISUAL_GROUP] = 0
-        no_robot = hidden.render(env.data, "front")
+        no_robot = hidden.render(data, "front")
         assert np.abs(shown.astype(int) - no_robot).sum() > 1000  # the visuals are drawn
         assert np.abs(shown.astype(int) - with_collision).sum() > 100
+        np.testing.assert_array_equal(env.render_camera("front"), shown)  # the env's camera
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("embodiment", ["xarm7_leap_bimanual", "rx1"])
+def test_the_env_steps_a_model_without_visuals_and_draws_one_with_them(embodiment):
+    """Physics steps the collision-only model (visual geoms cost the collision phase time
+    even though they never collide); the render model adds the visual geoms only, and its
+    data follows the physics state body for body."""
+    env = beavr_env.BeavrEnv(task="Pour", embodiment=embodiment)
+    try:
+        env.reset(seed=1)
+        plain = _model(embodiment, visuals=False)
+        assert not (env.model.geom_group == VISUAL_GROUP).any()
+        assert env.model.ngeom > plain.ngeom  # the task's objects
+        render = env.render_model
+        assert (render.geom_group == VISUAL_GROUP).any() and render.ngeom > env.model.ngeom
+        for size in ("nbody", "nq", "nv", "nmocap", "ncam", "njnt", "nu"):
+            assert getattr(render, size) == getattr(env.model, size), size
+        rng = np.random.default_rng(0)
+        for _ in range(3):
+            env.step(env.agent_pos + rng.normal(0, 0.05, env.agent_pos.shape).astype(np.float32))
+            shown = env.render_data()
+            # The physics data's poses are from the start of its last substep (mj_step
+            # integrates after computing them): recompute them at its current positions.
+            physics = mujoco.MjData(env.model)
+            physics.qpos[:], physics.mocap_pos[:] = env.data.qpos, env.data.mocap_pos
+            physics.mocap_quat[:] = env.data.mocap_quat
+            mujoco.mj_kinematics(env.model, physics)
+            mujoco.mj_comPos(env.model, physics)
+            mujoco.mj_camlight(env.model, physics)
+            np.testing.assert_array_equal(shown.qpos, env.data.qpos)
+            np.testing.assert_allclose(shown.xpos, physics.xpos, atol=1e-12)
+            np.testing.assert_allclose(shown.xquat, physics.xquat, atol=1e-12)
+            np.testing.assert_allclose(shown.cam_xpos, physics.cam_xpos, atol=1e-12)
+            np.testing.assert_allclose(shown.mocap_pos, env.data.mocap_pos)
+        assert env.render_model is render  # compiled once
     finally:
         env.close()
 

@@ -25,7 +25,7 @@ def test_twin_view_uploads_geoms_once_and_updates_poses():
     env = gym.make("beavr_sim/Playground-v0")
     env.reset(seed=0)
     u = env.unwrapped
-    view = TwinView(u.model, port=_free_port())
+    view = TwinView(u.render_model, port=_free_port())
     try:
         assert view.host == "127.0.0.1"
         n_handles = len(view.geom_handles)

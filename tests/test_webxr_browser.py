@@ -179,7 +179,7 @@ def test_page_draws_the_meshes_and_a_damaged_one_as_its_box():
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     env = gym.make("beavr_sim/Pour-v0").unwrapped
     env.reset(seed=0)
-    message = TwinGeometry.from_model(env.model).scene_message(env.data, task="Pour")
+    message = TwinGeometry.from_model(env.render_model).scene_message(env.data, task="Pour")
     env.close()
     meshes = message["meshes"]
     damaged = meshes[0]["name"]

@@ -202,7 +202,7 @@ def test_twin_geometry_messages():
 
     env = gym.make("beavr_sim/Pour-v0").unwrapped
     env.reset(seed=0)
-    geometry = TwinGeometry.from_model(env.model)
+    geometry = TwinGeometry.from_model(env.render_model)
     n = len(geometry.geom_ids)
     shapes = {"box", "sphere", "capsule", "cylinder", "ellipsoid", "mesh"}
     assert n > 20 and set(geometry.shapes) <= shapes  # meshes: tests/test_webxr_scene.py

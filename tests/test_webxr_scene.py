@@ -28,9 +28,14 @@ WORLD_TOLERANCE_M = 5e-4
 def scene(request):
     env = gym.make("beavr_sim/Pour-v0", embodiment=request.param).unwrapped
     env.reset(seed=0)
-    geometry = TwinGeometry.from_model(env.model)
+    home = env.agent_pos
+    env.step(home + np.random.default_rng(0).normal(0, 0.1, home.shape).astype(np.float32))
+    mujoco.mj_kinematics(env.model, env.data)  # body poses at the positions after the step
+    # The page draws the render model (visual meshes) at the physics model's body poses:
+    # checked below against MuJoCo's own geom poses in the render model's data.
+    geometry = TwinGeometry.from_model(env.render_model)
     message = json.loads(_encode(geometry.scene_message(env.data, task="Pour")))
-    yield env.model, env.data, geometry, message
+    yield env.render_model, env.render_data(), geometry, message
     env.close()
 
 

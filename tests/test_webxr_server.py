@@ -155,7 +155,7 @@ def test_the_scene_with_its_meshes_reaches_a_page_that_connects_later(server):
     env = gym.make("beavr_sim/Pour-v0").unwrapped
     env.reset(seed=0)
     try:
-        feed = TwinFeed(server, env.model, env.data, info={"task": "Pour"})
+        feed = TwinFeed(server, env.render_model, env.data, info={"task": "Pour"})
         time.sleep(0.2)
         with connect(_ws_url(server), max_size=None) as ws:
             assert json.loads(ws.recv(timeout=5))["type"] == "welcome"

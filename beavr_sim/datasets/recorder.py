@@ -70,7 +70,9 @@ class EpisodeRecorder:
         self.state_source = state_source
         self.task_text = env.task.instruction or env.task.name
         self.sides = hand_sides(env.embodiment)
-        self.cameras = CameraSet(env.model, config.cameras, config.image_height, config.image_width)
+        self.cameras = CameraSet(
+            env.render_model, config.cameras, config.image_height, config.image_width
+        )
         self.recording = False
         self._observation: dict[str, np.ndarray] | None = None
         self._keypoints = np.zeros((len(self.sides), N_JOINTS, 3), dtype=np.float32)
@@ -122,7 +124,7 @@ class EpisodeRecorder:
         obs = {STATE: np.asarray(state, dtype=np.float32)}
         if self.config.environment_state:
             obs[ENV_STATE] = self.env.environment_state
-        for camera, image in self.cameras.render(self.env.data).items():
+        for camera, image in self.cameras.render(self.env.render_data()).items():
             obs[IMAGE_PREFIX + camera] = image
         return obs
 

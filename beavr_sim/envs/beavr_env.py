@@ -84,15 +84,8 @@ class BeavrEnv(gym.Env):
         if not self.max_episode_seconds > 0:
             raise ValueError(f"max_episode_seconds must be positive, got {max_episode_seconds!r}")
 
-        spec = build_scene_spec(
-            self.embodiment,
-            self.camera_height,
-            self.camera_width,
-            self.hand_variant,
-            DEFAULT_CONTACT if contact is None else contact,
-            visuals=True,
-        )
-        self.task.build(spec)
+        self._contact = DEFAULT_CONTACT if contact is None else contact
+        spec = self._scene_spec(visuals=False)
         self.control_hz = float(control_hz)
         self.n_substeps = max(1, math.ceil(1.0 / (self.control_hz * MAX_PHYSICS_DT)))
         #: Called (no arguments) after each physics substep of :meth:`step`, or None: the
@@ -101,8 +94,14 @@ class BeavrEnv(gym.Env):
         #: change the env's state (it may read it).
         self.between_substeps: Callable[[], None] | None = None
         spec.option.timestep = 1.0 / (self.control_hz * self.n_substeps)
+        #: The physics model: collision geometry only. The robots' visual geometry lives in
+        #: :attr:`render_model` (same bodies, joints and state layout): visual geoms never
+        #: collide, but in the model that steps they still cost MuJoCo's collision phase about
+        #: a fifth of a physics step.
         self.model: mujoco.MjModel = spec.compile()
         self.data = mujoco.MjData(self.model)
+        self._render_model: mujoco.MjModel | None = None
+        self._render_data: mujoco.MjData | None = None
         self.joints = self.embodiment.bind(self.model)
         self.task.bind(self.model)
         # The arm joints that follow targets as a servo-mode arm does (envs/drive.py); the
@@ -241,8 +240,57 @@ class BeavrEnv(gym.Env):
     def render_camera(self, camera: str) -> np.ndarray:
         """One HxWx3 uint8 frame from a named camera (shadows and reflections off)."""
         if self._renderer is None:
-            self._renderer = OffscreenCameras(self.model, self.camera_height, self.camera_width)
-        return self._renderer.render(self.data, camera)
+            self._renderer = OffscreenCameras(
+                self.render_model, self.camera_height, self.camera_width
+            )
+        return self._renderer.render(self.render_data(), camera)
+
+    @property
+    def render_model(self) -> mujoco.MjModel:
+        """The twin as it is drawn: :attr:`model` plus the robots' visual geometry (group 2;
+        collision geometry in group 3), compiled on first use. Its bodies, joints, mocap
+        bodies and cameras are :attr:`model`'s, index for index, so body poses and ``qpos``
+        carry over; its geom ids do not. Draw with it, never step it."""
+        if self._render_model is None:
+            spec = self._scene_spec(visuals=True)
+            spec.option.timestep = self.model.opt.timestep
+            model = spec.compile()
+            for size in ("nbody", "nq", "nv", "nmocap", "ncam", "njnt"):
+                if getattr(model, size) != getattr(self.model, size):
+                    raise RuntimeError(
+                        f"the render model's {size} ({getattr(model, size)}) differs from the "
+                        f"physics model's ({getattr(self.model, size)}): visuals must add geoms "
+                        "and meshes only"
+                    )
+            self._render_model, self._render_data = model, mujoco.MjData(model)
+        return self._render_model
+
+    def render_data(self, data: mujoco.MjData | None = None) -> mujoco.MjData:
+        """:attr:`render_model`'s data at the state of ``data`` (default: :attr:`data`):
+        positions and mocap poses copied, kinematics, cameras and lights recomputed (no
+        collision, no dynamics). One shared instance: call from one thread."""
+        model = self.render_model
+        out, src = self._render_data, self.data if data is None else data
+        out.time = src.time
+        out.qpos[:] = src.qpos
+        out.mocap_pos[:] = src.mocap_pos
+        out.mocap_quat[:] = src.mocap_quat
+        mujoco.mj_kinematics(model, out)
+        mujoco.mj_comPos(model, out)
+        mujoco.mj_camlight(model, out)
+        return out
+
+    def _scene_spec(self, visuals: bool) -> mujoco.MjSpec:
+        spec = build_scene_spec(
+            self.embodiment,
+            self.camera_height,
+            self.camera_width,
+            self.hand_variant,
+            self._contact,
+            visuals=visuals,
+        )
+        self.task.build(spec)
+        return spec
 
     def _validate_action(self, action) -> np.ndarray:
         expected = self.action_space.shape

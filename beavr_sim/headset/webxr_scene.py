@@ -109,6 +109,12 @@ class TwinGeometry:
     centres: np.ndarray
     dynamic: np.ndarray
     mesh_index: np.ndarray
+    #: Per drawn geom: its body, and its shape's centre and rotation in that body's frame.
+    #: Poses come from body poses, so a physics model's data (same bodies, no visual geoms)
+    #: drives the geometry of the model it was drawn from.
+    bodies: np.ndarray
+    p_body_shape: np.ndarray
+    R_body_shape: np.ndarray
     meshes: tuple[dict, ...] = ()
 
     @classmethod
@@ -142,6 +148,12 @@ class TwinGeometry:
         geom_ids = np.array(ids, dtype=int)
         bodies = model.geom_bodyid[geom_ids]
         moves = (model.body_weldid[bodies] != 0) | (model.body_mocapid[bodies] >= 0)
+        R_body_geom = np.zeros((len(geom_ids), 9))
+        for row, g in zip(R_body_geom, geom_ids, strict=True):
+            mujoco.mju_quat2Mat(row, model.geom_quat[g])
+        R_body_geom = R_body_geom.reshape(-1, 3, 3)
+        centres_geom = np.array(centres, dtype=np.float64).reshape(-1, 3)
+        p_body_shape = model.geom_pos[geom_ids] + np.einsum("nij,nj->ni", R_body_geom, centres_geom)
         return cls(
             geom_ids=geom_ids,
             shapes=tuple(shapes),
@@ -150,15 +162,19 @@ class TwinGeometry:
             centres=np.array(centres, dtype=np.float64).reshape(-1, 3),
             dynamic=np.flatnonzero(moves),
             mesh_index=np.array(mesh_index, dtype=int),
+            bodies=np.asarray(bodies, dtype=int),
+            p_body_shape=p_body_shape.reshape(-1, 3),
+            R_body_shape=R_body_geom,
             meshes=tuple(meshes),
         )
 
     def poses(self, data: mujoco.MjData, which: np.ndarray | None = None) -> np.ndarray:
         """(n, 12) world poses of the drawn geoms (``which``: indices into ``geom_ids``)."""
         index = np.arange(len(self.geom_ids)) if which is None else which
-        ids = self.geom_ids[index]
-        R = data.geom_xmat[ids].reshape(-1, 3, 3)
-        p = data.geom_xpos[ids] + np.einsum("nij,nj->ni", R, self.centres[index])
+        bodies = self.bodies[index]
+        R_world_body = data.xmat[bodies].reshape(-1, 3, 3)
+        p = data.xpos[bodies] + np.einsum("nij,nj->ni", R_world_body, self.p_body_shape[index])
+        R = R_world_body @ self.R_body_shape[index]
         return np.concatenate([p, R.reshape(-1, 9)], axis=1)
 
     def scene_message(self, data: mujoco.MjData, **info: object) -> dict:

@@ -434,7 +434,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
 
         joints = env.joints
         view = TwinView(
-            env.model,
+            env.render_model,
             host=options["viser_host"],
             port=options["viser_port"],
             task=env.task.name,

@@ -386,7 +386,7 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 env = loop.twin.env
                 info = {"task": env.task.name, "embodiment": env.embodiment.name}
                 loop.listeners.append(
-                    loop.source.twin_feed(env.model, env.data, loop.operator, info)
+                    loop.source.twin_feed(env.render_model, env.data, loop.operator, info)
                 )
         if not options.headless and options.source == "quest":
             from beavr_sim.headset.quest_io import HeadsetImagePublisher
@@ -634,7 +634,7 @@ def headset_listener(
     thread: the tick only copies the pose (when an image is due); the render, the JPEG and the
     send happen on the listener's thread. Close it before the publisher."""
     env = loop.twin.env
-    renderer = HeadsetRenderer(publisher, env.model, headset_camera(env.embodiment), size)
+    renderer = HeadsetRenderer(publisher, env.render_model, headset_camera(env.embodiment), size)
     next_due = [0.0]
 
     def snapshot(tick: Tick) -> ScenePose | None:

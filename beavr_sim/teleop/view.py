@@ -114,7 +114,7 @@ def attach_view(
     from beavr_sim.viz.twin_view import subtree_bodies
 
     view = TwinView(
-        env.model,
+        env.render_model,
         host=host,
         port=port,
         title="beavr_sim twin",

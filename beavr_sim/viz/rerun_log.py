@@ -276,7 +276,7 @@ class RerunLogger:
 
             for c in self.cameras_names:
                 check_name("camera", c, camera_names(env.embodiment))
-            self._cameras = OffscreenCameras(env.model, *image_size)
+            self._cameras = OffscreenCameras(env.render_model, *image_size)
 
         self.rec = rr.RecordingStream("beavr_sim_teleop")
         self.rec.save(self.path)
@@ -470,8 +470,9 @@ class RerunLogger:
     def _log_twin_static(self, collision: bool) -> None:
         """Every drawn geom once, static: ``{TWIN_PATH}/{body}/{geom}`` (visual geometry) and
         ``{COLLISION_PATH}/{body}/{geom}`` (collision geometry, wireframes), each with its pose
-        in the body; the bodies that never move get their world pose here, once."""
-        m, d = self.env.model, self.env.data
+        in the body; the bodies that never move get their world pose here, once. (Geoms of
+        the env's render model; body poses of its physics data: the bodies are the same.)"""
+        m, d = self.env.render_model, self.env.data
         groups = {int(g) for g in RENDER_GEOM_GROUPS}
         bodies: dict[int, str] = {}
         for g in range(m.ngeom):
@@ -532,7 +533,7 @@ class RerunLogger:
 
         for name in self.cameras_names:
             try:
-                pixels = self._cameras.render(self.env.data, name)
+                pixels = self._cameras.render(self.env.render_data(), name)
             except Exception as exc:  # no GL here: go on without images, say so once
                 print(f"warning: rerun log without camera images: {exc}", file=sys.stderr)
                 self.rec.log(
