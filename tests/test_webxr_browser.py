@@ -14,6 +14,7 @@ installs once into ``~/.cache/beavr_sim/iwer``, ``BEAVR_IWER_DIR`` to move it).
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +78,20 @@ def _target(sess) -> np.ndarray | None:
     return None if T is None else T[:3, 3].copy()
 
 
+@contextmanager
+def _page():
+    """A headless chromium page (640x360) and the list its page errors are collected in."""
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 640, "height": 360})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            yield page, errors
+        finally:
+            browser.close()
+
+
 def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bundle):
     from beavr_sim.teleop.session import SessionOptions
     from beavr_sim.wire.ports import free_tcp_ports
@@ -92,76 +107,67 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
     server = sess.server
     arm = sess.loop.twin.slices["right"]
     try:
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(
-                executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS
+        with _page() as (page, errors):
+            page.add_init_script(path=str(iwer_bundle))
+            page.add_init_script(script=IWER_SETUP)
+            page.goto(server.url)
+
+            # (a) The page loads, connects and gets the twin with every mesh; Start opens
+            # the session.
+            _wait_for(page, f"{SCENE_STATUS}.includes('meshes')", 30, "the twin's meshes")
+            scene = page.evaluate(SCENE_STATUS)
+            assert " 0 meshes" not in scene and "could not be read" not in scene, scene
+            start = page.get_by_role("button", name="Start")
+            page.wait_for_function("!document.getElementById('start').disabled", timeout=30_000)
+            start.click()
+            sess.wait_for(lambda: server.stats.sessions_started == 1, 20, "XR session")
+            page.wait_for_function(
+                "document.getElementById('status').textContent.includes('in session')",
+                timeout=10_000,
             )
-            try:
-                page = browser.new_page(viewport={"width": 640, "height": 360})
-                errors: list[str] = []
-                page.on("pageerror", lambda exc: errors.append(str(exc)))
-                page.add_init_script(path=str(iwer_bundle))
-                page.add_init_script(script=IWER_SETUP)
-                page.goto(server.url)
 
-                # (a) The page loads, connects and gets the twin with every mesh; Start opens
-                # the session.
-                _wait_for(page, f"{SCENE_STATUS}.includes('meshes')", 30, "the twin's meshes")
-                scene = page.evaluate(SCENE_STATUS)
-                assert " 0 meshes" not in scene and "could not be read" not in scene, scene
-                start = page.get_by_role("button", name="Start")
-                page.wait_for_function("!document.getElementById('start').disabled", timeout=30_000)
-                start.click()
-                sess.wait_for(lambda: server.stats.sessions_started == 1, 20, "XR session")
-                page.wait_for_function(
-                    "document.getElementById('status').textContent.includes('in session')",
-                    timeout=10_000,
-                )
+            # (b) Frames of both hands arrive and pass the validator.
+            sess.wait_for(lambda: frames.sides == {"left", "right"}, 30, "both hands")
+            sess.wait_for(lambda: _target(sess) is not None, 30, "the arm target anchored")
+            assert not server.stats.rejected, server.stats.rejected
+            assert sess.loop.validator.rejected == 0, sess.loop.validator.rejected_by_reason
 
-                # (b) Frames of both hands arrive and pass the validator.
-                sess.wait_for(lambda: frames.sides == {"left", "right"}, 30, "both hands")
-                sess.wait_for(lambda: _target(sess) is not None, 30, "the arm target anchored")
-                assert not server.stats.rejected, server.stats.rejected
-                assert sess.loop.validator.rejected == 0, sess.loop.validator.rejected_by_reason
+            # (c) Moving the emulated right hand 10 cm moves the arm target 10 cm (relative
+            # motion at scale 1, in the hand frame anchored at the start: the direction in
+            # the world depends on the robot hand's pose then), the arm with it, and moving
+            # the hand back brings the target back.
+            time.sleep(0.5)
+            target0, q0 = _target(sess), sess.loop.twin.action[arm].copy()
+            page.evaluate("window.__moveHand('right', 0, 0.10, 0, 1.5)")
+            time.sleep(2.5)
+            target1, q1 = _target(sess), sess.loop.twin.action[arm].copy()
+            moved = np.linalg.norm(target1 - target0)
+            assert 0.07 < moved < 0.12, f"arm target moved {moved:.3f} m for a 0.10 m hand move"
+            assert np.abs(q1 - q0).max() > 0.02, "the arm did not follow its target"
+            page.screenshot(path=ARTIFACTS / "1_in_session.png")
+            page.evaluate("window.__moveHand('right', 0, -0.10, 0, 1.5)")
+            time.sleep(2.5)
+            back = np.linalg.norm(_target(sess) - target0)
+            assert back < 0.02, f"hand back at the start, target {back:.3f} m from its start"
 
-                # (c) Moving the emulated right hand 10 cm moves the arm target 10 cm (relative
-                # motion at scale 1, in the hand frame anchored at the start: the direction in
-                # the world depends on the robot hand's pose then), the arm with it, and moving
-                # the hand back brings the target back.
-                time.sleep(0.5)
-                target0, q0 = _target(sess), sess.loop.twin.action[arm].copy()
-                page.evaluate("window.__moveHand('right', 0, 0.10, 0, 1.5)")
-                time.sleep(2.5)
-                target1, q1 = _target(sess), sess.loop.twin.action[arm].copy()
-                moved = np.linalg.norm(target1 - target0)
-                assert 0.07 < moved < 0.12, f"arm target moved {moved:.3f} m for a 0.10 m hand move"
-                assert np.abs(q1 - q0).max() > 0.02, "the arm did not follow its target"
-                page.screenshot(path=ARTIFACTS / "1_in_session.png")
-                page.evaluate("window.__moveHand('right', 0, -0.10, 0, 1.5)")
-                time.sleep(2.5)
-                back = np.linalg.norm(_target(sess) - target0)
-                assert back < 0.02, f"hand back at the start, target {back:.3f} m from its start"
+            # (d) The page's Pause holds the operator (the pause flag of every frame);
+            # Resume releases it.
+            page.get_by_role("button", name="Pause").dispatch_event("click")
+            sess.wait_for(lambda: sess.loop.operator.paused, 5, "pause")
+            page.get_by_role("button", name="Resume").dispatch_event("click")
+            sess.wait_for(lambda: not sess.loop.operator.paused, 5, "resume")
+            assert not errors, errors
 
-                # (d) The page's Pause holds the operator (the pause flag of every frame);
-                # Resume releases it.
-                page.get_by_role("button", name="Pause").dispatch_event("click")
-                sess.wait_for(lambda: sess.loop.operator.paused, 5, "pause")
-                page.get_by_role("button", name="Resume").dispatch_event("click")
-                sess.wait_for(lambda: not sess.loop.operator.paused, 5, "resume")
-                assert not errors, errors
-
-                # (e) Closing the page: no frames, the right arm holds (tracking lost).
-                lost0 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
-                page.close()
-                time.sleep(1.0)
-                q_closed = sess.loop.twin.action[arm].copy()
-                time.sleep(0.5)
-                np.testing.assert_array_equal(sess.loop.twin.action[arm], q_closed)
-                lost1 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
-                assert lost1 > lost0 + 5, (lost0, lost1)
-                assert not server.driving
-            finally:
-                browser.close()
+            # (e) Closing the page: no frames, the right arm holds (tracking lost).
+            lost0 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
+            page.close()
+            time.sleep(1.0)
+            q_closed = sess.loop.twin.action[arm].copy()
+            time.sleep(0.5)
+            np.testing.assert_array_equal(sess.loop.twin.action[arm], q_closed)
+            lost1 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
+            assert lost1 > lost0 + 5, (lost0, lost1)
+            assert not server.driving
     finally:
         sess.stop()
     assert sess.error is None, sess.error
@@ -187,25 +193,16 @@ def test_page_draws_the_meshes_and_a_damaged_one_as_its_box():
     server = WebXRServer(WebXRConfig(port=0))
     try:
         server.publish("scene", message)
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(
-                executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS
-            )
-            try:
-                page = browser.new_page(viewport={"width": 640, "height": 360})
-                errors: list[str] = []
-                page.on("pageerror", lambda exc: errors.append(str(exc)))
-                page.on("console", lambda m: m.type == "error" and errors.append(m.text))
-                page.goto(server.url)
-                _wait_for(page, f"{SCENE_STATUS}.includes('meshes')", 30, "the twin's meshes")
-                scene = page.evaluate(SCENE_STATUS)
-                assert f"{len(meshes) - 1} meshes" in scene, scene
-                assert f"1 could not be read, drawn as boxes: {damaged}:" in scene, scene
-                page.evaluate("document.getElementById('overlay').style.display = 'none'")
-                page.wait_for_timeout(300)
-                page.screenshot(path=ARTIFACTS / "0_preview_damaged_mesh.png")
-                assert not errors, errors
-            finally:
-                browser.close()
+        with _page() as (page, errors):
+            page.on("console", lambda m: m.type == "error" and errors.append(m.text))
+            page.goto(server.url)
+            _wait_for(page, f"{SCENE_STATUS}.includes('meshes')", 30, "the twin's meshes")
+            scene = page.evaluate(SCENE_STATUS)
+            assert f"{len(meshes) - 1} meshes" in scene, scene
+            assert f"1 could not be read, drawn as boxes: {damaged}:" in scene, scene
+            page.evaluate("document.getElementById('overlay').style.display = 'none'")
+            page.wait_for_timeout(300)
+            page.screenshot(path=ARTIFACTS / "0_preview_damaged_mesh.png")
+            assert not errors, errors
     finally:
         server.close()
