@@ -49,6 +49,8 @@ def test_latency_harness_config_1_reports_every_field(capsys, tmp_path):
         "rejected": 0,
     }
     assert math.isfinite(eff["jitter_ms"]["std_ms"])
+    assert math.isfinite(eff["send_jitter_ms"]["std_ms"])
+    assert eff["send_jitter_ms"]["mean_ms"] == pytest.approx(1000 / 30.0, rel=0.05)
     for key in ("latency_twin_ms", "send_to_detector_ms", "detector_to_twin_ms"):
         assert finite_positive(eff[key]), (key, eff[key])
     assert eff["latency_twin_ms"]["p50"] <= eff["latency_twin_ms"]["p99"]
@@ -139,6 +141,9 @@ def test_analyse_counts_distinct_commands_and_leaves_repeats_out():
     assert right["commands_applied"] == 4 and right["repeats"] == 1
     assert right["jitter_ms"]["mean_ms"] == pytest.approx(100.0)
     assert right["jitter_ms"]["std_ms"] == pytest.approx(math.sqrt(800 / 3), abs=1e-3)
+    # the generator's sends in the window: every 100 ms, no jitter of its own
+    assert right["send_jitter_ms"]["mean_ms"] == pytest.approx(100.0)
+    assert right["send_jitter_ms"]["std_ms"] == pytest.approx(0.0, abs=1e-9)
     assert sorted(right["_samples"]) == pytest.approx([15.0, 15.0, 15.0, 35.0])
     assert right["latency_twin_ms"]["n"] == 4 and right["latency_twin_ms"]["max"] == 35.0
     assert right["send_to_detector_ms"]["p50"] == pytest.approx(5.0)
