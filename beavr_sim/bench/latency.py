@@ -132,6 +132,10 @@ def _hand_payloads(embodiment: str, task: str, sides: list[str]) -> tuple[dict, 
     return {s: (np.asarray(ts) - t0, p) for s, (ts, p) in by_side.items()}, duration
 
 
+#: The load generator spins (busy-waits) this long before each frame is due.
+GENERATOR_SPIN_S = 0.0015
+
+
 def generator_main(
     endpoints: dict,
     payloads: dict,
@@ -164,9 +168,13 @@ def generator_main(
         t_due = start + k * period
         if t_due - start >= seconds:
             break
-        delay = t_due - time.monotonic()
+        # Sleep to just before the frame is due, then spin: a sleep alone wakes 0.1-1 ms
+        # late, by a varying amount (the headset's own frame clock does not).
+        delay = t_due - time.monotonic() - GENERATOR_SPIN_S
         if delay > 0:
             time.sleep(delay)
+        while time.monotonic() < t_due:
+            pass
         # Played forwards, then backwards, and so on: the hand never jumps back to the
         # recording's start (the operator would reject the jump and hold: a gap in the rate).
         phase = ((time.monotonic() - start) % (2 * duration)) if duration > 0 else 0.0
