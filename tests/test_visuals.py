@@ -278,3 +278,21 @@ def test_show_collision_option_and_toggle():
         assert not any(h.visible for h in view.collision_handles)
     finally:
         view.close()
+
+
+def test_camera_sets_compile_the_render_model_only_for_a_camera():
+    from beavr_sim.datasets.recorder import CameraSet
+
+    env = beavr_env.BeavrEnv(task="PickupBox")
+    try:
+        env.reset(seed=0)
+        none = CameraSet.of_env(env, (), 48, 64)
+        assert none.render_env(env) == {} and env._render_model is None  # state-only: no cost
+        front = CameraSet.of_env(env, ("front",), 48, 64)
+        assert env._render_model is not None
+        assert front.render_env(env)["front"].shape == (48, 64, 3)
+        front.close()
+        with pytest.raises(ValueError, match="need a model"):
+            CameraSet(None, ("front",), 48, 64)
+    finally:
+        env.close()

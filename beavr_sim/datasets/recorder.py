@@ -40,12 +40,26 @@ from beavr_sim.wire.records import Tick
 class CameraSet:
     """The recorded cameras, rendered together at the recording size."""
 
-    def __init__(self, model: mujoco.MjModel, cameras: tuple[str, ...], height: int, width: int):
+    def __init__(
+        self, model: mujoco.MjModel | None, cameras: tuple[str, ...], height: int, width: int
+    ):
         self.cameras = tuple(cameras)
+        if self.cameras and model is None:
+            raise ValueError(f"cameras {self.cameras} need a model to render")
         self._cameras = OffscreenCameras(model, height, width) if self.cameras else None
+
+    @classmethod
+    def of_env(cls, env, cameras: tuple[str, ...], height: int, width: int) -> CameraSet:
+        """The cameras of a :class:`~beavr_sim.envs.beavr_env.BeavrEnv`, drawing its render
+        model (compiled only if there is a camera)."""
+        return cls(env.render_model if cameras else None, cameras, height, width)
 
     def render(self, data: mujoco.MjData) -> dict[str, np.ndarray]:
         return {c: self._cameras.render(data, c) for c in self.cameras}
+
+    def render_env(self, env) -> dict[str, np.ndarray]:
+        """Every camera at ``env``'s current state (its render model's data)."""
+        return self.render(env.render_data()) if self.cameras else {}
 
     def close(self) -> None:
         if self._cameras is not None:
@@ -70,8 +84,8 @@ class EpisodeRecorder:
         self.state_source = state_source
         self.task_text = env.task.instruction or env.task.name
         self.sides = hand_sides(env.embodiment)
-        self.cameras = CameraSet(
-            env.render_model, config.cameras, config.image_height, config.image_width
+        self.cameras = CameraSet.of_env(
+            env, config.cameras, config.image_height, config.image_width
         )
         self.recording = False
         self._observation: dict[str, np.ndarray] | None = None
@@ -124,7 +138,7 @@ class EpisodeRecorder:
         obs = {STATE: np.asarray(state, dtype=np.float32)}
         if self.config.environment_state:
             obs[ENV_STATE] = self.env.environment_state
-        for camera, image in self.cameras.render(self.env.render_data()).items():
+        for camera, image in self.cameras.render_env(self.env).items():
             obs[IMAGE_PREFIX + camera] = image
         return obs
 

@@ -38,7 +38,7 @@ def _observation(env, cameras: CameraSet) -> dict:
     obs = {"agent_pos": env.agent_pos.copy()}
     if env.environment_state_names:
         obs["environment_state"] = env.environment_state
-    pixels = cameras.render(env.render_data())
+    pixels = cameras.render_env(env)
     if pixels:
         obs["pixels"] = pixels
     return obs
@@ -50,11 +50,11 @@ class _VideoWriter:
         self._frames: list[np.ndarray] = []
         self._env = env
         self._fps = fps
-        self._camera = CameraSet(env.render_model, ("front",), 240, 320) if path else None
+        self._camera = CameraSet.of_env(env, ("front",), 240, 320) if path else None
 
     def capture(self) -> None:
         if self._camera is not None:
-            self._frames.append(self._camera.render(self._env.render_data())["front"])
+            self._frames.append(self._camera.render_env(self._env)["front"])
 
     def close(self) -> None:
         if self._camera is None:
@@ -199,7 +199,7 @@ def evaluate(
     if len(sizes) > 1:
         raise ValueError(f"the policy's cameras differ in size: {policy.cameras}")
     height, width = sizes.pop() if sizes else (1, 1)
-    cameras = CameraSet(env.render_model, tuple(policy.cameras), height, width)
+    cameras = CameraSet.of_env(env, tuple(policy.cameras), height, width)
     limit = max_seconds or env.max_episode_seconds
     results: list[EpisodeResult] = []
     think_act = ThinkAct(env, policy, cameras) if asynchronous else None

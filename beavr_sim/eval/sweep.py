@@ -118,7 +118,7 @@ def run_eval_job(job: EvalJob) -> EvalEpisode:
     env_key = (job.task, job.embodiment, tuple(policy.cameras), height, width)
     if env_key not in _ENVS:
         env = gym.make(f"beavr_sim/{job.task}-v0", embodiment=job.embodiment).unwrapped
-        _ENVS[env_key] = (env, CameraSet(env.render_model, tuple(policy.cameras), height, width))
+        _ENVS[env_key] = (env, CameraSet.of_env(env, tuple(policy.cameras), height, width))
     env, cameras = _ENVS[env_key]
     limit = job.max_seconds or env.max_episode_seconds
     video = _VideoWriter(Path(job.video), env, env.control_hz) if job.video else None
