@@ -33,7 +33,6 @@ STAGES = (
     ("twin.command (step limit, guard)", "twin", "command"),
     ("twin.step (all)", "twin", "step"),
     ("task.evaluate", "twin.env.task", "evaluate"),
-    ("env._observation", "twin.env", "_observation"),
 )
 
 
