@@ -20,7 +20,12 @@ from hypothesis import strategies as st
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.hardware.device import MirrorError
 from beavr_sim.hardware.dynamixel_emulator import DynamixelEmulator
-from beavr_sim.hardware.leap import LeapHandConfig, counts_to_model, model_to_counts
+from beavr_sim.hardware.leap import (
+    RAD_PER_COUNT,
+    LeapHandConfig,
+    counts_to_model,
+    model_to_counts,
+)
 from beavr_sim.hardware.mirror import HardwareMirror
 from beavr_sim.hardware.rig import DeviceEntry, MirrorConfig, RigConfig
 from beavr_sim.hardware.xarm import XArmConfig
@@ -797,3 +802,32 @@ def test_a_newer_target_preempts_a_streamed_interpolation(clocked):
     summary = bench.mirror.summary()["right_arm"]
     assert summary["preempted"] == 1 and summary["superseded"] == 0
     assert summary["write_latency_ms"]["n"] == 1 + 2  # both targets written, each once taken
+
+
+def test_a_device_whose_target_did_not_change_is_not_written_again(clocked):
+    """A command for one device (the arm) leaves the other's target (the hand's) as it was:
+    the hand is not written again within a control period, although the Dynamixel driver
+    sends its targets quantized to encoder counts (never equal to the float target)."""
+    bench, clock = clocked
+    target = bench.twin.action.copy()
+    target[7:] += 0.3 * RAD_PER_COUNT  # off the encoder's grid (the twin's targets are)
+    bench.submit_at(clock, 1 / 90, target)
+    sent = bench.mirror.links[1]._last
+    assert np.abs(sent - target[7:]).max() > 0.1 * RAD_PER_COUNT  # quantized when sent
+    before = bench.mirror.summary()["right_hand"]
+    n_goals = len(bench.hand_goals())
+    for _ in range(12):
+        target[0] += 0.02  # the arm moves, the hand's 16 targets stay
+        bench.submit_at(clock, 1 / 90, target, settle=False)
+        time.sleep(0.001)
+    bench.wait_written()
+    hand = bench.mirror.summary()["right_hand"]
+    written = hand["write_latency_ms"]["n"] - before["write_latency_ms"]["n"]
+    unchanged = hand["unchanged"] - before["unchanged"]
+    superseded = hand["superseded"] - before["superseded"]
+    assert written + unchanged + superseded == 12
+    # At most one write per control period (its heartbeat) however fast the commands come.
+    assert unchanged >= 6, hand
+    assert len(bench.hand_goals()) - n_goals == written
+    arm = bench.mirror.summary()["right_arm"]
+    assert abs(bench.arm_targets()[-1][0] - target[0]) < 1e-5 and arm["unchanged"] == 0

@@ -128,7 +128,12 @@ class _Link:
         self._seq_sent = 0
         self._diverged_since: float | None = None
         self._held = False
-        self._last: np.ndarray | None = None  # the last target sent
+        self._last: np.ndarray | None = None  # the last target sent, as the device took it
+        #: The last target sent whole (every step of its stream), as the mirror asked for it:
+        #: what an unchanged dispatch is compared with. Not ``_last``: a device returns what
+        #: it actually sent, quantized to its units (encoder ticks, float32), which never
+        #: equals the float target again.
+        self._sent_target: np.ndarray | None = None
         #: The device's joints as last read by its writer thread (once per control period).
         self.measured: np.ndarray | None = None
         self._t_read = -math.inf
@@ -186,6 +191,7 @@ class _Link:
                 n = max(n, math.ceil(largest / (0.9 * self.device.max_velocity / rate)))
             steps = [self._last + (q - self._last) * (k / n) for k in range(1, n + 1)]
         start = time.perf_counter()
+        self._sent_target = None
         for k, step in enumerate(steps):
             if k:
                 with m._cond:  # sleep to the next step; a new dispatch or a hold wakes us
@@ -210,6 +216,8 @@ class _Link:
                 self.stats.write_times.append(now)
                 self._held = False
                 self.stats.holding = ""
+        else:
+            self._sent_target = q.copy()  # every step went out (no newer dispatch, no hold)
 
     def _read_when_idle(self, m: HardwareMirror, twin: np.ndarray) -> None:
         """No new target for a control period: read the joints back (the writes read at most
@@ -281,10 +289,10 @@ class _Link:
             self._seq_sent = seq
             q = target[self.index]
             if (
-                self._last is not None
+                self._sent_target is not None
                 and not self._held
                 and now - self._t_write < 0.9 * m._period
-                and np.array_equal(q, self._last)
+                and np.array_equal(q, self._sent_target)
             ):
                 # Unchanged (a command for another device): nothing to send; the same
                 # target still goes out once per control period.
@@ -418,6 +426,7 @@ class HardwareMirror:
         self.guard.reset()
         for link in self.links:
             link._last = self._dispatched[link.index].copy()
+            link._sent_target = None
             link.start()
         self.started = True
 
