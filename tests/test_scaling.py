@@ -78,6 +78,26 @@ def test_local_pool_retries_a_dead_worker_then_gives_up():
         dying.close()
 
 
+def test_local_pool_retires_idle_workers_and_still_runs_later_jobs():
+    pool = LocalPool("math:sqrt", workers=2)
+    try:
+        pool.submit(0, 4.0)
+        pool.submit(1, 9.0)
+        first = dict([pool.next_result()])
+        # One job is left: the worker that finished exits now, the busy one is kept.
+        assert pool.retire_idle() == 1
+        assert pool.retire_idle() == 0  # (already gone)
+        second = dict([pool.next_result()])
+        assert {**first, **second} == {0: 2.0, 1: 3.0}
+        assert pool.retire_idle() == 1
+        pool.submit(2, 16.0)  # work after all: a fresh worker takes it
+        assert pool.next_result() == (2, 4.0) and pool.stats.started == 3
+        assert pool.stats.died == 0  # retiring is not dying
+    finally:
+        pool.close()
+    assert pool.pending == 0
+
+
 def test_ray_missing_gives_install_instructions(monkeypatch):
     import sys
 

@@ -113,6 +113,11 @@ class Executor(Protocol):
 
     def next_result(self) -> tuple[Hashable, Any]: ...
 
+    def retire_idle(self) -> int:
+        """Release the workers that have no job now (no more work is coming for them);
+        returns how many. A job submitted later still runs."""
+        ...
+
     @property
     def pending(self) -> int: ...
 
@@ -177,6 +182,9 @@ class InlineExecutor:
             self._queue.popleft()
             return key, result
 
+    def retire_idle(self) -> int:
+        return 0  # the only worker is this process
+
     def close(self) -> None:
         self._queue.clear()
 
@@ -236,6 +244,7 @@ class LocalPool:
         self.env = {**WORKER_ENV, **(env or {})}
         self._ctx = mp.get_context("spawn")
         self._slots: list[_Slot | None] = [None] * self.capacity
+        self._retiring: list[_Slot] = []  # told to exit (retire_idle), joined at close
         self._queue: deque[tuple[Hashable, Any]] = deque()
         self._retries = _Retries(max_attempts)
         self.stats = PoolStats()
@@ -320,25 +329,45 @@ class LocalPool:
                     self._died(i, slot)
                     break
 
-    def close(self) -> None:
-        """Stop the workers (a job still running is abandoned)."""
-        self._queue.clear()
+    def retire_idle(self) -> int:
+        """Let every worker without a job exit now, without waiting for it (no more work
+        is coming for it: a job submitted later starts a fresh worker). It frees its core
+        and memory for the others while they finish; returns how many were retired."""
+        retired = 0
         for i, slot in enumerate(self._slots):
-            if slot is None:
-                continue
-            if slot.key is None:
-                try:
-                    slot.conn.send(None)
-                except (BrokenPipeError, OSError):
-                    pass
-            else:
-                slot.process.terminate()
+            if slot is not None and slot.key is None:
+                self._signal_exit(slot)
+                self._retiring.append(slot)
+                self._slots[i] = None
+                retired += 1
+        return retired
+
+    @staticmethod
+    def _signal_exit(slot: _Slot) -> None:
+        if slot.key is None:
+            try:
+                slot.conn.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+        else:
+            slot.process.terminate()
+
+    def close(self) -> None:
+        """Stop the workers (a job still running is abandoned). All are told first and then
+        waited for, so they exit side by side (a worker's exit, tearing down torch and its
+        renderer, takes a second or two here)."""
+        self._queue.clear()
+        live = [s for s in self._slots if s is not None]
+        for slot in live:  # (the retired ones were told already)
+            self._signal_exit(slot)
+        for slot in live + self._retiring:
             slot.process.join(timeout=10.0)
             if slot.process.is_alive():
                 slot.process.kill()
                 slot.process.join(timeout=5.0)
             slot.conn.close()
-            self._slots[i] = None
+        self._slots = [None] * self.capacity
+        self._retiring = []
 
 
 def require_ray():
@@ -412,6 +441,9 @@ class RayExecutor:
             return key, ray.get(ref)
         except ray.exceptions.RayError as exc:
             raise JobFailed(key, self.max_attempts, str(exc)) from exc
+
+    def retire_idle(self) -> int:
+        return 0  # Ray schedules each task on a worker of its own choosing
 
     def close(self) -> None:
         for ref in self._refs:

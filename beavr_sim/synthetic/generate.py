@@ -30,6 +30,7 @@ import shutil
 import sys
 import tarfile
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -341,6 +342,20 @@ def staging_dir(out: Path) -> Path:
     return out.with_name(out.name + ".shards")
 
 
+def _preload_merge() -> threading.Thread:
+    """Import what the merge needs (LeRobot, torch: seconds) on a thread of its own."""
+
+    def load() -> None:
+        try:
+            import lerobot.datasets.aggregate  # noqa: F401
+        except ImportError:  # the merge itself says what is missing
+            pass
+
+    thread = threading.Thread(target=load, name="preload-merge", daemon=True)
+    thread.start()
+    return thread
+
+
 def _generate_parallel(
     task, episodes, seed, out, repo_id, embodiment, config, keep_failed, overwrite, progress, scale
 ) -> GenerateSummary:
@@ -393,6 +408,10 @@ def _generate_parallel(
         return rules
 
     limit = 5 * episodes + 10
+    # LeRobot (and torch) for the merge load on a thread while the workers run: seconds of
+    # imports that would otherwise come after the last episode.
+    preload = _preload_merge()
+    retired = False
     tried = [0, 0]  # written, synthesis failures among the seeds below next_seed with outcomes
 
     def count(outcome: EpisodeOutcome) -> None:
@@ -422,6 +441,11 @@ def _generate_parallel(
                 next_seed += 1
             if not running:  # every seed handed out has its outcome: the next pass decides
                 continue
+            if len(running) < executor.capacity and not retired:
+                # The last episodes run: no more is coming for an idle worker. Let it go (its
+                # core is free for the others and for the merge's imports).
+                executor.retire_idle()
+                retired = True
             done_seed, result = executor.next_result()
             running.discard(done_seed)
             if ray:
@@ -433,16 +457,20 @@ def _generate_parallel(
             count(outcome)
             bar.update(int(outcome.written))
             bar.set_postfix(ok=tried[0], failed=tried[1])
+        bar.close()
+        summary.retried = executor.retried
+        executor.retire_idle()  # all idle now: they exit while the shards are merged
+        if rules.gave_up:
+            print(f"giving up: {rules.failures} failed episodes", file=sys.stderr)
+        preload.join()
+        shards = [Shard(shard_of(s)) for s in rules.used]
+        if not any(s.episodes for s in shards) and not dataset_exists(out):
+            EpisodeWriter(out, repo_id, features, config.fps, embodiment, config.use_videos).close()
+        merge_shards(shards, out, repo_id)
     finally:
         summary.retried = executor.retried
         executor.close()
         bar.close()
-    if rules.gave_up:
-        print(f"giving up: {rules.failures} failed episodes", file=sys.stderr)
-    shards = [Shard(shard_of(s)) for s in rules.used]
-    if not any(s.episodes for s in shards) and not dataset_exists(out):
-        EpisodeWriter(out, repo_id, features, config.fps, embodiment, config.use_videos).close()
-    merge_shards(shards, out, repo_id)
     (staging / "job.json").unlink()  # merged: these shards must never be resumed again
     shutil.rmtree(staging)
     _fill(summary, rules)
