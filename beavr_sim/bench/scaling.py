@@ -4,7 +4,8 @@
 - ``generate``: the same ``python -m beavr_sim.datasets generate`` job (seeds 0..N-1) with each
   worker count in ``--workers`` (1 = in this process, the serial reference) and, with ``--ray``,
   on a local Ray cluster of the largest worker count. Wall time includes starting the workers
-  and merging the shards. Reports speed-up against one worker, Ray's overhead against local
+  and merging the shards; the Ray cluster itself is started before the timer, as a cluster is
+  up before a job is submitted (its start is reported as ``cluster_start_s``). Reports speed-up against one worker, Ray's overhead against local
   workers of the same count, episodes per core-hour and what 1,000 episodes take.
 - ``replay``: a headless replay of the task's bundled trace without cameras on the virtual
   clock (what every worker runs per episode, twice: synthesis and recording): ms per tick by
@@ -123,10 +124,24 @@ def generate_scaling(
             runs.append(_generate_once(task, episodes, out, config, ScaleConfig(workers=n)))
             shutil.rmtree(out, ignore_errors=True)
         if ray:
+            import ray as ray_module
+
+            from beavr_sim.scaling.executors import connect_ray
+
             n = max(workers)
+            # The cluster is up before the job, as on a real one (`ray start --head`): its
+            # start is timed apart; the job's own workers start inside the job's time.
+            t0 = time.perf_counter()
+            connect_ray(None, n)
+            ray_start_s = round(time.perf_counter() - t0, 2)
             print(f"generate: {episodes} episodes, Ray local cluster of {n}...", file=sys.stderr)
             out = Path(tmp) / "ray"
-            runs.append(_generate_once(task, episodes, out, config, ScaleConfig(n, ray=True)))
+            try:
+                run = _generate_once(task, episodes, out, config, ScaleConfig(n, ray=True))
+            finally:
+                ray_module.shutdown()
+            run["cluster_start_s"] = ray_start_s
+            runs.append(run)
     serial = next((r for r in runs if r["backend"] == "inline"), None)
     result: dict = {"task": task, "episodes": episodes, "image_size": list(image_size)}
     result["runs"] = runs

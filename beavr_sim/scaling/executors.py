@@ -383,6 +383,28 @@ def _forwarded_env(env: Mapping[str, str] | None) -> dict[str, str]:
     return {**WORKER_ENV, **forwarded, **(env or {})}
 
 
+def connect_ray(
+    address: str | None = None, in_flight: int | None = None, env: Mapping[str, str] | None = None
+) -> None:
+    """``ray.init`` as :class:`RayExecutor` does it: the cluster at ``address`` (None:
+    ``RAY_ADDRESS`` if set, else a private local instance of ``in_flight`` CPUs, even if
+    `ray start` left one running), the workers' environment forwarded. An executor made
+    while Ray is initialised uses that connection and leaves it open."""
+    ray = require_ray()
+    kwargs: dict[str, Any] = {
+        "runtime_env": {"env_vars": _forwarded_env(env)},
+        "include_dashboard": False,
+        "log_to_driver": False,
+    }
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address is None:
+        kwargs["address"] = "local"
+        kwargs["num_cpus"] = in_flight or os.cpu_count() or 1
+    else:
+        kwargs["address"] = address
+    ray.init(**kwargs)
+
+
 class RayExecutor:
     """One Ray task per job; Ray retries a task whose worker died or that raised."""
 
@@ -400,18 +422,7 @@ class RayExecutor:
         self._ray = ray
         self._started = False
         if not ray.is_initialized():
-            kwargs: dict[str, Any] = {
-                "runtime_env": {"env_vars": _forwarded_env(env)},
-                "include_dashboard": False,
-                "log_to_driver": False,
-            }
-            address = address or os.environ.get("RAY_ADDRESS")
-            if address is None:  # a private instance, even if `ray start` left one running
-                kwargs["address"] = "local"
-                kwargs["num_cpus"] = in_flight or os.cpu_count() or 1
-            else:
-                kwargs["address"] = address
-            ray.init(**kwargs)
+            connect_ray(address, in_flight, env)
             self._started = True
         fn = resolve(function)
         self._task = ray.remote(fn).options(
