@@ -52,9 +52,10 @@ What each number spans (all clocks are ``time.monotonic`` on one machine):
 
 ``--sweep`` runs 1, 2, 4 and 8 hand effectors at 90 Hz: one ``xarm7_leap_right`` session for
 1, else ``n / 2`` ``xarm7_leap_bimanual`` sessions running concurrently, each with its own
-ports, load generator and emulated rig. All of them share this machine's cores (and the
-generators, the emulators and the harness too), so the growth measures contention on one
-machine as much as the pipeline. Per effector count it reports send -> twin and send ->
+ports and emulated rig, one headset each played by the one load generator process (on one
+frame clock: every session's frames are due at the same instants). All of them share this
+machine's cores (and the generator, the emulators and the harness too), so the growth
+measures contention on one machine as much as the pipeline. Per effector count it reports send -> twin and send ->
 driver pooled over all effectors (devices) of all sessions, and the p99 growth from 1 to 4
 effectors against :data:`SWEEP_P99_GROWTH_TARGET`.
 
@@ -137,31 +138,35 @@ GENERATOR_SPIN_S = 0.0015
 
 
 def generator_main(
-    endpoints: dict,
-    payloads: dict,
-    duration: float,
+    headsets: list[tuple[dict, dict, float]],
     rate_hz: float,
     seconds: float,
     conn,
     start_at: float | None = None,
 ) -> None:
-    """The load generator (own process): sends for ``seconds`` at ``rate_hz``, from
-    ``start_at`` (``time.monotonic``; concurrent generators start together) or as soon as it
-    is connected; its send times per side go back through the pipe ``conn``."""
+    """The load generator (own process): plays one headset per session, ``headsets`` =
+    [(endpoints, payloads, duration)], all on one frame clock at ``rate_hz`` for
+    ``seconds``, from ``start_at`` (``time.monotonic``) or as soon as it is connected; the
+    send times per session and side go back through the pipe ``conn``. One process for
+    every session: one spinning process (below) instead of one per session, which on a
+    small machine took the pipelines' CPU in the sweep."""
     import zmq
 
     context = zmq.Context()
-    socks = {}
-    for name, endpoint in endpoints.items():
-        s = context.socket(zmq.PUSH)
-        s.setsockopt(zmq.LINGER, 0)
-        s.setsockopt(zmq.SNDHWM, 1000)
-        s.connect(endpoint)
-        socks[name] = s
+    sessions = []
+    for endpoints, payloads, duration in headsets:
+        socks = {}
+        for name, endpoint in endpoints.items():
+            s = context.socket(zmq.PUSH)
+            s.setsockopt(zmq.LINGER, 0)
+            s.setsockopt(zmq.SNDHWM, 1000)
+            s.connect(endpoint)
+            socks[name] = s
+        sent: dict[str, list[float]] = {side: [] for side in payloads}
+        sessions.append((socks, payloads, duration, sent))
     # the connections are up before the first frame
     start = max(start_at or 0.0, time.monotonic() + 0.3)
     time.sleep(max(0.0, start - time.monotonic()))
-    sent: dict[str, list[float]] = {s: [] for s in payloads}
     period = 1.0 / rate_hz
     k = 0
     while True:
@@ -175,22 +180,25 @@ def generator_main(
             time.sleep(delay)
         while time.monotonic() < t_due:
             pass
-        # Played forwards, then backwards, and so on: the hand never jumps back to the
-        # recording's start (the operator would reject the jump and hold: a gap in the rate).
-        phase = ((time.monotonic() - start) % (2 * duration)) if duration > 0 else 0.0
-        trace_t = phase if phase <= duration else 2 * duration - phase
-        for side, (times, data) in payloads.items():
-            i = min(int(np.searchsorted(times, trace_t, side="right")) - 1, len(data) - 1)
-            payload = data[max(0, i)]
-            t_send = time.monotonic()
-            socks[side].send(payload)
-            sent[side].append(t_send)
-        if "pause" in socks:
-            socks["pause"].send(b"High")
+        for socks, payloads, duration, sent in sessions:
+            # Played forwards, then backwards, and so on: the hand never jumps back to the
+            # recording's start (the operator would reject the jump and hold: a gap in the
+            # rate).
+            phase = ((time.monotonic() - start) % (2 * duration)) if duration > 0 else 0.0
+            trace_t = phase if phase <= duration else 2 * duration - phase
+            for side, (times, data) in payloads.items():
+                i = min(int(np.searchsorted(times, trace_t, side="right")) - 1, len(data) - 1)
+                payload = data[max(0, i)]
+                t_send = time.monotonic()
+                socks[side].send(payload)
+                sent[side].append(t_send)
+            if "pause" in socks:
+                socks["pause"].send(b"High")
         k += 1
-    conn.send_bytes(json.dumps(sent).encode())
-    for s in socks.values():
-        s.close()
+    conn.send_bytes(json.dumps([sent for *_, sent in sessions]).encode())
+    for socks, *_ in sessions:
+        for s in socks.values():
+            s.close()
     context.term()
 
 
@@ -634,34 +642,35 @@ class SingleProcessSession:
 
 
 def drive(lives: list[LiveSession], seconds: float) -> None:
-    """Run one load generator per session, all starting together, for ``seconds``; their
-    send times land in each ``live.sent``, dead pipeline processes in ``live.died``."""
+    """Run the load generator for every session at once for ``seconds``; the send times
+    land in each ``live.sent``, dead pipeline processes in ``live.died``."""
+    rates = {live.rate_hz for live in lives}
+    if len(rates) != 1:
+        raise ValueError(f"sessions driven together share one headset rate, got {sorted(rates)}")
     ctx = mp.get_context("spawn")
-    start_at = time.monotonic() + 1.0 + 0.5 * len(lives)  # time to spawn them all
-    gens = []
+    start_at = time.monotonic() + 1.0 + 0.5 * len(lives)  # time to connect them all
+    headsets = []
     for live in lives:
         endpoints = {s: live.transport.endpoint(f"quest_{s}", bind=False) for s in live.streams}
         endpoints["pause"] = live.transport.endpoint("quest_pause", bind=False)
-        parent, child = ctx.Pipe()
-        args = (endpoints, live.payloads, live.duration, live.rate_hz, seconds, child, start_at)
-        gen = ctx.Process(target=generator_main, args=args, name="load-generator", daemon=True)
-        gens.append((live, gen, parent))
+        headsets.append((endpoints, live.payloads, live.duration))
+    parent, child = ctx.Pipe()
+    args = (headsets, rates.pop(), seconds, child, start_at)
+    gen = ctx.Process(target=generator_main, args=args, name="load-generator", daemon=True)
     try:
-        for _, gen, _ in gens:
-            gen.start()
+        gen.start()
         deadline = start_at + seconds + 30.0
-        for live, _, parent in gens:
-            if not parent.poll(max(0.1, deadline - time.monotonic())):
-                raise RuntimeError("a load generator did not finish")
-            live.sent = json.loads(parent.recv_bytes())
+        if not parent.poll(max(0.1, deadline - time.monotonic())):
+            raise RuntimeError("the load generator did not finish")
+        for live, sent in zip(lives, json.loads(parent.recv_bytes()), strict=True):
+            live.sent = sent
         time.sleep(0.3)  # the last frames reach the twins
         for live in lives:
             live.died = live.session.dead()
     finally:
-        for _, gen, _ in gens:
-            gen.join(5.0)
-            if gen.is_alive():
-                gen.kill()
+        gen.join(5.0)
+        if gen.is_alive():
+            gen.kill()
 
 
 def stop_session(live: LiveSession) -> None:
