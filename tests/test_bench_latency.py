@@ -266,3 +266,53 @@ def test_cold_factor_measures_both_workloads_and_rejects_bad_arguments():
     assert result["factor"] == max(w["factor"] for w in result["workloads"].values())
     with pytest.raises(ValueError, match="positive"):
         cold_factor(gap_ms=0.0)
+
+
+def test_one_generator_plays_every_sessions_headset_on_one_clock():
+    """The load generator (run here in this process) sends each session's hand strings and
+    pause status to that session's sockets at every frame, and reports the send times per
+    session and side."""
+    import multiprocessing as mp
+    import time
+
+    import numpy as np
+    import zmq
+
+    from beavr_sim.bench.latency import generator_main
+
+    context = zmq.Context()
+    pulls, headsets = [], []
+    try:
+        for n, sides in enumerate((("right",), ("left", "right"))):
+            endpoints = {}
+            for name in (*sides, "pause"):
+                sock = context.socket(zmq.PULL)
+                port = sock.bind_to_random_port("tcp://127.0.0.1")
+                endpoints[name] = f"tcp://127.0.0.1:{port}"
+                pulls.append((n, name, sock))
+            payloads = {s: (np.array([0.0, 0.05]), [f"{n}{s}a".encode(), f"{n}{s}b".encode()])
+                        for s in sides}  # fmt: skip
+            headsets.append((endpoints, payloads, 0.1))
+        parent, child = mp.Pipe()
+        generator_main(headsets, 100.0, 0.1, child, start_at=time.monotonic())
+        sent = json.loads(parent.recv_bytes())
+        time.sleep(0.05)
+        got: dict = {}
+        for n, name, sock in pulls:
+            while sock.poll(0):
+                got.setdefault((n, name), []).append(sock.recv())
+    finally:
+        for *_, sock in pulls:
+            sock.close(linger=0)
+        context.term()
+    assert [sorted(s) for s in sent] == [["right"], ["left", "right"]]
+    frames = len(sent[0]["right"])
+    assert 9 <= frames <= 11  # 0.1 s at 100 Hz
+    for n, session in enumerate(sent):
+        for side, times in session.items():
+            assert len(times) == frames and np.all(np.diff(times) > 0)
+            assert got[(n, side)][0] == f"{n}{side}a".encode()  # played from the start
+            assert set(got[(n, side)]) <= {f"{n}{side}a".encode(), f"{n}{side}b".encode()}
+        assert got[(n, "pause")] == [b"High"] * frames
+    # Both sessions' frames go out on the same clock: the k-th sends are within a frame.
+    assert np.max(np.abs(np.subtract(sent[0]["right"], sent[1]["left"]))) < 0.01
