@@ -55,9 +55,9 @@ What each number spans (all clocks are ``time.monotonic`` on one machine):
 ports and emulated rig, one headset each played by the one load generator process (on one
 frame clock: every session's frames are due at the same instants). All of them share this
 machine's cores (and the generator, the emulators and the harness too), so the growth
-measures contention on one machine as much as the pipeline. Per effector count it reports send -> twin and send ->
-driver pooled over all effectors (devices) of all sessions, and the p99 growth from 1 to 4
-effectors against :data:`SWEEP_P99_GROWTH_TARGET`.
+measures contention on one machine as much as the pipeline. Per effector count it reports
+send -> twin and send -> driver pooled over all effectors (devices) of all sessions, and the
+p99 growth from 1 to 4 effectors against :data:`SWEEP_P99_GROWTH_TARGET`.
 
 The first ``WARMUP_S`` of the stream (processes settling, the operator anchoring) is left out.
 """

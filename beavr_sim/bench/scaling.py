@@ -5,8 +5,9 @@
   worker count in ``--workers`` (1 = in this process, the serial reference) and, with ``--ray``,
   on a local Ray cluster of the largest worker count. Wall time includes starting the workers
   and merging the shards; the Ray cluster itself is started before the timer, as a cluster is
-  up before a job is submitted (its start is reported as ``cluster_start_s``). Reports speed-up against one worker, Ray's overhead against local
-  workers of the same count, episodes per core-hour and what 1,000 episodes take.
+  up before a job is submitted (its start is reported as ``cluster_start_s``). Reports
+  speed-up against one worker, Ray's overhead against local workers of the same count,
+  episodes per core-hour and what 1,000 episodes take.
 - ``replay``: a headless replay of the task's bundled trace without cameras on the virtual
   clock (what every worker runs per episode, twice: synthesis and recording): ms per tick by
   stage, MuJoCo's own timers, and the speed against real time.

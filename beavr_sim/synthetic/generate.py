@@ -458,7 +458,6 @@ def _generate_parallel(
             bar.update(int(outcome.written))
             bar.set_postfix(ok=tried[0], failed=tried[1])
         bar.close()
-        summary.retried = executor.retried
         executor.retire_idle()  # all idle now: they exit while the shards are merged
         if rules.gave_up:
             print(f"giving up: {rules.failures} failed episodes", file=sys.stderr)
