@@ -370,6 +370,14 @@ def test_episodes_start_stop_and_discard_on_request(tmp_path):
     assert [r["frames"] for r in log] == [17, 10, 10, 10]
     ds = LeRobotDataset(REPO_ID, root=tmp_path / "rec")
     assert ds.num_episodes == 3
+    # What was saved is what the log says: the discarded episode's 10 frames are in no
+    # episode (read back from the dataset's frames and from LeRobot's episode table).
+    kept = [r for r in log if r["kept"]]
+    assert [r["episode_index"] for r in kept] == [0, 1, 2]
+    index = np.asarray(ds.hf_dataset["episode_index"])
+    assert [int((index == i).sum()) for i in range(3)] == [r["frames"] for r in kept]
+    assert [int(n) for n in ds.meta.episodes["length"]] == [r["frames"] for r in kept]
+    assert len(ds) == sum(r["frames"] for r in kept)
     # Each episode starts from the reset state: its first recorded state is the home pose.
     home = loop.twin.env.joints.home
     for i in range(3):
