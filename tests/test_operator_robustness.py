@@ -77,31 +77,41 @@ def fresh(operator: Operator) -> dict[str, np.ndarray]:
 FLEX = np.array([0.0, 0.9, 0.7, 0.5] * 3 + [0.3, 0.2, 0.0, 0.2])  # a loose fist
 
 
-def _finger_stream(operator: Operator, dropout: range) -> list[np.ndarray]:
+def _finger_stream(
+    operator: Operator, dropout: range, untracked_at: str = "nan"
+) -> list[np.ndarray]:
     """72 Hz frames: a still open hand, then closing over 60 frames, then held closed; the
-    index tip untracked (NaN, as the Quest parser gives it) in the frames of ``dropout``."""
+    index tip untracked in the frames of ``dropout``: NaN (as the Quest parser gives it), or
+    flagged untracked at finite coordinates (``"origin"``: the Quest app's raw ``0,0,0``, as
+    any source may pass it on; only the flag says it is not tracked)."""
     fresh(operator)
     H = palm_down([0.3, -0.2, 1.0])
     commands = []
+    tip = JOINT_INDEX["index_tip"]
     for k in range(140):
         t = k / 72
         s = min(max((k - 20) / 60, 0.0), 1.0)
         joints = hand_joints(H, q_hand=s * FLEX)
+        tracked = np.ones(N_JOINTS, dtype=bool)
         if k in dropout:
-            joints[JOINT_INDEX["index_tip"]] = np.nan
-        operator.observe(HandFrame("right", t, t, joints))
+            tracked[tip] = False
+            joints[tip] = np.nan if untracked_at == "nan" else 0.0
+        operator.observe(HandFrame("right", t, t, joints, tracked))
         cmd = operator.command(t)["right"]
         assert not cmd.hold, (k, cmd.reason)
         commands.append(cmd.positions)
     return commands
 
 
-def test_an_untracked_fingertip_holds_that_finger_and_it_resumes(operator):
+@pytest.mark.parametrize("untracked_at", ["nan", "origin"])
+def test_an_untracked_fingertip_holds_that_finger_and_it_resumes(operator, untracked_at):
     dropout = range(40, 46)  # six frames, mid-motion
-    commands = _finger_stream(operator, dropout)
+    commands = _finger_stream(operator, dropout, untracked_at)
     held = np.array([c[INDEX_MOTORS] for c in commands[dropout.start : dropout.stop]])
-    np.testing.assert_array_equal(held, np.broadcast_to(commands[dropout.start - 1][INDEX_MOTORS],
-                                                        held.shape))  # fmt: skip
+    # The index finger does not move while its tip is untracked (wherever the untracked
+    # joint's coordinates say it is).
+    moved = np.abs(held - commands[dropout.start - 1][INDEX_MOTORS]).max()
+    assert moved == 0.0, f"the index finger moved {moved:.3f} rad on an untracked tip"
     middle = np.array([c[MIDDLE_MOTORS] for c in commands[dropout.start - 1 : dropout.stop]])
     assert np.ptp(middle, axis=0).max() > 0.05  # the other fingers kept moving
     after = commands[dropout.stop + 2][INDEX_MOTORS] - commands[dropout.stop - 1][INDEX_MOTORS]
