@@ -3,6 +3,8 @@ refused (the effector holds); objects never block."""
 
 from __future__ import annotations
 
+import math
+
 import gymnasium as gym
 import mujoco
 import numpy as np
@@ -16,6 +18,8 @@ from beavr_sim.twin.guard import CollisionGuard, GuardConfig, Workspace
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
 from beavr_sim.workcell import TABLE_TOP_Z
+
+BOX_HALF_Z = 0.04  # Tape's box: 14 x 14 x 8 cm
 
 
 @pytest.fixture(scope="module")
@@ -122,6 +126,88 @@ def test_a_command_into_a_fixture_is_refused():
         reason = twin.last_refusal.reasons["right"]
         assert reason.startswith("contact: right/") and reason.split(" ")[3] == "box/geom", reason
         assert any("box/geom" in (a, b) for a, b, _ in twin.last_refusal.contacts)
+    finally:
+        env.close()
+
+
+def _descent_onto(twin, xy) -> list[np.ndarray] | None:
+    """Full actions lowering the right hand onto ``xy`` (the base turned towards it, the
+    elbow opened to its distance, the shoulder pitching down), from 8 cm above the box top on
+    down; None if no elbow setting brings the lowest fingertip within 3 cm of ``xy`` where it
+    passes 1 cm above the box top."""
+    model, data, joints = twin.env.model, twin.env.data, twin.env.joints
+    home = joints.home.astype(np.float64)
+    probe = mujoco.MjData(model)
+    probe.qpos[:] = data.qpos
+    tips = [model.site(f"right/{f}_tip").id for f in ("thumb", "index", "middle", "ring")]
+    base = model.body("right/link1").id
+
+    def lowest_tip(q):
+        probe.qpos[joints.qpos_adr] = q
+        mujoco.mj_kinematics(model, probe)
+        tip = probe.site_xpos[tips]
+        return tip[int(np.argmin(tip[:, 2]))].copy(), probe.xpos[base].copy()
+
+    tip, axis = lowest_tip(home)
+    turn = math.atan2(*(np.asarray(xy) - axis[:2])[::-1]) - math.atan2(*(tip[:2] - axis[:2])[::-1])
+    box_top = TABLE_TOP_Z + 2 * BOX_HALF_Z
+    for elbow in np.linspace(0.0, 0.8, 33):
+        up, down = home.copy(), home.copy()
+        up[0] = down[0] = home[0] + turn
+        up[3] = down[3] = home[3] + elbow
+        up[1] -= 0.4
+        down[1] += 0.6
+        rows = [up + (down - up) * k / 200 for k in range(201)]
+        heights = [lowest_tip(q) for q in rows]
+        first = next(k for k, (low, _) in enumerate(heights) if low[2] < box_top + 0.08)
+        for k, (low, _) in enumerate(heights):
+            if low[2] < box_top + 0.01:
+                if np.linalg.norm(low[:2] - xy) < 0.03:
+                    return rows[first:]
+                break
+    return None
+
+
+def test_the_guard_follows_the_fixtures_to_every_reset():
+    """Tape's box moves at every reset: a hand lowered onto it at its pose of a later reset
+    is refused for the box (contact naming it) before any accepted command reaches into it,
+    though the guard checked commands with the box elsewhere before."""
+    env = gym.make("beavr_sim/Tape-v0")
+    try:
+        twin = TwinInterface(env)
+        data, sl = twin.env.data, twin.slices["right"]
+        box = twin.env.task.fixtures["box"]
+        home = twin.reset(seed=0)
+        first = box.pos(data)[:2].copy()
+        for _ in range(3):  # the guard checks commands with the box of the first reset
+            twin.apply({"right": JointCommand("right", home[sl], t_source=0, t_receive=0)})
+        for seed in range(1, 400):  # a later reset that puts the box under a descent
+            twin.reset(seed=seed)
+            xy = box.pos(data)[:2].copy()
+            rows = _descent_onto(twin, xy) if np.linalg.norm(xy - first) > 0.15 else None
+            if rows is not None:
+                break
+        assert rows is not None, "no reset put the box under a descent of the hand"
+        # The hand turns towards the box (at the speed cap) and comes down onto it.
+        accepted = []
+        for q in [rows[0]] * 40 + rows:
+            state = twin.apply({"right": JointCommand("right", q[sl], t_source=0, t_receive=0)})
+            if state.guard_blocked:
+                break
+            accepted.append(state.action.copy())
+        # No accepted command (the path the hardware travels) reaches into the box where it
+        # stands now: checked by a fresh guard told its pose.
+        fresh = CollisionGuard(twin.env.model, twin.env.embodiment, twin.env.joints)
+        fresh.set_fixtures(data.mocap_pos, data.mocap_quat)
+        into_box = [
+            v.reason()
+            for v in (fresh.check(q, data.qpos) for q in accepted)
+            if any("box/geom" in (a, b) for a, b, _ in v.contacts)
+        ]
+        assert not into_box, f"{len(into_box)} accepted commands into the box: {into_box[:2]}"
+        assert state.guard_blocked_effectors == ("right",), "the hand went into the box"
+        reason = twin.last_refusal.reasons["right"]
+        assert reason.startswith("contact: right/") and reason.split(" ")[3] == "box/geom", reason
     finally:
         env.close()
 
