@@ -160,7 +160,7 @@ def _descent_onto(twin, xy) -> list[np.ndarray] | None:
         rows = [up + (down - up) * k / 200 for k in range(201)]
         heights = [lowest_tip(q) for q in rows]
         first = next(k for k, (low, _) in enumerate(heights) if low[2] < box_top + 0.08)
-        for k, (low, _) in enumerate(heights):
+        for low, _ in heights:
             if low[2] < box_top + 0.01:
                 if np.linalg.norm(low[:2] - xy) < 0.03:
                     return rows[first:]
