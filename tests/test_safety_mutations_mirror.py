@@ -1,0 +1,115 @@
+"""The mirror's own guarded catch-up, judged by what the emulated arm received.
+
+When the devices are further from the twin than one period's motion (after a hold, a release,
+a reset) the mirror makes its own targets on the straight line to the twin's; its guard checks
+each along its path, and a refused one is not sent (the device holds short of it). These tests
+drive a catch-up whose straight path crosses the table, and check every target the emulated
+xArm received (:attr:`~beavr_sim.hardware.rig.EmulatedRig.received`) against a guard.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.hardware.mirror import HardwareMirror
+from beavr_sim.hardware.rig import EmulatedRig
+from beavr_sim.twin.guard import CollisionGuard
+
+ARM = slice(0, 7)
+
+
+class FakeClock:
+    """The mirror's clock for submit spacing: one control period per submit, however slowly
+    this machine runs the test (the catch-up's progress per submit is then fixed)."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _either_side_of_the_table(env, guard: CollisionGuard) -> tuple[np.ndarray, np.ndarray]:
+    """Two safe configurations whose straight joint path passes through the table: the hand
+    lowered until its fingers are in the table, then the forearm rolled both ways until each
+    end is clear, and a little further."""
+    qpos, home = env.data.qpos, env.joints.home.astype(np.float64)
+    into = next(
+        q
+        for q in (home + np.eye(home.size)[1] * a for a in np.linspace(0.0, 1.0, 101))
+        if not guard.check(q, qpos).ok
+    )
+    into = into + np.eye(home.size)[1] * 0.05  # a few cm into the table
+    for roll in np.linspace(0.2, 2.0, 19):
+        a, b = into.copy(), into.copy()
+        a[4] -= roll + 0.4  # clear by 0.4 rad of roll: the catch-up moves before the table
+        b[4] += roll + 0.4
+        if all(guard.check(q, qpos).ok for q in (a, b, a + (into - a) * 0.2, b + (into - b) * 0.2)):
+            assert not guard.check(b, qpos, previous=a).ok  # the path between them is not
+            return a, b
+    raise AssertionError("no roll clears the hand of the table on both sides")
+
+
+@pytest.mark.parametrize("direction", ["a_to_b", "b_to_a"])
+def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
+    """The arm holds at one end, the twin stands at the other: the mirror catches up until its
+    guard refuses the next step into the table, and holds there. Every target the emulated
+    arm received passes the guard (as a configuration and along the path from the one before)."""
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    env.reset(seed=0)
+    guard = CollisionGuard(env.model, env.embodiment, env.joints)
+    qpos = env.data.qpos.copy()
+    a, b = _either_side_of_the_table(env, guard)
+    start, goal = (a, b) if direction == "a_to_b" else (b, a)
+    rig = EmulatedRig(env.embodiment, env.joints, q_start=start)
+    try:
+        mirror_config = dataclasses.replace(
+            rig.config.mirror, arm_catch_up_speed=1.0, arm_divergence_rad=3.0
+        )
+        config = dataclasses.replace(rig.config, mirror=mirror_config)
+        clock = FakeClock()
+        period = 1.0 / env.control_hz
+        mirror = HardwareMirror(
+            config, env.embodiment, env.joints, env.model, env.control_hz, clock=clock
+        )
+        try:
+            measured = mirror.connect()
+            np.testing.assert_allclose(measured[ARM], start[ARM], atol=1e-4)
+            mirror.start(measured)
+            # The twin's heartbeats at ``goal``, one control period apart, for longer than the
+            # whole catch-up would take.
+            distance = float(np.abs(goal - measured).max())
+            for _ in range(math.ceil(distance / (mirror_config.arm_catch_up_speed * period)) + 20):
+                clock.t += period
+                mirror.submit(goal, goal)
+                time.sleep(period)  # paced like the twin (nothing is counted against it)
+            summary = mirror.summary()["right_arm"]
+        finally:
+            mirror.close()
+    finally:
+        rig.close()
+        env.close()
+    targets = np.array([q for _, q in rig.received["right_arm"]], dtype=np.float64)
+    assert len(targets) and summary["catch_up_steps"] > 0 and summary["errors"] == 0
+    # Every target the arm received is safe, and so is the way from the one before.
+    full = np.tile(goal, (len(targets), 1))
+    full[:, ARM] = targets
+    unsafe = [
+        (k, verdict.reason())
+        for k, verdict in (
+            (k, guard.check(q, qpos, previous=full[k - 1] if k else None))
+            for k, q in enumerate(full)
+        )
+        if not verdict.ok
+    ]
+    assert not unsafe, f"{len(unsafe)} targets the arm received are unsafe: {unsafe[:2]}"
+    # It caught up towards the twin and stopped short of the table (never reached the goal).
+    assert np.abs(targets[-1] - start[ARM]).max() > 0.05
+    assert np.abs(targets[-1] - goal[ARM]).max() > 0.1
