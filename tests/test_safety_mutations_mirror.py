@@ -36,38 +36,39 @@ class FakeClock:
         return self.t
 
 
-def _either_side_of_the_table(env, guard: CollisionGuard) -> tuple[np.ndarray, np.ndarray]:
-    """Two safe configurations whose straight joint path passes through the table: the hand
-    lowered until its fingers are in the table, then the forearm rolled both ways until each
-    end is clear, and a little further."""
-    qpos, home = env.data.qpos, env.joints.home.astype(np.float64)
-    into = next(
-        q
-        for q in (home + np.eye(home.size)[1] * a for a in np.linspace(0.0, 1.0, 101))
-        if not guard.check(q, qpos).ok
-    )
-    into = into + np.eye(home.size)[1] * 0.05  # a few cm into the table
+def _either_side(guard: CollisionGuard, qpos: np.ndarray, into: np.ndarray):
+    """Two safe configurations whose straight joint path passes through ``into`` (an unsafe
+    one): its forearm rolled both ways until each end is clear, and 0.4 rad further (so that
+    a catch-up from either end moves before it meets the obstacle)."""
     for roll in np.linspace(0.2, 2.0, 19):
         a, b = into.copy(), into.copy()
-        a[4] -= roll + 0.4  # clear by 0.4 rad of roll: the catch-up moves before the table
+        a[4] -= roll + 0.4
         b[4] += roll + 0.4
         if all(guard.check(q, qpos).ok for q in (a, b, a + (into - a) * 0.2, b + (into - b) * 0.2)):
             assert not guard.check(b, qpos, previous=a).ok  # the path between them is not
             return a, b
-    raise AssertionError("no roll clears the hand of the table on both sides")
+    raise AssertionError("no roll clears the hand on both sides")
 
 
-@pytest.mark.parametrize("direction", ["a_to_b", "b_to_a"])
-def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
-    """The arm holds at one end, the twin stands at the other: the mirror catches up until its
-    guard refuses the next step into the table, and holds there. Every target the emulated
-    arm received passes the guard (as a configuration and along the path from the one before)."""
-    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
-    env.reset(seed=0)
-    guard = CollisionGuard(env.model, env.embodiment, env.joints)
-    qpos = env.data.qpos.copy()
-    a, b = _either_side_of_the_table(env, guard)
-    start, goal = (a, b) if direction == "a_to_b" else (b, a)
+def _lowered(guard: CollisionGuard, qpos: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``q`` with the shoulder pitched down until the guard refuses it, then 0.05 rad more."""
+    step = np.eye(q.size)[1]
+    into = next(
+        q + step * a for a in np.linspace(0.0, 1.0, 101) if not guard.check(q + step * a, qpos).ok
+    )
+    return into + step * 0.05
+
+
+def _either_side_of_the_table(env, guard: CollisionGuard) -> tuple[np.ndarray, np.ndarray]:
+    """The hand lowered from home into the table, then rolled clear both ways."""
+    qpos = env.data.qpos
+    return _either_side(guard, qpos, _lowered(guard, qpos, env.joints.home.astype(np.float64)))
+
+
+def _catch_up(env, start: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The emulated arm holds at ``start`` and the twin stands at ``goal`` (its heartbeats,
+    one control period apart, for longer than the whole catch-up takes): every arm target the
+    emulator received, and the arm's summary."""
     rig = EmulatedRig(env.embodiment, env.joints, q_start=start)
     try:
         mirror_config = dataclasses.replace(
@@ -83,8 +84,6 @@ def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
             measured = mirror.connect()
             np.testing.assert_allclose(measured[ARM], start[ARM], atol=1e-4)
             mirror.start(measured)
-            # The twin's heartbeats at ``goal``, one control period apart, for longer than the
-            # whole catch-up would take.
             distance = float(np.abs(goal - measured).max())
             for _ in range(math.ceil(distance / (mirror_config.arm_catch_up_speed * period)) + 20):
                 clock.t += period
@@ -95,10 +94,14 @@ def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
             mirror.close()
     finally:
         rig.close()
-        env.close()
     targets = np.array([q for _, q in rig.received["right_arm"]], dtype=np.float64)
+    return targets, summary
+
+
+def _check_received(guard, qpos, start, goal, targets, summary) -> None:
+    """Every target the arm received is safe, and so is the way from the one before; the arm
+    caught up towards the twin and stopped short (never reached the goal)."""
     assert len(targets) and summary["catch_up_steps"] > 0 and summary["errors"] == 0
-    # Every target the arm received is safe, and so is the way from the one before.
     full = np.tile(goal, (len(targets), 1))
     full[:, ARM] = targets
     unsafe = [
@@ -110,6 +113,60 @@ def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
         if not verdict.ok
     ]
     assert not unsafe, f"{len(unsafe)} targets the arm received are unsafe: {unsafe[:2]}"
-    # It caught up towards the twin and stopped short of the table (never reached the goal).
     assert np.abs(targets[-1] - start[ARM]).max() > 0.05
     assert np.abs(targets[-1] - goal[ARM]).max() > 0.1
+
+
+@pytest.mark.parametrize("direction", ["a_to_b", "b_to_a"])
+def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
+    """The arm holds at one end, the twin stands at the other: the mirror catches up until its
+    guard refuses the next step into the table, and holds there. Every target the emulated
+    arm received passes the guard (as a configuration and along the path from the one before)."""
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    try:
+        env.reset(seed=0)
+        guard = CollisionGuard(env.model, env.embodiment, env.joints)
+        qpos = env.data.qpos.copy()
+        a, b = _either_side_of_the_table(env, guard)
+        start, goal = (a, b) if direction == "a_to_b" else (b, a)
+        targets, summary = _catch_up(env, start, goal)
+    finally:
+        env.close()
+    _check_received(guard, qpos, start, goal, targets, summary)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the mirror's own guard never learns the fixtures' poses (it checks Tape's box at "
+    "the model's default pose, not where the reset put it): HardwareMirror has no way to be "
+    "told, and no caller tells it; reported to the lead (issue 45)",
+)
+def test_a_catch_up_whose_path_crosses_a_fixture_stops_short_of_it():
+    """Tape's box where the reset put it (away from its default pose): a catch-up whose path
+    crosses it stops short of it, as for the table."""
+    env = gym.make("beavr_sim/Tape-v0").unwrapped
+    try:
+        env.reset(seed=0)
+        data, model, joints = env.data, env.model, env.joints
+        box_xy = data.mocap_pos[0, :2].copy()
+        assert np.linalg.norm(box_xy - model.body_pos[model.body("box").id][:2]) > 0.15
+        guard = CollisionGuard(model, env.embodiment, joints)
+        guard.set_fixtures(data.mocap_pos, data.mocap_quat)
+        qpos = data.qpos.copy()
+        # The base turned towards the box, the elbow opened to its distance: the hand
+        # lowered into it.
+        into = None
+        for elbow in np.linspace(0.0, 0.8, 17):
+            q = joints.home.astype(np.float64)
+            q[0] += math.atan2(box_xy[1], box_xy[0])
+            q[3] += elbow
+            lowered = _lowered(guard, qpos, q)
+            if any("box/geom" in (a, b) for a, b, _ in guard.check(lowered, qpos).contacts):
+                into = lowered
+                break
+        assert into is not None, "no elbow setting lowers the hand into the box"
+        a, b = _either_side(guard, qpos, into)
+        targets, summary = _catch_up(env, a, b)
+    finally:
+        env.close()
+    _check_received(guard, qpos, a, b, targets, summary)
