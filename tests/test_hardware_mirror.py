@@ -323,10 +323,12 @@ def test_divergence_holds_the_device():
         wrong = state.positions.copy()
         wrong[2] += 0.3  # the twin reports joint 3 far from where the arm measures it
         deadline = time.monotonic() + 30.0  # submits until the divergence window has passed
-        while not bench.mirror.summary()["right_arm"]["holding"] and time.monotonic() < deadline:
+        holding = bench.mirror.summary()["right_arm"]["holding"]
+        while not holding.startswith("diverged") and time.monotonic() < deadline:
             bench.mirror.submit(state.action, wrong)
             bench.wait_written()
             time.sleep(0.02)
+            holding = bench.mirror.summary()["right_arm"]["holding"]
         summary = bench.mirror.summary()
         assert summary["right_arm"]["holding"].startswith("diverged")
         assert summary["right_arm"]["max_divergence_joint"] == "right/joint3"
