@@ -119,6 +119,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         _GUARD,
     ),
     Mutation(
+        "guard-velocity-stream",
+        "guard: the same 10x looser speed rule, against the generated command streams alone",
+        "beavr_sim/twin/kernels.py",
+        "            if abs(v) > vmax[i] * tol:",
+        "            if abs(v) > 10 * vmax[i] * tol:",
+        ("tests/test_guard.py::test_every_accepted_command_keeps_every_rule",),
+    ),
+    Mutation(
         "guard-speed-cap",
         "guard and twin step limit: the xArm's cap is pi rad/s (a 10x looser default)",
         "beavr_sim/twin/guard.py",
