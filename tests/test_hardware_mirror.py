@@ -277,9 +277,13 @@ def test_timeout_estop_and_failure_hold(bench):
     step = home.copy()
     step[0] += 0.03
     bench.step(step)
+    t_last = time.monotonic()  # (after the last submit)
     n_arm = len(bench.arm.servo_log)
-    # No fresh command: every device holds and says why.
+    # No fresh command: every device holds and says why, soon after the timeout (20 x its
+    # 0.25 s: a busy machine delays the writer threads, not by seconds).
+    timeout_s = bench.mirror.rig.mirror.command_timeout_s
     _wait_for(lambda: all(s["holding"] for s in bench.mirror.summary().values()))
+    assert time.monotonic() - t_last < 20 * timeout_s, "no hold within 20 x the timeout"
     summary = bench.mirror.summary()
     assert summary["right_arm"]["holding"].startswith("no fresh command")
     assert summary["right_hand"]["holding"].startswith("no fresh command")

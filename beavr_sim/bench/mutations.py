@@ -357,8 +357,8 @@ def _pytest(root: Path, tests: Sequence[str], python: str, timeout_s: float):
 
 
 def _first_failure(output: str) -> str:
-    for line in output.splitlines():
-        if line.startswith(("FAILED ", "ERROR ")):
+    for line in output.splitlines():  # pytest's summary lines, not captured log records
+        if line.startswith(("FAILED ", "ERROR ")) and "::" in line.split(" ", 2)[1]:
             return line[:200]
     lines = [line for line in output.splitlines() if line.strip()]
     return lines[-1][:200] if lines else ""
