@@ -449,14 +449,15 @@ ARM_MAX_VELOCITY, HAND_MAX_VELOCITY = math.pi, 8.0
 ARM_MAX_ACCELERATION, HAND_MAX_ACCELERATION = 150.0, 250.0
 #: Kinds of command in a generated stream: mostly small legal steps near the current pose,
 #: some unsafe ones mixed in (what each must be refused for).
-KINDS = ["small"] * 8 + ["fast", "jerk", "limit", "nan"]
+KINDS = ["small"] * 8 + ["fast", "jerk", "limit", "limit", "nan"]
 EXPECTED_RULE = {"fast": "velocity", "jerk": "acceleration", "limit": "joint limit",
                  "nan": "non-finite"}  # fmt: skip
 
 
 @st.composite
 def command_streams(draw):
-    """(kind, joint, per-joint fractions in [-1, 1], how far past the cap) per command."""
+    """(kind, joint, per-joint fractions in [-1, 1], how far past the cap, towards the
+    upper limit) per command."""
     n = draw(st.integers(1, 10))
     return [
         (
@@ -464,6 +465,7 @@ def command_streams(draw):
             draw(st.integers(0, 22)),
             np.array(draw(st.lists(st.floats(-1.0, 1.0), min_size=23, max_size=23))),
             draw(st.floats(1.3, 4.0)),
+            draw(st.booleans()),
         )
         for _ in range(n)
     ]
@@ -476,8 +478,8 @@ def command_streams(draw):
 def test_every_accepted_command_keeps_every_rule(twin, stream):
     """Generated command streams near a valid pose: small steps (at most half the speed cap,
     inside the joint range) are accepted unless the geometry refuses them; a step past the
-    speed cap, a reversal at full speed, a target past a limit and a NaN are refused by their
-    rule. Whatever is accepted is finite, within the limits, within the speed and acceleration
+    speed cap, a reversal at full speed, a target just past a limit (at a legal speed) and a
+    NaN are refused by their rule. Whatever is accepted is finite, within the limits, within the speed and acceleration
     caps (written out above) of the last accepted command, and checks clean as a
     configuration; whatever is refused leaves the effector where it was."""
     env, guard = twin.env, twin.guard
@@ -515,7 +517,7 @@ def test_every_accepted_command_keeps_every_rule(twin, stream):
         state["previous"] = safe
         return verdict.ok
 
-    for kind, joint, fraction, excess in stream:
+    for kind, joint, fraction, excess, up in stream:
         previous = state["previous"]
         q = np.clip(previous + 0.5 * vmax * dt * fraction, lower, upper)
         away = 1.0 if upper[joint] - previous[joint] > previous[joint] - lower[joint] else -1.0
@@ -529,8 +531,19 @@ def test_every_accepted_command_keeps_every_rule(twin, stream):
                 continue
             q = q.copy()
             q[joint] -= away * 0.9 * vmax[joint] * dt  # back: -0.9 x cap
-        elif kind == "limit":
-            q[joint] = upper[joint] + 0.01 if fraction[joint] > 0 else lower[joint] - 0.01
+        elif kind == "limit":  # a finger joint walked to a limit, then 5 mrad past it
+            joint = 7 + joint % 16
+            past = 1.0 if up else -1.0
+            limit = upper[joint] if past > 0 else lower[joint]
+            walked = True
+            while walked and abs(limit - state["previous"][joint]) > 0.5 * vmax[joint] * dt:
+                q = state["previous"].copy()
+                q[joint] += np.sign(limit - q[joint]) * 0.5 * vmax[joint] * dt
+                walked = send(q, "small")
+            if not walked:
+                continue
+            q = state["previous"].copy()
+            q[joint] = limit + past * 0.005
         elif kind == "nan":
             q[joint] = np.nan
         send(q, kind)
