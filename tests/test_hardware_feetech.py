@@ -1,6 +1,6 @@
 """RX-1 Feetech driver and STS bus emulator, through the real ``scservo_sdk``.
 
-Everything here runs against :mod:`beavr_sim.hardware.feetech_emulator` on a pseudo-terminal;
+Everything here runs against :mod:`beavr_sim.hardware.feetech.emulator` on a pseudo-terminal;
 no test touches a real RX-1 or a real STS3215.
 """
 
@@ -29,23 +29,22 @@ from scservo_sdk import (
 )
 
 from beavr_sim.hardware.device import DeviceError
-from beavr_sim.hardware.feetech import (
+from beavr_sim.hardware.feetech.config import (
     EAR_SERVO_IDS,
     GROUPS,
     MULTI_TURN_MAX_COUNT,
     RX1_ANGLE_LIMITS,
     SERVOS_BY_ID,
     STS3215_NO_LOAD_RAD_S,
-    FeetechBus,
     FeetechConfig,
-    _Port,
     allowed_counts,
     angle_to_counts,
     counts_to_angle,
     from_sign_magnitude,
     to_sign_magnitude,
 )
-from beavr_sim.hardware.feetech_emulator import (
+from beavr_sim.hardware.feetech.driver import FeetechBus, _Port
+from beavr_sim.hardware.feetech.emulator import (
     ERRBIT_OVERLOAD,
     INST_READ,
     INST_SYNC_WRITE,
@@ -738,7 +737,7 @@ def test_a_lost_reply_is_retried(emu, retries):
         else:
             with pytest.raises(DeviceError, match=r"no present position from servo 11"):
                 bus.read_positions()
-        assert (bus.comm_retries, bus.errors) == (retries, 1 - retries)
+        assert (bus.retries, bus.errors) == (retries, 1 - retries)
         emu.drop_replies(0)
         assert bus.read_positions().shape == (7,)
 

@@ -1,6 +1,6 @@
 """LEAP hand driver and Dynamixel bus emulator, through the real ``dynamixel_sdk``.
 
-Everything here runs against :mod:`beavr_sim.hardware.dynamixel_emulator` on a pseudo-terminal;
+Everything here runs against :mod:`beavr_sim.hardware.leap.emulator` on a pseudo-terminal;
 no test touches a real LEAP hand.
 """
 
@@ -19,7 +19,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from beavr_sim.hardware.device import DeviceError
-from beavr_sim.hardware.dynamixel_emulator import (
+from beavr_sim.hardware.leap.config import (
+    RAD_PER_COUNT,
+    LeapHandConfig,
+    counts_to_model,
+    model_to_counts,
+)
+from beavr_sim.hardware.leap.driver import LeapHand, _Port
+from beavr_sim.hardware.leap.emulator import (
     ERR_ACCESS,
     ERR_DATA_RANGE,
     INST_WRITE,
@@ -28,14 +35,6 @@ from beavr_sim.hardware.dynamixel_emulator import (
     crc16,
     stuff,
     unstuff,
-)
-from beavr_sim.hardware.leap import (
-    RAD_PER_COUNT,
-    LeapHand,
-    LeapHandConfig,
-    _Port,
-    counts_to_model,
-    model_to_counts,
 )
 
 TOL = 1e-9
@@ -350,7 +349,7 @@ def test_missing_motor_id_names_it():
     with DynamixelEmulator(motor_ids=tuple(i for i in range(16) if i != 9)) as e:
         h = LeapHand(_cfg(e.port, timeout_s=0.1))
         t0 = time.monotonic()
-        with pytest.raises(DeviceError, match=r"motor id 9 .*power supply.*baudrate") as err:
+        with pytest.raises(DeviceError, match=r"motor id\(s\) \[9\] .*power supply.*baudrate") as err:
             h.connect()
         assert e.port in str(err.value)
         assert time.monotonic() - t0 < 1.0
@@ -397,7 +396,7 @@ def test_a_lost_reply_is_retried_once(emu, retries):
         else:
             with pytest.raises(DeviceError, match=r"no present position from motor 0"):
                 h.read_positions()
-        assert (h.comm_retries, h.errors) == (retries, 1 - retries)
+        assert (h.retries, h.errors) == (retries, 1 - retries)
         emu.drop_replies(10)  # a hand that went quiet: fails after retries + 1 tries
         with pytest.raises(DeviceError, match="check the hand's power"):
             h.read_positions()

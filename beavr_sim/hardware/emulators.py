@@ -3,8 +3,8 @@
 ``PLAN`` is a JSON list of ``[name, kind, start]``: ``kind`` ``"xarm7"`` (``start``: 7 joint
 angles, rad), ``"leap"`` (``start``: 16 motor positions, counts) or ``"feetech"`` (an RX-1
 servo group, ``start``: ``{"group": name, "counts": [one per servo, in group order]}``, see
-:data:`beavr_sim.hardware.feetech.GROUPS`; its servos get the RX-1's angle limits,
-:data:`~beavr_sim.hardware.feetech.RX1_ANGLE_LIMITS`: multi-turn behind a gearbox, so counts
+:data:`beavr_sim.hardware.feetech.config.GROUPS`; its servos get the RX-1's angle limits,
+:data:`~beavr_sim.hardware.feetech.config.RX1_ANGLE_LIMITS`: multi-turn behind a gearbox, so counts
 may be negative or past 4095 there, one turn 0..4095 elsewhere). Prints one JSON line, ``{name: [host, port]}`` for
 arms and ``{name: pty path}`` for Dynamixel and Feetech buses, then serves until a line
 ``close`` (or the end of) standard input; then prints one JSON line of what every emulator
@@ -18,11 +18,16 @@ from __future__ import annotations
 import json
 import sys
 
-from beavr_sim.hardware.dynamixel_emulator import DynamixelEmulator
-from beavr_sim.hardware.feetech import GROUPS, RX1_ANGLE_LIMITS, SERVOS_BY_ID, counts_to_angle
-from beavr_sim.hardware.feetech_emulator import FeetechEmulator
-from beavr_sim.hardware.leap import counts_to_model
-from beavr_sim.hardware.xarm_emulator import XArmEmulator
+from beavr_sim.hardware.feetech.config import (
+    GROUPS,
+    RX1_ANGLE_LIMITS,
+    SERVOS_BY_ID,
+    counts_to_angle,
+)
+from beavr_sim.hardware.feetech.emulator import FeetechEmulator
+from beavr_sim.hardware.leap.config import counts_to_model
+from beavr_sim.hardware.leap.emulator import DynamixelEmulator
+from beavr_sim.hardware.xarm.emulator import XArmEmulator
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -51,16 +51,18 @@ from typing import Any
 import numpy as np
 
 from beavr_sim.hardware.device import Device
-from beavr_sim.hardware.feetech import (
+from beavr_sim.hardware.feetech.config import (
     GROUPS,
     RX1_ANGLE_LIMITS,
-    FeetechBus,
     FeetechConfig,
     allowed_counts,
     angle_to_counts,
 )
-from beavr_sim.hardware.leap import LeapHand, LeapHandConfig, model_to_counts
-from beavr_sim.hardware.xarm import XArm7, XArmConfig
+from beavr_sim.hardware.feetech.driver import FeetechBus
+from beavr_sim.hardware.leap.config import LeapHandConfig, model_to_counts
+from beavr_sim.hardware.leap.driver import LeapHand
+from beavr_sim.hardware.xarm.config import XArmConfig
+from beavr_sim.hardware.xarm.driver import XArm7
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 
