@@ -137,11 +137,11 @@ def _true_pose(emulator, device) -> np.ndarray:
     return device._to_model(counts)
 
 
-def _session(device, n: int = 40) -> None:
+def _session(device, n: int = 40, step: float = 0.01) -> None:
     """A stream of targets around the pose, each followed by a read (a mirror's tick)."""
     q0 = device.read_positions()
     for k in range(n):
-        device.send_positions(q0 + 0.01 * np.sin(k / 5.0))
+        device.send_positions(q0 + step * np.sin(k / 5.0))
         device.read_positions()
 
 
@@ -235,18 +235,11 @@ def arm():
         emulator.kill()
 
 
-def _arm_session(device, n: int = 30) -> None:
-    q0 = device.read_positions()
-    for k in range(n):
-        device.send_positions(q0 + 0.002 * np.sin(k / 5.0))
-        device.read_positions()
-
-
 @pytest.mark.parametrize("kind", ["drop", "corrupt"])
 def test_arm_lost_and_garbled_replies_are_retried_and_counted(arm, kind):
     emulator, device = arm
     emulator.inject(FaultSpec("right_arm", kind, 0.1))
-    _arm_session(device)
+    _session(device, n=30, step=0.002)  # within the controller's speed check
     counted = emulator.fault_state.dropped if kind == "drop" else emulator.fault_state.corrupted
     assert counted > 0, "no reply was hit: the test did not test the retry"
     assert device.retries == counted and device.errors == 0
