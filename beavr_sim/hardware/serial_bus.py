@@ -10,8 +10,9 @@ The two SDKs are one design (ROBOTIS's, forked by Feetech): a ``PortHandler`` ov
   (:class:`ReplyTimeoutPort`; the SDKs hard-code it from a 16 ms USB latency timer), port errors
   (``OSError``, pyserial's, ``termios``) turned into one-line :class:`DeviceError` s;
 * ping with patience: every id is pinged until it answers; connect fails when no id has
-  answered for ``timeout_s`` (a bus that comes up late, or a busy machine, is waited for; a
-  missing id is named);
+  answered for ``timeout_s`` over a round of pings (a bus that stalls, or a busy machine, is
+  waited for while some id answers; a missing id is named); reconnect fails as soon as the bus
+  has been silent for one reply window per retry;
 * bounded retries: a register read or write, or a sync read, whose reply did not come or came
   corrupt is asked again up to ``retries`` times (each counted in :attr:`SerialBus.retries`);
   only then :class:`DeviceError`. Port failures and the servos' own error bytes are not retried;
@@ -201,7 +202,7 @@ class SerialBus(Device):
         self._drop_port()
         self._open()
         try:
-            self._ping_all(self._reply_window_s() * (self.config.retries + 1))
+            self._ping_all(self._reply_window_s() * (self.config.retries + 1), per_ping=True)
             self._after_ping()
             if self._torque_on_everywhere():
                 last = self.last_target
@@ -323,9 +324,11 @@ class SerialBus(Device):
 
     # -- requests --
 
-    def _ping_all(self, patience_s: float) -> None:
+    def _ping_all(self, patience_s: float, *, per_ping: bool = False) -> None:
         """Ping every id until it answers; DeviceError naming the silent ids once none has
-        answered for ``patience_s``."""
+        answered for ``patience_s``: judged after each round over the silent ids (a bus that
+        stalls for a while, then answers, is waited for), or with ``per_ping`` after every
+        ping (a reconnect: a silent bus fails within ``patience_s``)."""
         cfg, unit = self.config, self.text.unit
         port = self._require_connected()
         missing = list(self._ids)
@@ -342,6 +345,8 @@ class SerialBus(Device):
                     missing.remove(i)
                     last_answer = time.monotonic()
                     self._on_ping(i, model)
+                elif per_ping and time.monotonic() - last_answer >= patience_s:
+                    break
             if missing and time.monotonic() - last_answer >= patience_s:
                 raise self._fail(
                     f"{unit} id(s) {missing} did not answer a ping on {cfg.port!r} at "
