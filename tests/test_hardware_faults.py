@@ -25,7 +25,7 @@ from beavr_sim.hardware.feetech.emulator import FeetechEmulator
 from beavr_sim.hardware.leap.config import LeapHandConfig, counts_to_model, model_to_counts
 from beavr_sim.hardware.leap.driver import LeapHand
 from beavr_sim.hardware.leap.emulator import DynamixelEmulator
-from beavr_sim.hardware.rig import EmulatedRig, build_device
+from beavr_sim.hardware.rig import EmulatedRig, build_device, emulated_device_names
 from beavr_sim.hardware.xarm.config import XArmConfig
 from beavr_sim.hardware.xarm.driver import XArm7
 from beavr_sim.hardware.xarm.emulator import XArmEmulator
@@ -315,3 +315,6 @@ def test_emulated_rig_takes_faults_at_start_and_at_run_time():
         env.close()
     with pytest.raises(RuntimeError, match="emulators are gone"):
         rig.inject("right_hand", "drop=0.1")
+    assert rig.fault_counts["right_arm"]["lost"] >= 1  # the request that met the disconnect
+    assert rig.fault_counts["right_hand"]["lost"] >= 3  # the read and its retries, frozen
+    assert emulated_device_names(env.embodiment) == rig.device_names

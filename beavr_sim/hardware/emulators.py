@@ -17,7 +17,8 @@ line, and answers each with one JSON line:
 * ``close`` (or the end of input): stop. It then prints one JSON line of what every emulator
 received (see :class:`beavr_sim.hardware.rig.EmulatedRig`): ``[time, targets]`` per servo_j
 of an arm, per goal write of a hand (``{motor id: model rad}``) and per sync write of a Feetech
-group (``{servo id: model rad}``, through the RX-1 servo table), and exits.
+group (``{servo id: model rad}``, through the RX-1 servo table), then one JSON line of what the
+faults did, ``{name: {"lost": requests, "dropped": replies, "corrupted": replies}}``, and exits.
 """
 
 from __future__ import annotations
@@ -113,6 +114,15 @@ def main(argv: list[str] | None = None) -> int:
             received[name] = writes
         emulator.close()
     print(json.dumps(received), flush=True)
+    faults = {
+        name: {
+            "lost": emulator.fault_state.lost,
+            "dropped": emulator.fault_state.dropped,
+            "corrupted": emulator.fault_state.corrupted,
+        }
+        for name, emulator in emulators.items()
+    }
+    print(json.dumps(faults), flush=True)
     return 0
 
 

@@ -267,6 +267,14 @@ def build_device(entry: DeviceEntry, embodiment: Embodiment, joints: JointIndex)
     return FeetechBus(config) if entry.kind == "feetech" else LeapHand(config)
 
 
+def emulated_device_names(embodiment: Embodiment) -> tuple[str, ...]:
+    """The names :class:`EmulatedRig` gives the emulated devices of ``embodiment`` (what fault
+    specs name): ``<effector>_arm`` and ``<effector>_hand`` per effector, then ``body`` if it
+    has one. For checking ``--emulate-faults`` text before anything starts."""
+    names = [f"{e.name}_{part}" for e in embodiment.effectors for part in ("arm", "hand")]
+    return (*names, BODY) if embodiment.body_joints else tuple(names)
+
+
 def _feetech_start(group: str, q: np.ndarray) -> dict:
     servos = GROUPS[group]
     counts = angle_to_counts(
@@ -341,6 +349,9 @@ class EmulatedRig:
             raise RuntimeError("the device emulators did not start (see the error above)")
         where = json.loads(line)
         self.received: dict[str, list] = {}
+        #: After :meth:`close`: per device, requests ``lost`` to a freeze or a disconnect and
+        #: replies ``dropped`` or ``corrupted`` by the injected faults.
+        self.fault_counts: dict[str, dict[str, int]] = {}
         devices = []
         for name, kind, _ in plan:
             effector = name.rsplit("_", 1)[0]
@@ -407,6 +418,8 @@ class EmulatedRig:
                     line = self._process.stdout.readline()
                     if line:
                         self.received = json.loads(line)
+                        line = self._process.stdout.readline()
+                        self.fault_counts = json.loads(line) if line else {}
                     self._process.wait(10.0)
                 except (OSError, ValueError, subprocess.TimeoutExpired):
                     pass
