@@ -1,6 +1,6 @@
 """RX-1 Feetech driver and STS bus emulator, through the real ``scservo_sdk``.
 
-Everything here runs against :mod:`beavr_sim.hardware.feetech_emulator` on a pseudo-terminal;
+Everything here runs against :mod:`beavr_sim.hardware.feetech.emulator` on a pseudo-terminal;
 no test touches a real RX-1 or a real STS3215.
 """
 
@@ -29,23 +29,22 @@ from scservo_sdk import (
 )
 
 from beavr_sim.hardware.device import DeviceError
-from beavr_sim.hardware.feetech import (
+from beavr_sim.hardware.feetech.config import (
     EAR_SERVO_IDS,
     GROUPS,
     MULTI_TURN_MAX_COUNT,
     RX1_ANGLE_LIMITS,
     SERVOS_BY_ID,
     STS3215_NO_LOAD_RAD_S,
-    FeetechBus,
     FeetechConfig,
-    _Port,
     allowed_counts,
     angle_to_counts,
     counts_to_angle,
     from_sign_magnitude,
     to_sign_magnitude,
 )
-from beavr_sim.hardware.feetech_emulator import (
+from beavr_sim.hardware.feetech.driver import FeetechBus, _Port
+from beavr_sim.hardware.feetech.emulator import (
     ERRBIT_OVERLOAD,
     INST_READ,
     INST_SYNC_WRITE,
@@ -482,7 +481,8 @@ def test_bad_checksum_gets_no_reply_and_garbage_does_not_crash(emu):
         too_long = b"\xff\xff\x0b\xfa\x02"  # length 250
         partial = b"\xff\xff\x0b\x20\x03\x2a"  # promises 32 bytes, stops
         os.write(fd, noise + impossible + too_long + b"\xff\xff\xff" + noise[:50] + partial)
-        time.sleep(0.15)
+        # The emulator took it all in and gave up on the partial packet at the end.
+        assert _wait_until(lambda: emu.parser.dropped > 0 and not emu.parser.buffer, 10.0)
         while select.select([fd], [], [], 0)[0]:  # whatever the noise happened to ask
             os.read(fd, 4096)
     finally:
@@ -678,13 +678,12 @@ def test_multi_turn_servo_without_full_angle_feedback_refuses_to_connect():
 def test_missing_servo_ids_are_named():
     with FeetechEmulator([i for i in _ids("right_arm") if i not in (13, 16)]) as e:
         # Present servos get the suite's reply timeout (a loaded machine can delay the
-        # emulator by tens of ms); the missing ones are given up on after timeout_s each.
+        # emulator by tens of ms); the missing ones are given up on once no servo has answered
+        # for timeout_s (how long that takes is a timing figure, not checked here).
         bus = FeetechBus(_cfg(e.port, timeout_s=0.3))
-        t0 = time.monotonic()
         with pytest.raises(DeviceError, match=r"servo id\(s\) \[13, 16\] .*power.*1 Mbaud") as err:
             bus.connect()
         assert e.port in str(err.value) and "rx1_right_arm" in str(err.value)
-        assert time.monotonic() - t0 < 1.5
         assert not bus.connected
         assert all(s.torque_enable == 0 and s.writes == [] for s in e.servos.values())
 
@@ -738,7 +737,7 @@ def test_a_lost_reply_is_retried(emu, retries):
         else:
             with pytest.raises(DeviceError, match=r"no present position from servo 11"):
                 bus.read_positions()
-        assert (bus.comm_retries, bus.errors) == (retries, 1 - retries)
+        assert (bus.retries, bus.errors) == (retries, 1 - retries)
         emu.drop_replies(0)
         assert bus.read_positions().shape == (7,)
 
@@ -756,7 +755,7 @@ def test_bad_targets_raise_value_error_and_send_nothing(emu, arm, bad):
     before = len(emu.goal_log)
     with pytest.raises(ValueError, match="rx1_right_arm"):
         arm.send_positions(bad)
-    time.sleep(0.02)
+    arm.read_positions()  # a round trip: whatever went out before it has been handled
     assert len(emu.goal_log) == before and arm.commands_sent == 0
 
 

@@ -1,6 +1,6 @@
 """LEAP hand driver and Dynamixel bus emulator, through the real ``dynamixel_sdk``.
 
-Everything here runs against :mod:`beavr_sim.hardware.dynamixel_emulator` on a pseudo-terminal;
+Everything here runs against :mod:`beavr_sim.hardware.leap.emulator` on a pseudo-terminal;
 no test touches a real LEAP hand.
 """
 
@@ -19,7 +19,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from beavr_sim.hardware.device import DeviceError
-from beavr_sim.hardware.dynamixel_emulator import (
+from beavr_sim.hardware.leap.config import (
+    RAD_PER_COUNT,
+    LeapHandConfig,
+    counts_to_model,
+    model_to_counts,
+)
+from beavr_sim.hardware.leap.driver import LeapHand, _Port
+from beavr_sim.hardware.leap.emulator import (
     ERR_ACCESS,
     ERR_DATA_RANGE,
     INST_WRITE,
@@ -28,14 +35,6 @@ from beavr_sim.hardware.dynamixel_emulator import (
     crc16,
     stuff,
     unstuff,
-)
-from beavr_sim.hardware.leap import (
-    RAD_PER_COUNT,
-    LeapHand,
-    LeapHandConfig,
-    _Port,
-    counts_to_model,
-    model_to_counts,
 )
 
 TOL = 1e-9
@@ -264,7 +263,8 @@ def test_garbage_on_the_bus_is_dropped_and_the_bus_recovers(emu):
         noise = bytes(rng.randrange(256) for _ in range(300))
         partial = b"\xff\xff\xfd\x00\x07\x40\x00\x02\x84"  # promises 64 bytes, stops
         os.write(fd, noise + huge_length + bad_crc + noise[:40] + partial)
-        time.sleep(0.15)
+        # The emulator took it all in and gave up on the partial packet at the end.
+        assert _wait_until(lambda: emu.parser.dropped > 0 and not emu.parser.buffer, 10.0)
     finally:
         os.close(fd)
     port = _open_sdk_port(emu.port)
@@ -349,11 +349,11 @@ def test_unlimited_targets_stay_within_one_turn(emu, hand):
 def test_missing_motor_id_names_it():
     with DynamixelEmulator(motor_ids=tuple(i for i in range(16) if i != 9)) as e:
         h = LeapHand(_cfg(e.port, timeout_s=0.1))
-        t0 = time.monotonic()
-        with pytest.raises(DeviceError, match=r"motor id 9 .*power supply.*baudrate") as err:
+        with pytest.raises(
+            DeviceError, match=r"motor id\(s\) \[9\] .*power supply.*baudrate"
+        ) as err:
             h.connect()
         assert e.port in str(err.value)
-        assert time.monotonic() - t0 < 1.0
         assert not h.connected
         # Nothing was set up: the failure came before any write.
         assert all(m.torque_enable == 0 and m.writes == [] for m in e.motors.values())
@@ -397,7 +397,7 @@ def test_a_lost_reply_is_retried_once(emu, retries):
         else:
             with pytest.raises(DeviceError, match=r"no present position from motor 0"):
                 h.read_positions()
-        assert (h.comm_retries, h.errors) == (retries, 1 - retries)
+        assert (h.retries, h.errors) == (retries, 1 - retries)
         emu.drop_replies(10)  # a hand that went quiet: fails after retries + 1 tries
         with pytest.raises(DeviceError, match="check the hand's power"):
             h.read_positions()
@@ -421,7 +421,7 @@ def test_bad_targets_raise_value_error_and_send_nothing(emu, hand, bad):
     before = len(emu.goal_log)
     with pytest.raises(ValueError, match="leap_hand"):
         hand.send_positions(bad)
-    time.sleep(0.02)
+    hand.read_positions()  # a round trip: whatever went out before it has been handled
     assert len(emu.goal_log) == before and hand.commands_sent == 0
 
 

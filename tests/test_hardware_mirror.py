@@ -19,17 +19,17 @@ from hypothesis import strategies as st
 
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.hardware.device import MirrorError
-from beavr_sim.hardware.dynamixel_emulator import DynamixelEmulator
-from beavr_sim.hardware.leap import (
+from beavr_sim.hardware.leap.config import (
     RAD_PER_COUNT,
     LeapHandConfig,
     counts_to_model,
     model_to_counts,
 )
+from beavr_sim.hardware.leap.emulator import DynamixelEmulator
 from beavr_sim.hardware.mirror import HardwareMirror
 from beavr_sim.hardware.rig import DeviceEntry, MirrorConfig, RigConfig
-from beavr_sim.hardware.xarm import XArmConfig
-from beavr_sim.hardware.xarm_emulator import XArmEmulator
+from beavr_sim.hardware.xarm.config import XArmConfig
+from beavr_sim.hardware.xarm.emulator import XArmEmulator
 from beavr_sim.teleop.__main__ import main as teleop_main
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand

@@ -17,14 +17,14 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from beavr_sim.hardware.device import DeviceError
-from beavr_sim.hardware.xarm import (
+from beavr_sim.hardware.xarm.config import XArmConfig
+from beavr_sim.hardware.xarm.driver import (
     CONTROLLER_ERRORS,
     ServoCommandError,
     XArm7,
-    XArmConfig,
     controller_code_name,
 )
-from beavr_sim.hardware.xarm_emulator import XArmEmulator
+from beavr_sim.hardware.xarm.emulator import XArmEmulator
 
 RANGES = ((-3.0, 3.0), (-2.0, 2.0), (-3.0, 3.0), (0.0, 3.5), (-3.0, 3.0), (-1.5, 3.0), (-3.0, 3.0))
 BOUNDARY = (700.0, -700.0, 600.0, -600.0, 900.0, -100.0)

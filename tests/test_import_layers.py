@@ -168,3 +168,35 @@ def test_no_import_circles():
 def test_imports_run_downward():
     bad = upward_imports(import_graph())
     assert not bad, "imports that run up a layer or into an entry point:\n" + "\n".join(bad)
+
+
+def emulator_reach(graph: Mapping[str, Iterable[str]]) -> list[str]:
+    """Hardware drivers and device configs that import an emulator, directly or through
+    another module, as readable lines (a driver must not lean on its test double)."""
+    emulators = {m for m in graph if m.startswith("beavr_sim.hardware.") and "emulator" in m}
+    bad = []
+    for source in sorted(graph):
+        leaf = source.rsplit(".", 1)[-1]
+        if not source.startswith("beavr_sim.hardware.") or leaf not in ("driver", "config"):
+            continue
+        seen, todo = set(), list(graph[source])
+        while todo:
+            module = todo.pop()
+            if module in seen:
+                continue
+            seen.add(module)
+            todo.extend(graph.get(module, ()))
+        bad += [f"{source} reaches {m}" for m in sorted(seen & emulators)]
+    return bad
+
+
+def test_drivers_never_import_emulators():
+    assert emulator_reach(
+        {
+            "beavr_sim.hardware.x.driver": {"beavr_sim.hardware.y"},
+            "beavr_sim.hardware.y": {"beavr_sim.hardware.x.emulator"},
+            "beavr_sim.hardware.x.emulator": set(),
+        }
+    ) == ["beavr_sim.hardware.x.driver reaches beavr_sim.hardware.x.emulator"]
+    bad = emulator_reach(import_graph())
+    assert not bad, "drivers that import an emulator:\n" + "\n".join(bad)

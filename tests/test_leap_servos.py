@@ -10,7 +10,7 @@ import pytest
 
 from beavr_sim.assets import mjcf_path
 from beavr_sim.envs.beavr_env import BeavrEnv
-from beavr_sim.hardware.leap import VARIANT_CURRENT_MA, LeapHandConfig
+from beavr_sim.hardware.leap.config import VARIANT_CURRENT_MA, LeapHandConfig
 from beavr_sim.hardware.rig import RigConfig
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.parts import (

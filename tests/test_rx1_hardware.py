@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import beavr_sim.envs  # noqa: F401  (registers the envs)
-from beavr_sim.hardware.feetech import GROUPS
+from beavr_sim.hardware.feetech.config import GROUPS
 from beavr_sim.hardware.mirror import HardwareMirror
 from beavr_sim.hardware.rig import EmulatedRig, RigConfig, joint_names_of
 from beavr_sim.robots import RX1_ARM, make_embodiment

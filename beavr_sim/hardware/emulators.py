@@ -1,43 +1,59 @@
-"""``python -m beavr_sim.hardware.emulators PLAN``: serve device emulators from another process.
+"""``python -m beavr_sim.hardware.emulators PLAN [FAULTS]``: serve device emulators from another process.
 
 ``PLAN`` is a JSON list of ``[name, kind, start]``: ``kind`` ``"xarm7"`` (``start``: 7 joint
 angles, rad), ``"leap"`` (``start``: 16 motor positions, counts) or ``"feetech"`` (an RX-1
 servo group, ``start``: ``{"group": name, "counts": [one per servo, in group order]}``, see
-:data:`beavr_sim.hardware.feetech.GROUPS`; its servos get the RX-1's angle limits,
-:data:`~beavr_sim.hardware.feetech.RX1_ANGLE_LIMITS`: multi-turn behind a gearbox, so counts
-may be negative or past 4095 there, one turn 0..4095 elsewhere). Prints one JSON line, ``{name: [host, port]}`` for
-arms and ``{name: pty path}`` for Dynamixel and Feetech buses, then serves until a line
-``close`` (or the end of) standard input; then prints one JSON line of what every emulator
+:data:`beavr_sim.hardware.feetech.config.GROUPS`; its servos get the RX-1's angle limits,
+:data:`~beavr_sim.hardware.feetech.config.RX1_ANGLE_LIMITS`: multi-turn behind a gearbox, so counts
+may be negative or past 4095 there, one turn 0..4095 elsewhere). ``FAULTS``: faults to start
+under, :func:`beavr_sim.hardware.faults.parse_fault_specs` text (``@T`` from the start).
+
+Prints one JSON line, ``{name: [host, port]}`` for arms and ``{name: pty path}`` for Dynamixel
+and Feetech buses, once every emulator is serving. Then it reads standard input, one command a
+line, and answers each with one JSON line:
+
+* ``fault SPEC``: inject the faults of ``SPEC`` (same text as ``FAULTS``, ``@T`` from now);
+  answers ``{"ack": [each fault, as text]}`` once they are in place, or ``{"error": message}``;
+* ``close`` (or the end of input): stop. It then prints one JSON line of what every emulator
 received (see :class:`beavr_sim.hardware.rig.EmulatedRig`): ``[time, targets]`` per servo_j
 of an arm, per goal write of a hand (``{motor id: model rad}``) and per sync write of a Feetech
-group (``{servo id: model rad}``, through the RX-1 servo table), and exits.
+group (``{servo id: model rad}``, through the RX-1 servo table), then one JSON line of what the
+faults did, ``{name: {"lost": requests, "dropped": replies, "corrupted": replies}}``, and exits.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from typing import Any
 
-from beavr_sim.hardware.dynamixel_emulator import DynamixelEmulator
-from beavr_sim.hardware.feetech import GROUPS, RX1_ANGLE_LIMITS, SERVOS_BY_ID, counts_to_angle
-from beavr_sim.hardware.feetech_emulator import FeetechEmulator
-from beavr_sim.hardware.leap import counts_to_model
-from beavr_sim.hardware.xarm_emulator import XArmEmulator
+from beavr_sim.hardware.faults import parse_fault_specs
+from beavr_sim.hardware.feetech.config import (
+    GROUPS,
+    RX1_ANGLE_LIMITS,
+    SERVOS_BY_ID,
+    counts_to_angle,
+)
+from beavr_sim.hardware.feetech.emulator import FeetechEmulator
+from beavr_sim.hardware.leap.config import counts_to_model
+from beavr_sim.hardware.leap.emulator import DynamixelEmulator
+from beavr_sim.hardware.xarm.emulator import XArmEmulator
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1:
+    if len(argv) not in (1, 2):
         print(__doc__, file=sys.stderr)
         return 2
     emulators: dict = {}
     where: dict = {}
     for name, kind, start in json.loads(argv[0]):
         if kind == "xarm7":
-            emulators[name] = XArmEmulator(initial_joints=tuple(start))
+            emulators[name] = XArmEmulator(initial_joints=tuple(start), name=name)
             where[name] = [emulators[name].host, emulators[name].port]
         elif kind == "leap":
-            emulators[name] = DynamixelEmulator(initial_position=dict(enumerate(start))).start()
+            initial = dict(enumerate(start))
+            emulators[name] = DynamixelEmulator(initial_position=initial, name=name).start()
             where[name] = emulators[name].port
         elif kind == "feetech":
             group = start.get("group") if isinstance(start, dict) else None
@@ -52,7 +68,9 @@ def main(argv: list[str] | None = None) -> int:
             initial = dict(zip(ids, counts, strict=True))
             limits = {i: RX1_ANGLE_LIMITS[i] for i in ids}
             try:
-                emulator = FeetechEmulator(ids, initial_position=initial, angle_limits=limits)
+                emulator = FeetechEmulator(
+                    ids, initial_position=initial, angle_limits=limits, name=name
+                )
             except ValueError as exc:
                 print(f"feetech {name!r}: {exc}", file=sys.stderr)
                 return 2
@@ -61,10 +79,25 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"unknown emulator kind {kind!r}; valid: xarm7, leap, feetech", file=sys.stderr)
             return 2
+    if len(argv) == 2:
+        try:
+            _inject(emulators, argv[1])
+        except ValueError as exc:
+            print(f"--faults: {exc}", file=sys.stderr)
+            return 2
     print(json.dumps(where), flush=True)
     for line in sys.stdin:
-        if line.strip() == "close":
+        command, _, rest = line.strip().partition(" ")
+        if command == "close":
             break
+        if command == "fault":
+            try:
+                answer: dict[str, Any] = {"ack": _inject(emulators, rest)}
+            except ValueError as exc:
+                answer = {"error": str(exc)}
+        else:
+            answer = {"error": f"unknown command {line.strip()!r}; valid: 'fault SPEC', 'close'"}
+        print(json.dumps(answer), flush=True)
     received: dict = {}
     for name, emulator in emulators.items():
         if isinstance(emulator, XArmEmulator):
@@ -81,7 +114,24 @@ def main(argv: list[str] | None = None) -> int:
             received[name] = writes
         emulator.close()
     print(json.dumps(received), flush=True)
+    faults = {
+        name: {
+            "lost": emulator.fault_state.lost,
+            "dropped": emulator.fault_state.dropped,
+            "corrupted": emulator.fault_state.corrupted,
+        }
+        for name, emulator in emulators.items()
+    }
+    print(json.dumps(faults), flush=True)
     return 0
+
+
+def _inject(emulators: dict, text: str) -> list[str]:
+    """Inject the faults of ``text`` (ValueError naming a bad one before any is injected)."""
+    specs = parse_fault_specs(text, emulators)
+    for spec in specs:
+        emulators[spec.device].inject(spec)
+    return [str(spec) for spec in specs]
 
 
 def _feetech_writes(emulator: FeetechEmulator) -> list:

@@ -41,9 +41,13 @@ configurations are in ``docs/hardware.md``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import subprocess
+import sys
+import threading
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,16 +55,19 @@ from typing import Any
 import numpy as np
 
 from beavr_sim.hardware.device import Device
-from beavr_sim.hardware.feetech import (
+from beavr_sim.hardware.faults import FaultSpec, parse_fault_spec, parse_fault_specs
+from beavr_sim.hardware.feetech.config import (
     GROUPS,
     RX1_ANGLE_LIMITS,
-    FeetechBus,
     FeetechConfig,
     allowed_counts,
     angle_to_counts,
 )
-from beavr_sim.hardware.leap import LeapHand, LeapHandConfig, model_to_counts
-from beavr_sim.hardware.xarm import XArm7, XArmConfig
+from beavr_sim.hardware.feetech.driver import FeetechBus
+from beavr_sim.hardware.leap.config import LeapHandConfig, model_to_counts
+from beavr_sim.hardware.leap.driver import LeapHand
+from beavr_sim.hardware.xarm.config import XArmConfig
+from beavr_sim.hardware.xarm.driver import XArm7
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 
@@ -260,6 +267,14 @@ def build_device(entry: DeviceEntry, embodiment: Embodiment, joints: JointIndex)
     return FeetechBus(config) if entry.kind == "feetech" else LeapHand(config)
 
 
+def emulated_device_names(embodiment: Embodiment) -> tuple[str, ...]:
+    """The names :class:`EmulatedRig` gives the emulated devices of ``embodiment`` (what fault
+    specs name): ``<effector>_arm`` and ``<effector>_hand`` per effector, then ``body`` if it
+    has one. For checking ``--emulate-faults`` text before anything starts."""
+    names = [f"{e.name}_{part}" for e in embodiment.effectors for part in ("arm", "hand")]
+    return (*names, BODY) if embodiment.body_joints else tuple(names)
+
+
 def _feetech_start(group: str, q: np.ndarray) -> dict:
     servos = GROUPS[group]
     counts = angle_to_counts(
@@ -275,9 +290,16 @@ class EmulatedRig:
 
     The emulators run in a child process (``python -m beavr_sim.hardware.emulators``), as a
     real controller and a real bus run outside ours: they do not compete with the drivers for
-    this interpreter (the Dynamixel SDK busy-waits for replies). :meth:`close` stops them and
-    keeps what they received in :attr:`received` (``{device: [[time, targets], ...]}``: every
-    servo_j target of an arm; every goal write of a hand, ``{motor id: model radians}``).
+    this interpreter (the Dynamixel SDK busy-waits for replies). The constructor returns once
+    every emulator is serving. :meth:`close` stops them and keeps what they received in
+    :attr:`received` (``{device: [[time, targets], ...]}``: every servo_j target of an arm;
+    every goal write of a hand, ``{motor id: model radians}``).
+
+    Faults (:mod:`beavr_sim.hardware.faults`): ``faults`` (``--emulate-faults`` text, or
+    :class:`FaultSpec` s) are in place when the constructor returns, their ``@T`` counted from
+    the emulators' start; :meth:`inject` adds more at run time and returns once the child
+    acknowledged them. Device names: :attr:`device_names` (``<effector>_arm``,
+    ``<effector>_hand``, ``body``).
     """
 
     def __init__(
@@ -286,11 +308,8 @@ class EmulatedRig:
         joints: JointIndex,
         q_start: np.ndarray | None = None,
         leap_variant: str = "full",
+        faults: str | Sequence[FaultSpec] = (),
     ):
-        import json
-        import subprocess
-        import sys
-
         q_start = joints.home if q_start is None else np.asarray(q_start, dtype=np.float64)
         plan, groups = [], {}
         for spec, effector in zip(embodiment.spec.effectors, embodiment.effectors, strict=True):
@@ -307,8 +326,18 @@ class EmulatedRig:
         if embodiment.body_joints:
             groups[BODY] = "body"
             plan.append([BODY, "feetech", _feetech_start("body", q_start[joints.body])])
+        #: The emulated devices' names, as fault specs name them.
+        self.device_names: tuple[str, ...] = tuple(name for name, _, _ in plan)
+        specs = self._fault_specs(faults)
+        self._lock = threading.Lock()
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "beavr_sim.hardware.emulators", json.dumps(plan)],
+            [
+                sys.executable,
+                "-m",
+                "beavr_sim.hardware.emulators",
+                json.dumps(plan),
+                ",".join(str(s) for s in specs),
+            ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -316,9 +345,13 @@ class EmulatedRig:
         line = self._process.stdout.readline()
         if not line:
             self._process.kill()
+            self._process.wait()
             raise RuntimeError("the device emulators did not start (see the error above)")
         where = json.loads(line)
         self.received: dict[str, list] = {}
+        #: After :meth:`close`: per device, requests ``lost`` to a freeze or a disconnect and
+        #: replies ``dropped`` or ``corrupted`` by the injected faults.
+        self.fault_counts: dict[str, dict[str, int]] = {}
         devices = []
         for name, kind, _ in plan:
             effector = name.rsplit("_", 1)[0]
@@ -338,20 +371,58 @@ class EmulatedRig:
         # Emulated fingers close on nothing; the twin's stop on the objects they grasp.
         self.config = RigConfig(tuple(devices), MirrorConfig(hand_divergence_rad=2.5), "emulated")
 
-    def close(self) -> None:
-        """Stop the emulators (idempotent); what they received lands in :attr:`received`."""
-        import json
+    def _fault_specs(self, faults: str | Sequence[FaultSpec]) -> tuple[FaultSpec, ...]:
+        if isinstance(faults, str):
+            return parse_fault_specs(faults, self.device_names)
+        specs = tuple(faults)
+        for spec in specs:
+            if spec.device not in self.device_names:
+                raise ValueError(
+                    f"fault {spec}: unknown device {spec.device!r}; devices {list(self.device_names)}"
+                )
+        return specs
 
-        if self._process.poll() is None:
+    def inject(self, device_name: str, fault: str | FaultSpec) -> FaultSpec:
+        """Put emulated device ``device_name`` under ``fault`` (a :class:`FaultSpec` of that
+        device, or its text without the device: ``"freeze=2.5"``, ``"drop=0.05@3"``,
+        ``"disconnect"``; ``@T`` counts from now). Returns once the emulators acknowledged it;
+        ValueError for a bad fault, RuntimeError when the emulators are gone."""
+        if isinstance(fault, str):
+            spec = parse_fault_spec(f"{device_name}:{fault}", self.device_names)
+        else:
+            spec = fault
+            if spec.device != device_name:
+                raise ValueError(f"fault {spec} is not one of device {device_name!r}")
+            self._fault_specs((spec,))
+        with self._lock:
             try:
-                self._process.stdin.write("close\n")
+                self._process.stdin.write(f"fault {spec}\n")
                 self._process.stdin.flush()
                 line = self._process.stdout.readline()
-                if line:
-                    self.received = json.loads(line)
-                self._process.wait(10.0)
             except (OSError, ValueError):
-                pass
-        if self._process.poll() is None:
-            self._process.kill()
-            self._process.wait()
+                line = ""
+        if not line:
+            raise RuntimeError("the device emulators are gone (closed, or their process died)")
+        answer = json.loads(line)
+        if "error" in answer:
+            raise ValueError(answer["error"])
+        return spec
+
+    def close(self) -> None:
+        """Stop the emulators (idempotent); what they received lands in :attr:`received`."""
+        with self._lock:
+            if self._process.poll() is None:
+                try:
+                    self._process.stdin.write("close\n")
+                    self._process.stdin.flush()
+                    line = self._process.stdout.readline()
+                    if line:
+                        self.received = json.loads(line)
+                        line = self._process.stdout.readline()
+                        self.fault_counts = json.loads(line) if line else {}
+                    self._process.wait(10.0)
+                except (OSError, ValueError, subprocess.TimeoutExpired):
+                    pass
+            if self._process.poll() is None:
+                self._process.kill()
+                self._process.wait()

@@ -260,7 +260,7 @@ XARM7 = ArmModel(
 
 #: The LEAP hand's current limit per variant (mA): what the LEAP API writes to every motor's
 #: Goal Current (102) in current-based position mode (leap-hand/LEAP_Hand_API). The one place
-#: these live: the driver (``hardware/leap.py``) imports them.
+#: these live: the driver (``hardware/leap/config.py``) imports them.
 LEAP_VARIANT_CURRENT_MA = {"full": 550, "lite": 350}
 #: The LEAP hand's motors, Dynamixel XC330-M288-T: stall torque 0.93 N m at 1.80 A at 5.0 V
 #: (ROBOTIS e-manual; the hand runs on 5 V), as a torque constant (N m/A): a linear estimate

@@ -16,7 +16,7 @@ no constructor argument for it. With ``XArmConfig.port`` set, the driver patches
 under a module lock only until the SDK's control socket is open (its port is read when the
 socket is built), then restores it; the report ports cannot be redirected this way, so a custom
 port requires ``enable_report=False``. Tested only against
-:mod:`beavr_sim.hardware.xarm_emulator`; nothing here has run on a real xArm.
+:mod:`beavr_sim.hardware.xarm.emulator`; nothing here has run on a real xArm.
 """
 
 from __future__ import annotations
@@ -25,13 +25,12 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from beavr_sim.hardware.device import Device, DeviceError
-from beavr_sim.hardware.xarm_emulator import XARM7_JOINT_LIMITS
+from beavr_sim.hardware.xarm.config import XArmConfig
 
 #: Controller error codes (``xarm/core/config/x_code.py``), by name.
 CONTROLLER_ERRORS: dict[int, str] = {
@@ -80,6 +79,8 @@ SDK_CODES: dict[int, str] = {
 }
 
 _HAS_ERROR, _HAS_WARNING = 1, 2
+#: SDK codes of a reply that did not come in time or came garbled: asked again (``retries``).
+_TRANSIENT = frozenset({3, 4, 5, 6, 7})
 _WHAT_TO_CHECK = (
     "check that the controller is powered on, the network link to it, the controller's IP "
     "address and port, and that the emergency stop is released"
@@ -98,111 +99,6 @@ def controller_warning_name(code: int) -> str:
 
 def _sdk_code(code: int) -> str:
     return f"SDK code {code} ({SDK_CODES.get(code, 'unknown')})"
-
-
-@dataclass(frozen=True)
-class XArmConfig:
-    """How to reach one xArm7 and which controller safety settings to apply on connect.
-
-    ``reduced_joint_ranges`` (rad, 7 (low, high) pairs inside the xArm7 limits),
-    ``tcp_boundary_mm`` ([x_max, x_min, y_max, y_min, z_max, z_min]) and ``max_joint_speed``
-    (rad/s) are reduced-mode settings: sent only when ``reduced_mode`` is on.
-    ``max_joint_acc`` (rad/s^2) is always sent. ``connect_timeout_s`` bounds the whole
-    connect; ``command_timeout_s`` is the SDK's per-request reply timeout afterwards.
-    """
-
-    host: str
-    port: int | None = None
-    enable_report: bool = False
-    collision_sensitivity: int = 3
-    self_collision_detection: bool = True
-    reduced_mode: bool = True
-    reduced_joint_ranges: tuple[tuple[float, float], ...] | None = None
-    tcp_boundary_mm: tuple[float, ...] | None = None
-    max_joint_speed: float = 2.5  # above the operator IK's 2 rad/s, under the arm's pi
-    max_joint_acc: float = 10.0
-    connect_timeout_s: float = 3.0
-    command_timeout_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.host, str) or not self.host.strip():
-            raise ValueError(f"XArmConfig.host: a non-empty IP or host name, got {self.host!r}")
-        if self.port is not None and (
-            isinstance(self.port, bool)
-            or not isinstance(self.port, int)
-            or not 0 < self.port < 65536
-        ):
-            raise ValueError(
-                f"XArmConfig.port: None (SDK default 502) or 1..65535, got {self.port!r}"
-            )
-        if self.enable_report and self.port is not None:
-            raise ValueError(
-                "XArmConfig.enable_report: True needs port=None (the SDK's report ports cannot "
-                "be redirected); use enable_report=False with a custom port"
-            )
-        for field in ("enable_report", "self_collision_detection", "reduced_mode"):
-            if not isinstance(getattr(self, field), bool):
-                raise ValueError(f"XArmConfig.{field}: True or False, got {getattr(self, field)!r}")
-        cs = self.collision_sensitivity
-        if isinstance(cs, bool) or not isinstance(cs, int) or not 0 <= cs <= 5:
-            raise ValueError(f"XArmConfig.collision_sensitivity: an integer 0..5, got {cs!r}")
-        _check_range("max_joint_speed", self.max_joint_speed, 0.0, math.pi, "rad/s")
-        _check_range("max_joint_acc", self.max_joint_acc, 0.0, 20.0, "rad/s^2")
-        _check_range("connect_timeout_s", self.connect_timeout_s, 0.0, 600.0, "s")
-        _check_range("command_timeout_s", self.command_timeout_s, 0.0, 60.0, "s")
-        if not self.reduced_mode and (self.reduced_joint_ranges or self.tcp_boundary_mm):
-            raise ValueError(
-                "XArmConfig.reduced_mode: must be True when reduced_joint_ranges or "
-                "tcp_boundary_mm is given (they apply only in reduced mode)"
-            )
-        if self.reduced_joint_ranges is not None:
-            object.__setattr__(
-                self, "reduced_joint_ranges", _joint_ranges(self.reduced_joint_ranges)
-            )
-        if self.tcp_boundary_mm is not None:
-            object.__setattr__(self, "tcp_boundary_mm", _tcp_boundary(self.tcp_boundary_mm))
-
-
-def _check_range(field: str, value: object, low: float, high: float, unit: str) -> None:
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    if not ok or not math.isfinite(value) or not low < value <= high:  # type: ignore[arg-type]
-        raise ValueError(
-            f"XArmConfig.{field}: a number in ({low}, {high:.6g}] {unit}, got {value!r}"
-        )
-
-
-def _joint_ranges(value: object) -> tuple[tuple[float, float], ...]:
-    field = "XArmConfig.reduced_joint_ranges"
-    try:
-        pairs = tuple((float(lo), float(hi)) for lo, hi in value)  # type: ignore[union-attr]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: 7 (low, high) pairs in radians, got {value!r}") from None
-    if len(pairs) != 7:
-        raise ValueError(f"{field}: 7 (low, high) pairs in radians, got {len(pairs)}")
-    for j, ((lo, hi), (jlo, jhi)) in enumerate(zip(pairs, XARM7_JOINT_LIMITS, strict=True), 1):
-        if not (math.isfinite(lo) and math.isfinite(hi) and jlo <= lo < hi <= jhi):
-            raise ValueError(
-                f"{field}: joint {j} needs {jlo:.4f} <= low < high <= {jhi:.4f} rad, got ({lo}, {hi})"
-            )
-    return pairs
-
-
-def _tcp_boundary(value: object) -> tuple[float, ...]:
-    field = "XArmConfig.tcp_boundary_mm"
-    try:
-        b = tuple(float(x) for x in value)  # type: ignore[union-attr]
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{field}: 6 numbers [x_max, x_min, y_max, y_min, z_max, z_min] mm"
-        ) from None
-    if len(b) != 6 or not all(math.isfinite(x) for x in b):
-        raise ValueError(
-            f"{field}: 6 finite numbers [x_max, x_min, y_max, y_min, z_max, z_min] mm, got {value!r}"
-        )
-    for axis, (hi, lo) in zip("xyz", (b[0:2], b[2:4], b[4:6]), strict=True):
-        if not hi > lo:
-            raise ValueError(f"{field}: {axis}_max must exceed {axis}_min, got {hi} <= {lo}")
-    return b
 
 
 class ServoCommandError(DeviceError):
@@ -240,6 +136,8 @@ class XArm7(Device):
         self.commands_sent = 0
         #: DeviceErrors raised by this driver.
         self.errors = 0
+        #: Requests asked again after no reply in time or a garbled one (SDK codes 3-7).
+        self.retries = 0
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -256,7 +154,19 @@ class XArm7(Device):
     def connect(self) -> None:
         if self._api is not None:
             return
-        self._api = self._open()
+        self._connect(self.config.connect_timeout_s)
+
+    def reconnect(self) -> np.ndarray:
+        """A new TCP connection, the set-up of :meth:`connect` (servo mode again: the arm
+        holds where it is until the next target), and the measured joints. The connection must
+        come up within ``command_timeout_s`` (not ``connect_timeout_s``), so a controller that
+        does not answer fails fast; safe to call again."""
+        self.disconnect()
+        self._connect(self.config.command_timeout_s)
+        return self.read_positions()
+
+    def _connect(self, timeout_s: float) -> None:
+        self._api = self._open(timeout_s)
         try:
             self._api.set_timeout(self.config.command_timeout_s)
             if self._api.axis != 7:
@@ -274,8 +184,8 @@ class XArm7(Device):
                 raise
             raise self._error(f"set-up raised {type(e).__name__}: {e}") from e
 
-    def _open(self) -> Any:
-        """``XArmAPI`` connected within ``connect_timeout_s``, or DeviceError."""
+    def _open(self, timeout_s: float) -> Any:
+        """``XArmAPI`` connected within ``timeout_s``, or DeviceError."""
         from xarm.core.config.x_config import XCONF
         from xarm.wrapper import XArmAPI
 
@@ -299,7 +209,7 @@ class XArm7(Device):
                 outcome["error"] = e
             done.set()
 
-        deadline = time.monotonic() + cfg.connect_timeout_s
+        deadline = time.monotonic() + timeout_s
         worker = threading.Thread(target=work, name=f"{self.name}-connect", daemon=True)
         with _SDK_PORT_LOCK:
             saved = XCONF.SocketConf.TCP_CONTROL_PORT
@@ -316,9 +226,7 @@ class XArm7(Device):
         done.wait(max(0.0, deadline - time.monotonic()))
         if not done.is_set():
             _quiet_disconnect(api)  # the SDK's version check then gives up on its own
-            raise self._error(
-                f"no answer within {cfg.connect_timeout_s:g} s (connect_timeout_s); {_WHAT_TO_CHECK}"
-            )
+            raise self._error(f"no answer within {timeout_s:g} s; {_WHAT_TO_CHECK}")
         if outcome["error"] is not None or not api.connected:
             _quiet_disconnect(api)
             raise self._error(f"cannot connect ({outcome['error']}); {_WHAT_TO_CHECK}")
@@ -384,7 +292,7 @@ class XArm7(Device):
 
     def read_positions(self) -> np.ndarray:
         api = self._require()
-        code, angles = self._call("get_servo_angle", api.get_servo_angle, is_radian=True)
+        code, angles = self._request("get_servo_angle", api.get_servo_angle, is_radian=True)
         if code != 0:
             raise self._error(f"get_servo_angle failed: {_sdk_code(code)}")
         return np.asarray(angles[:7], dtype=np.float64)
@@ -417,7 +325,7 @@ class XArm7(Device):
             self._servo(self._last_sent)
 
     def _servo(self, q: np.ndarray) -> None:
-        code = self._call(
+        code = self._request(
             "set_servo_angle_j", self._api.set_servo_angle_j, q.tolist(), is_radian=True
         )
         if code == 0:
@@ -479,6 +387,17 @@ class XArm7(Device):
             return fn(*args, **kwargs)
         except Exception as e:
             raise self._error(f"{call} raised {type(e).__name__}: {e}") from e
+
+    def _request(self, call: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        """:meth:`_call`, asked again up to ``retries`` times while the SDK reports no reply in
+        time or a garbled one (both requests are idempotent: the latest target, a read)."""
+        for attempt in range(self.config.retries + 1):
+            result = self._call(call, fn, *args, **kwargs)
+            code = result[0] if isinstance(result, tuple) else result
+            if code not in _TRANSIENT or attempt == self.config.retries:
+                return result
+            self.retries += 1
+        return result
 
     def _check(self, call: str, code: int) -> None:
         """DeviceError naming ``call`` unless ``code`` is 0 or 'has a warning'."""

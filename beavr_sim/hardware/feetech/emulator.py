@@ -38,12 +38,13 @@ set (the default here, :data:`PHASE_FULL_ANGLE_FEEDBACK`), else the position wit
 ``(0, 4095)``, the factory's) clamps its goals to them and stays within one turn. Not modelled:
 the turn count a real servo is reported to lose when powered off.
 
-The servo model is the Dynamixel emulator's (:mod:`beavr_sim.hardware.servo_model`), advanced
-by wall time: with torque on, each servo moves towards its goal at its goal speed (or its top
+The servo model is the one every emulator shares (:mod:`beavr_sim.hardware.servo_model`),
+advanced by wall time: with torque on, each servo moves towards its goal at its goal speed (or its top
 speed) with its acceleration, braking to stop on the goal. Test hooks:
 :attr:`~FeetechEmulator.goal_log`, :attr:`~FeetechEmulator.servos`,
 :meth:`~FeetechEmulator.vanish`, :meth:`~FeetechEmulator.inject_error`,
-:meth:`~FeetechEmulator.drop_replies`.
+:meth:`~FeetechEmulator.drop_replies`, and the faults of :meth:`~FeetechEmulator.inject` (the
+pty, framing and faults are :mod:`beavr_sim.hardware.bus_emulator`'s).
 """
 
 from __future__ import annotations
@@ -52,7 +53,14 @@ import math
 import time
 from dataclasses import dataclass, field
 
-from beavr_sim.hardware.servo_model import EmulatedBus, step_towards
+from beavr_sim.hardware.bus_emulator import (
+    EmulatedBus,
+    FrameParser,
+    Packet,
+    per_id,
+    sync_write_blocks,
+)
+from beavr_sim.hardware.servo_model import step_towards
 
 HEADER = b"\xff\xff"
 BROADCAST_ID = 0xFE
@@ -143,66 +151,31 @@ def decode(data: bytes, sign_bit: int | None) -> int:
     return value
 
 
-@dataclass(frozen=True)
-class Packet:
-    """One received instruction packet."""
+class PacketParser(FrameParser):
+    """Instruction packets from the byte stream (see :class:`FrameParser`); a packet whose
+    checksum fails gets no reply. ``checksum_errors`` counts them."""
 
-    id: int
-    instruction: int
-    params: bytes
-
-
-class PacketParser:
-    """Incremental parser of instruction packets from a byte stream.
-
-    Garbage before a header is dropped; a packet whose length field is implausible or whose
-    checksum fails is dropped one byte at a time (no reply), so parsing resyncs on the next
-    header. ``checksum_errors`` counts the packets dropped for their checksum.
-    """
+    header = HEADER
+    head_size = 4
 
     def __init__(self) -> None:
-        self.buffer = bytearray()
+        super().__init__()
         self.checksum_errors = 0
-        self.dropped = 0
 
-    def feed(self, data: bytes) -> list[Packet]:
-        self.buffer += data
-        packets: list[Packet] = []
-        while True:
-            start = self.buffer.find(HEADER)
-            if start < 0:
-                keep = 1 if self.buffer[-1:] == b"\xff" else 0
-                self.dropped += len(self.buffer) - keep
-                del self.buffer[: len(self.buffer) - keep]
-                return packets
-            if start:
-                self.dropped += start
-                del self.buffer[:start]
-            if len(self.buffer) < 4:
-                return packets
-            servo_id, length = self.buffer[2], self.buffer[3]
-            if servo_id == 0xFF or length < 2 or length > MAX_LENGTH:
-                self._skip()  # FF FF FF: the first FF was noise; or an impossible length
-                continue
-            total = 4 + length
-            if len(self.buffer) < total:
-                return packets
-            raw = bytes(self.buffer[:total])
-            if checksum(raw[2:-1]) != raw[-1]:
-                self.checksum_errors += 1
-                self._skip()
-                continue
-            del self.buffer[:total]
-            packets.append(Packet(servo_id, raw[4], raw[5:-1]))
+    def _total(self, head: bytes) -> int | None:
+        servo_id, length = head[2], head[3]
+        if servo_id == 0xFF or length < 2 or length > MAX_LENGTH:
+            return None  # FF FF FF: the first FF was noise; or an impossible length
+        return 4 + length
 
-    def drop_partial(self) -> None:
-        """Give up on a packet that stopped arriving mid-way (resync on the next header)."""
-        if self.buffer:
-            self._skip()
+    def _valid(self, raw: bytes) -> bool:
+        return checksum(raw[2:-1]) == raw[-1]
 
-    def _skip(self) -> None:
-        del self.buffer[:1]
-        self.dropped += 1
+    def _rejected(self, raw: bytes) -> None:
+        self.checksum_errors += 1
+
+    def _packet(self, raw: bytes) -> Packet:
+        return Packet(raw[2], raw[4], raw[5:-1])
 
 
 # --- servos ----------------------------------------------------------------------------------
@@ -336,6 +309,7 @@ class FeetechEmulator(EmulatedBus):
         angle_limits: tuple[int, int] | dict[int, tuple[int, int]] = MULTI_TURN,
         top_speed_steps: float = TOP_SPEED_STEPS,
         model_number: int = MODEL_STS3215,
+        name: str | None = None,
     ) -> None:
         ids = tuple(servo_ids)
         if not ids or len(set(ids)) != len(ids) or any(not 0 <= i <= 253 for i in ids):
@@ -346,14 +320,8 @@ class FeetechEmulator(EmulatedBus):
         #: The servos by id (test hook: read or set their state under :attr:`lock`).
         self.servos: dict[int, ServoState] = {}
         for i in ids:
-            start = (
-                initial_position.get(i, 2048)
-                if isinstance(initial_position, dict)
-                else initial_position
-            )
-            lo, hi = (
-                angle_limits.get(i, MULTI_TURN) if isinstance(angle_limits, dict) else angle_limits
-            )
+            start = per_id(initial_position, i, 2048)
+            lo, hi = per_id(angle_limits, i, MULTI_TURN)
             if (lo, hi) != MULTI_TURN and not 0 <= lo < hi <= MAX_COUNT:
                 raise ValueError(
                     f"servo {i}: angle_limits must be (0, 0) (multi-turn) or 0 <= min < max <= "
@@ -377,10 +345,8 @@ class FeetechEmulator(EmulatedBus):
         #: Every goal position value received (write or sync write), as sent:
         #: ``(time.monotonic(), servo id, counts)``; the goals of one packet share the time.
         self.goal_log: list[tuple[float, int, int]] = []
-        #: Every instruction packet received: ``(time.monotonic(), id, instruction)``.
-        self.packet_log: list[tuple[float, int, int]] = []
         self.parser = PacketParser()
-        super().__init__()
+        super().__init__(name)
 
     # -- test hooks --
 
@@ -408,26 +374,6 @@ class FeetechEmulator(EmulatedBus):
                 s.velocity,
                 accel,
             )
-
-    def _receive(self, data: bytes) -> bytes:
-        return self._handle_packets(self.parser.feed(data))
-
-    def _has_partial(self) -> bool:
-        return bool(self.parser.buffer)
-
-    def _drop_partial(self) -> bytes:
-        self.parser.drop_partial()
-        return self._handle_packets(self.parser.feed(b""))
-
-    def _handle_packets(self, packets: list[Packet]) -> bytes:
-        replies = bytearray()
-        for packet in packets:
-            self.packet_log.append((time.monotonic(), packet.id, packet.instruction))
-            try:
-                replies += self._handle(packet)
-            except Exception as exc:  # never let one odd packet kill the bus
-                self.faults.append(exc)
-        return bytes(replies)
 
     # -- instruction handling --
 
@@ -460,13 +406,10 @@ class FeetechEmulator(EmulatedBus):
             return b""
         addr, size, rest = p.params[0], p.params[1], p.params[2:]
         if p.instruction == INST_SYNC_WRITE:
-            if size == 0 or len(rest) % (size + 1):
-                return b""
             now = time.monotonic()
-            for k in range(0, len(rest), size + 1):
-                s = self.servos.get(rest[k])
-                if s is not None:
-                    self._write(s, addr, rest[k + 1 : k + 1 + size], now)
+            for servo_id, data in sync_write_blocks(rest, size):
+                if servo_id in self.servos:
+                    self._write(self.servos[servo_id], addr, data, now)
             return b""
         if p.instruction == INST_SYNC_READ:
             return b"".join(

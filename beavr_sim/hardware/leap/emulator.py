@@ -23,14 +23,15 @@ X-series motors (the LEAP hand's XC330s), so that the vendor's own ``dynamixel_s
   a write covering part of a field the data length error (0x05), an out-of-range value the
   data range error (0x04), and a refused write changes nothing.
 
-The servo model is deliberately simple and advanced by wall time (the one shared with the
-Feetech emulator, :mod:`beavr_sim.hardware.servo_model`): with torque on, each motor moves
+The servo model is deliberately simple and advanced by wall time (the one every emulator
+shares, :mod:`beavr_sim.hardware.servo_model`): with torque on, each motor moves
 towards its goal position at a bounded speed, and its present current grows with the
 position error, capped at the goal current (current-based position mode) or the current limit,
 so a big step shows goal and present position diverging. There is no load, no gravity, no
 friction. Test hooks: :attr:`~DynamixelEmulator.goal_log`, :attr:`~DynamixelEmulator.motors`,
 :meth:`~DynamixelEmulator.vanish`, :meth:`~DynamixelEmulator.inject_error`,
-:meth:`~DynamixelEmulator.drop_replies`.
+:meth:`~DynamixelEmulator.drop_replies`, and the faults of :meth:`~DynamixelEmulator.inject`
+(the pty, framing and faults are :mod:`beavr_sim.hardware.bus_emulator`'s).
 
 Register facts come from the ROBOTIS e-manual (XC330-M288-T control table, Protocol 2.0) and
 the installed ``dynamixel_sdk`` source; nothing here was checked against a real LEAP hand.
@@ -42,7 +43,14 @@ import math
 import time
 from dataclasses import dataclass, field
 
-from beavr_sim.hardware.servo_model import EmulatedBus, step_towards
+from beavr_sim.hardware.bus_emulator import (
+    EmulatedBus,
+    FrameParser,
+    Packet,
+    per_id,
+    sync_write_blocks,
+)
+from beavr_sim.hardware.servo_model import step_towards
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -192,67 +200,31 @@ def fast_sync_read_packet(blocks: list[tuple[int, int, bytes]]) -> bytes:
     return bytes(packet)
 
 
-@dataclass(frozen=True)
-class Packet:
-    """One received instruction packet, unstuffed."""
+class PacketParser(FrameParser):
+    """Instruction packets from the byte stream (see :class:`FrameParser`), unstuffed. The ids
+    of packets with a bad CRC collect in ``crc_errors`` (those motors answer with the CRC
+    error)."""
 
-    id: int
-    instruction: int
-    params: bytes
-
-
-class PacketParser:
-    """Incremental parser of instruction packets from a byte stream.
-
-    Garbage before a header is dropped; a packet whose length field is implausible or whose CRC
-    fails is dropped one byte at a time, so parsing resyncs on the next header. The ids of
-    packets with a bad CRC collect in ``crc_errors`` (those motors answer with the CRC error).
-    """
+    header = HEADER
+    head_size = 7
 
     def __init__(self) -> None:
-        self.buffer = bytearray()
+        super().__init__()
         self.crc_errors: list[int] = []
-        self.dropped = 0
 
-    def feed(self, data: bytes) -> list[Packet]:
-        self.buffer += data
-        packets: list[Packet] = []
-        while True:
-            start = self.buffer.find(HEADER)
-            if start < 0:
-                keep = 3 if len(self.buffer) >= 3 else len(self.buffer)
-                self.dropped += len(self.buffer) - keep
-                del self.buffer[: len(self.buffer) - keep]
-                return packets
-            if start:
-                self.dropped += start
-                del self.buffer[:start]
-            if len(self.buffer) < 7:
-                return packets
-            length = int.from_bytes(self.buffer[5:7], "little")
-            if length < 3 or length > MAX_PACKET_LENGTH:
-                self._skip()
-                continue
-            total = 7 + length
-            if len(self.buffer) < total:
-                return packets
-            raw = bytes(self.buffer[:total])
-            if crc16(raw[:-2]) != int.from_bytes(raw[-2:], "little"):
-                self.crc_errors.append(raw[4])
-                self._skip()
-                continue
-            del self.buffer[:total]
-            body = unstuff(raw[7:-2])
-            packets.append(Packet(raw[4], body[0], body[1:]))
+    def _total(self, head: bytes) -> int | None:
+        length = int.from_bytes(head[5:7], "little")
+        return 7 + length if 3 <= length <= MAX_PACKET_LENGTH else None
 
-    def drop_partial(self) -> None:
-        """Give up on a packet that stopped arriving mid-way (resync on the next header)."""
-        if self.buffer:
-            self._skip()
+    def _valid(self, raw: bytes) -> bool:
+        return crc16(raw[:-2]) == int.from_bytes(raw[-2:], "little")
 
-    def _skip(self) -> None:
-        del self.buffer[:1]
-        self.dropped += 1
+    def _rejected(self, raw: bytes) -> None:
+        self.crc_errors.append(raw[4])
+
+    def _packet(self, raw: bytes) -> Packet:
+        body = unstuff(raw[7:-2])
+        return Packet(raw[4], body[0], body[1:])
 
 
 # --- motors ----------------------------------------------------------------------------------
@@ -347,6 +319,7 @@ class DynamixelEmulator(EmulatedBus):
         max_velocity_rad_s: float = 6.0,
         current_per_count_ma: float = 2.0,
         model_number: int = MODEL_XC330_M288,
+        name: str | None = None,
     ) -> None:
         if not motor_ids or len(set(motor_ids)) != len(motor_ids):
             raise ValueError(f"motor_ids must be unique and non-empty, got {motor_ids!r}")
@@ -358,21 +331,15 @@ class DynamixelEmulator(EmulatedBus):
         self.current_per_count_ma = float(current_per_count_ma)
         self.motors: dict[int, MotorState] = {}
         for i in motor_ids:
-            start = (
-                initial_position.get(i, 2048)
-                if isinstance(initial_position, dict)
-                else initial_position
-            )
+            start = per_id(initial_position, i, 2048)
             self.motors[i] = MotorState(
                 id=i, position=float(start), goal_position=int(start), model_number=model_number
             )
         #: Every goal position value received (write or sync write, accepted or refused):
         #: ``(time.monotonic(), motor id, counts)``.
         self.goal_log: list[tuple[float, int, int]] = []
-        #: Every instruction packet received: ``(time.monotonic(), id, instruction)``.
-        self.packet_log: list[tuple[float, int, int]] = []
         self.parser = PacketParser()
-        super().__init__()
+        super().__init__(name)
 
     # -- test hooks --
 
@@ -401,28 +368,12 @@ class DynamixelEmulator(EmulatedBus):
                 min(cap, self.current_per_count_ma * abs(remaining)), remaining
             )
 
-    def _receive(self, data: bytes) -> bytes:
-        return self._handle_packets(self.parser.feed(data))
-
-    def _has_partial(self) -> bool:
-        return bool(self.parser.buffer)
-
-    def _drop_partial(self) -> bytes:
-        self.parser.drop_partial()
-        return self._handle_packets(self.parser.feed(b""))
-
-    def _handle_packets(self, packets: list[Packet]) -> bytes:
+    def _on_rejected(self) -> bytes:
         replies = bytearray()
         for bad_id in self.parser.crc_errors:
             if bad_id in self.motors:
                 replies += self._status(self.motors[bad_id], ERR_CRC)
         self.parser.crc_errors.clear()
-        for packet in packets:
-            self.packet_log.append((time.monotonic(), packet.id, packet.instruction))
-            try:
-                replies += self._handle(packet)
-            except Exception as exc:  # never let one odd packet kill the bus
-                self.faults.append(exc)
         return bytes(replies)
 
     # -- instruction handling (called with the lock held) --
@@ -476,12 +427,9 @@ class DynamixelEmulator(EmulatedBus):
         size = int.from_bytes(p.params[2:4], "little")
         rest = p.params[4:]
         if p.instruction == INST_SYNC_WRITE:
-            if size == 0 or len(rest) % (size + 1):
-                return b""
-            for k in range(0, len(rest), size + 1):
-                m = self.motors.get(rest[k])
-                if m is not None:
-                    self._write(m, addr, rest[k + 1 : k + 1 + size])
+            for motor_id, data in sync_write_blocks(rest, size):
+                if motor_id in self.motors:
+                    self._write(self.motors[motor_id], addr, data)
             return b""
         if p.instruction == INST_SYNC_READ:
             out = bytearray()

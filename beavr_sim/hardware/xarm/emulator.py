@@ -40,7 +40,8 @@ Controller model:
 
 Test hooks: :attr:`servo_log` (every servo_j received: time and 7 floats, accepted or not),
 :attr:`accepted_servo`, :attr:`joints`, :attr:`state`, :attr:`mode`, the safety settings,
-:meth:`kill` (drop every connection and stop answering), :attr:`host`, :attr:`port`.
+:meth:`kill` (drop every connection and stop answering), :meth:`inject` (faults: freeze, drop,
+corrupt, delay, disconnect; :mod:`beavr_sim.hardware.faults`), :attr:`host`, :attr:`port`.
 """
 
 from __future__ import annotations
@@ -54,17 +55,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-#: xArm7 joint limits (rad): the SDK's ``XCONF.Robot.JOINT_LIMITS`` for the xArm7 X4 type,
-#: which the MJCF model uses too.
-XARM7_JOINT_LIMITS: tuple[tuple[float, float], ...] = (
-    (-2 * math.pi, 2 * math.pi),
-    (-2.059488, 2.094395),
-    (-2 * math.pi, 2 * math.pi),
-    (-0.191986, 3.92699),
-    (-2 * math.pi, 2 * math.pi),
-    (-1.692969, math.pi),
-    (-2 * math.pi, 2 * math.pi),
-)
+from beavr_sim.hardware.faults import Fate, FaultSpec, FaultState, Verdict
+from beavr_sim.hardware.servo_model import step_towards
+from beavr_sim.hardware.xarm.config import XARM7_JOINT_LIMITS
 
 _LOWER = np.array([lo for lo, _ in XARM7_JOINT_LIMITS])
 _UPPER = np.array([hi for _, hi in XARM7_JOINT_LIMITS])
@@ -102,6 +95,7 @@ class XArmEmulator:
         servo_period_s: float = 0.01,
         firmware: str = "2.5.5",
         serial: str = "XI1303EMU00001",
+        name: str = "xarm",
     ) -> None:
         q0 = np.zeros(7) if initial_joints is None else np.array(initial_joints, dtype=float)
         if q0.shape != (7,):
@@ -167,6 +161,8 @@ class XArmEmulator:
             254: lambda p: (0, b""),
         }
 
+        #: The injected faults (:meth:`inject`) and their counters.
+        self.fault_state = FaultState(name)
         self._killed = threading.Event()
         self._conns: list[socket.socket] = []
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -228,6 +224,17 @@ class XArmEmulator:
         with self._lock:
             self._warn = int(code)
 
+    def inject(self, spec: FaultSpec) -> None:
+        """Put the controller under ``spec`` (:mod:`beavr_sim.hardware.faults`): a request
+        that arrives frozen is lost unanswered (and does nothing); a reply may be dropped,
+        garbled (its protocol id: the SDK rejects it) or late; ``disconnect`` is :meth:`kill`,
+        at ``@T`` or at the next request."""
+        self.fault_state.add(spec)
+        if spec.kind == "disconnect" and spec.at_s is not None:
+            timer = threading.Timer(spec.at_s, self.kill)
+            timer.daemon = True
+            timer.start()
+
     def kill(self) -> None:
         """Drop every connection and stop answering (the listener closes too)."""
         self._killed.set()
@@ -278,8 +285,17 @@ class XArmEmulator:
                 if len(buf) < size:
                     break
                 frame, buf = buf[:size], buf[size:]
-                reply = self._reply(frame)
-                if reply and not self._killed.is_set():
+                verdict = self.fault_state.admit()
+                if verdict is Verdict.DISCONNECTED:
+                    self.kill()
+                    break
+                reply = self._reply(frame) if verdict is Verdict.SERVE else None
+                fate = self.fault_state.fate() if reply else Fate.DROP
+                if fate is Fate.CORRUPT:
+                    reply = reply[:2] + b"\xff\xff" + reply[4:]  # a protocol id the SDK refuses
+                if fate is not Fate.DROP and self.fault_state.delay_s > 0:
+                    time.sleep(self.fault_state.delay_s)
+                if fate is not Fate.DROP and not self._killed.is_set():
                     try:
                         conn.sendall(reply)
                     except OSError:
@@ -340,7 +356,8 @@ class XArmEmulator:
         self._stop()
 
     def _advance(self) -> None:
-        """Integrate the servo model from the last call to now (1 ms substeps)."""
+        """Integrate the servo model (:func:`~beavr_sim.hardware.servo_model.step_towards`)
+        from the last call to now, in 1 ms substeps."""
         now = time.monotonic()
         elapsed, self._t = now - self._t, now
         if not (self._started and not self._paused and self._mode == 1):
@@ -351,14 +368,7 @@ class XArmEmulator:
                 return
             dt = min(_SUBSTEP_S, elapsed)
             elapsed -= dt
-            err = self._target - self._q
-            # Fastest speed from which the joint can still brake to the target.
-            v_des = np.sign(err) * np.minimum(vmax, np.sqrt(2.0 * amax * np.abs(err)))
-            self._v += np.clip(v_des - self._v, -amax * dt, amax * dt)
-            step = self._v * dt
-            arrived = np.abs(step) >= np.abs(err)
-            self._q = np.where(arrived, self._target, self._q + step)
-            self._v = np.where(arrived, 0.0, self._v)
+            self._q, self._v = step_towards(self._q, self._target, dt, vmax, self._v, amax)
 
     # ----------------------------------------------------------------- registers
 
