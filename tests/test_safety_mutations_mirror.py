@@ -3,7 +3,8 @@
 When the devices are further from the twin than one period's motion (after a hold, a release,
 a reset) the mirror makes its own targets on the straight line to the twin's; its guard checks
 each along its path, and a refused one is not sent (the device holds short of it). These tests
-drive a catch-up whose straight path crosses the table, and check every target the emulated
+drive a catch-up whose straight path crosses the table (or Tape's box: a strict xfail, the
+mirror's guard does not know where the reset put it), and check every target the emulated
 xArm received (:attr:`~beavr_sim.hardware.rig.EmulatedRig.received`) against a guard.
 """
 
