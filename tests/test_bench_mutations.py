@@ -37,7 +37,10 @@ def test_caught_survived_stale_and_a_failing_baseline(repo):
         Mutation("broken", "speed cap", "pkg/rule.py", "1.0", "2.0", ("tests/test_broken.py",)),
     ]
     seen = []
-    results = run(planted, repo, python=sys.executable, timeout_s=120, progress=seen.append)
+    quick = {"PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}  # the fake tests need no plugins
+    results = run(
+        planted, repo, python=sys.executable, timeout_s=120, progress=seen.append, extra_env=quick
+    )
     status = {r.name: r.status for r in results}
     assert status == {
         "looser": "caught",

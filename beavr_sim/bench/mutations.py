@@ -30,7 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -341,9 +341,16 @@ def plant(mutation: Mutation, root: Path) -> str:
     return why
 
 
-def _pytest(root: Path, tests: Sequence[str], python: str, timeout_s: float):
+def _pytest(
+    root: Path,
+    tests: Sequence[str],
+    python: str,
+    timeout_s: float,
+    extra_env: Mapping[str, str] | None = None,
+):
     """Run ``tests`` on the copy at ``root``: (return code or None on timeout, output)."""
-    env = {**os.environ, "PYTHONPATH": str(root), "PYTHONDONTWRITEBYTECODE": "1"}
+    env = {**os.environ, **(extra_env or {}), "PYTHONPATH": str(root)}
+    env["PYTHONDONTWRITEBYTECODE"] = "1"
     env.setdefault("MUJOCO_GL", "egl")
     cmd = [python, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
     try:
@@ -365,16 +372,21 @@ def _first_failure(output: str) -> str:
 
 
 def run_one(
-    mutation: Mutation, repo: Path, python: str = sys.executable, timeout_s: float = 900.0
+    mutation: Mutation,
+    repo: Path,
+    python: str = sys.executable,
+    timeout_s: float = 900.0,
+    extra_env: Mapping[str, str] | None = None,
 ) -> MutationResult:
-    """Plant ``mutation`` in a fresh copy of ``repo`` and run its tests there."""
+    """Plant ``mutation`` in a fresh copy of ``repo`` and run its tests there (``extra_env``:
+    more environment variables for pytest)."""
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=f"mutant-{mutation.name}-") as tmp:
         root = copy_repository(repo, Path(tmp) / "repo")
         why = plant(mutation, root)
         if why:
             return MutationResult(mutation.name, mutation.rule, "stale", 0.0, why)
-        code, output = _pytest(root, mutation.tests, python, timeout_s)
+        code, output = _pytest(root, mutation.tests, python, timeout_s, extra_env)
     seconds = round(time.perf_counter() - t0, 1)
     if code is None:
         status, detail = "timeout", f"tests ran past {timeout_s:g} s"
@@ -388,12 +400,16 @@ def run_one(
 
 
 def baseline(
-    tests: Sequence[str], repo: Path, python: str = sys.executable, timeout_s: float = 900.0
+    tests: Sequence[str],
+    repo: Path,
+    python: str = sys.executable,
+    timeout_s: float = 900.0,
+    extra_env: Mapping[str, str] | None = None,
 ) -> str:
     """ "" when ``tests`` pass on an unmutated copy of ``repo``, else what went wrong."""
     with tempfile.TemporaryDirectory(prefix="mutant-baseline-") as tmp:
         root = copy_repository(repo, Path(tmp) / "repo")
-        code, output = _pytest(root, tests, python, timeout_s)
+        code, output = _pytest(root, tests, python, timeout_s, extra_env)
     if code == 0:
         return ""
     why = "timed out" if code is None else f"exit {code}: {_first_failure(output)}"
@@ -407,6 +423,7 @@ def run(
     timeout_s: float = 900.0,
     check_baseline: bool = True,
     progress: Callable[[MutationResult], None] | None = None,
+    extra_env: Mapping[str, str] | None = None,
 ) -> list[MutationResult]:
     """Every mutation, one at a time (stale ones first, they cost nothing)."""
     results: list[MutationResult] = []
@@ -418,12 +435,12 @@ def run(
             result = MutationResult(m.name, m.rule, "stale", 0.0, why[m.name])
         else:
             if check_baseline and m.tests not in baselines:
-                baselines[m.tests] = baseline(m.tests, repo, python, timeout_s)
+                baselines[m.tests] = baseline(m.tests, repo, python, timeout_s, extra_env)
             problem = baselines.get(m.tests, "")
             if problem:
                 result = MutationResult(m.name, m.rule, "error", 0.0, problem)
             else:
-                result = run_one(m, repo, python, timeout_s)
+                result = run_one(m, repo, python, timeout_s, extra_env)
         results.append(result)
         if progress is not None:
             progress(result)
