@@ -40,57 +40,33 @@ from beavr_sim.headset.sources import HandSource
 from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.operator.obstacles import fixture_obstacles
 from beavr_sim.operator.operator import Operator
+from beavr_sim.teleop.stages import (
+    MIN_COMMAND_DT_S,
+    OperatorStage,
+    StopTeleop,
+    TwinStage,
+    count_hold,
+    listener_name,
+    operator_call,
+    should_log,
+)
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand, Tick, TickListener
 
 log = logging.getLogger(__name__)
 
-#: The shortest time (s) one command stands for in real time (a command per hand frame): two
-#: frames bunched by scheduling move the arm's IK target no faster than its speed cap allows.
-MIN_COMMAND_DT_S = 0.002
-
-
-class StopTeleop(Exception):
-    """Raise it from a tick listener (or ``progress``) to end the run on purpose; any other
-    exception a listener raises is counted and logged, and the loop goes on."""
-
-
-def should_log(count: int) -> bool:
-    """Whether the ``count``-th repeat of one problem is worth a log line (1st, 10th, 100th,
-    then every 1000th): a failure every tick must not flood the log at the control rate."""
-    return count in (1, 10, 100) or count % 1000 == 0
-
-
-def operator_call(errors: dict[str, int], what: str, fn: Callable, *args) -> tuple[bool, object]:
-    """``(True, fn(*args))``, or ``(False, None)`` when it raises, counted in ``errors[what]``
-    and logged (rate-limited): an operator error holds the robot for a tick, it never ends the
-    session (either runner)."""
-    try:
-        return True, fn(*args)
-    except Exception as exc:
-        n = errors[what] = errors.get(what, 0) + 1
-        if should_log(n):
-            log.error(
-                "operator.%s failed (%d so far): %r; every effector holds this tick",
-                what,
-                n,
-                exc,
-                exc_info=n == 1,
-            )
-        return False, None
-
-
-def count_hold(holds: dict[str, dict[str, int]], effector: str, reason: str, n: int = 1) -> None:
-    """Add ``n`` ticks of ``effector`` holding for ``reason`` to ``holds``
-    (effector -> reason -> ticks, the summary's shape)."""
-    by_reason = holds.setdefault(effector, {})
-    by_reason[reason or "hold"] = by_reason.get(reason or "hold", 0) + n
-
-
-def listener_name(listener: object) -> str:
-    """How a listener is named in the summary and the log: a function's name, else its class."""
-    name = getattr(listener, "__name__", None)
-    return name if isinstance(name, str) and name else type(listener).__name__
+__all__ = [
+    "MIN_COMMAND_DT_S",
+    "StopTeleop",
+    "TeleopLoop",
+    "TeleopSummary",
+    "ThreadedListener",
+    "TickSchedule",
+    "count_hold",
+    "listener_name",
+    "operator_call",
+    "should_log",
+]
 
 
 class TickSchedule:
@@ -316,13 +292,21 @@ class TeleopLoop:
         self.listeners = list(listeners)
         self.dt = 1.0 / twin.env.control_hz
         self.frames_received = 0
-        self.latencies_ms: list[float] = []
-        #: Ticks each effector held, by reason (see :attr:`TeleopSummary.holds`).
-        self.holds: dict[str, dict[str, int]] = {}
-        #: Exceptions raised by (synchronous) tick listeners, per listener name.
+        #: Exceptions raised by (synchronous) tick listeners and twin hooks, per name.
         self.listener_errors: dict[str, int] = {}
+        #: The two stages of the per-frame path (shared with the ``--multiprocess`` runner).
+        self.operator_stage = OperatorStage(
+            operator,
+            twin.env.control_hz,
+            hold_positions=lambda name: self.twin.action[self.twin.slices[name]].copy(),
+        )
+        self.twin_stage = TwinStage(twin, hook_errors=self.listener_errors)
+        #: Per applied command (ms; see the module docstring).
+        self.latencies_ms: list[float] = self.twin_stage.latencies_ms
+        #: Ticks each effector held, by reason (see :attr:`TeleopSummary.holds`).
+        self.holds: dict[str, dict[str, int]] = self.operator_stage.holds
         #: Exceptions raised by the operator (each one a tick of holds), per call.
-        self.operator_errors: dict[str, int] = {}
+        self.operator_errors: dict[str, int] = self.operator_stage.errors
         #: Wall deadlines of paced ticks (started when the loop first runs, not at reset).
         self.schedule = TickSchedule(self.dt)
         self.ticks = 0
@@ -340,10 +324,9 @@ class TeleopLoop:
         self.frame_commands = 0
         #: Called with each :class:`~beavr_sim.twin.twin.CommandOutcome` and the commands
         #: (effector -> JointCommand) the moment the twin applied them (real time: a command
-        #: per hand frame), e.g. the hardware mirror.
-        self.command_hooks: list[Callable] = []
-        self._sides = sorted({op.side for op in operator.effectors.values()})
-        self._last_command = dict.fromkeys(self._sides, -math.inf)
+        #: per hand frame), e.g. the hardware mirror: the twin stage's ``after_command`` hooks.
+        self.command_hooks: list[Callable] = self.twin_stage.after_command
+        self._sides = list(self.operator_stage.sides)
         # Real time: what arrived since the last physics step (the next tick's frames, the
         # newest command per effector, the sides commanded by a frame).
         self._pending_frames: list = []
@@ -383,27 +366,15 @@ class TeleopLoop:
         now = self.now()
         poll_wall = time.perf_counter()
         used = []
-        ok = True
         for frame in self.source.poll(now):
             self.frames_received += 1
             if self.source.validates or self.validator.check(frame) is None:
-                ok = self._operator_call("observe", self.operator.observe, frame)[0] and ok
                 used.append(frame)
-        if ok:
-            ok, commands = self._operator_call("command", self.operator.command, now)
-        if not ok:  # the operator failed: every effector holds its last target this tick
-            commands = self._hold_all("error")
-        self._count_holds(commands)
-        state = self.twin.apply(commands)
+        stage = self.operator_stage
+        ok = stage.observe(used)
+        commands = stage.command(now, ok)
+        state = self.twin_stage.apply(commands, entered_perf=poll_wall, latency=bool(used))
         self._resync_blocked(state.guard_blocked_effectors)
-        if used:
-            for cmd in commands.values():
-                if cmd.hold or cmd.effector in state.guard_blocked_effectors:
-                    continue
-                if self.real_time:
-                    self.latencies_ms.append((self.twin.applied_monotonic - cmd.t_receive) * 1e3)
-                else:
-                    self.latencies_ms.append((self.twin.applied_perf - poll_wall) * 1e3)
         self.ticks += 1
         tick = Tick(t=now, frames=tuple(used), commands=commands, state=state)
         self._notify(tick)
@@ -433,7 +404,7 @@ class TeleopLoop:
         env = self.twin.env
         env.between_substeps = self._frames_between_substeps
         try:
-            state = self.twin.step()
+            state = self.twin_stage.step()
         finally:
             env.between_substeps = None
         self.ticks += 1
@@ -448,16 +419,17 @@ class TeleopLoop:
 
     def _take_frames(self, frames) -> None:
         by_side: dict[str, list] = {}
-        ok = True
+        used = []
         for frame in frames:
             self.frames_received += 1
             if self.source.validates or self.validator.check(frame) is None:
-                ok = self._operator_call("observe", self.operator.observe, frame)[0] and ok
-                self._pending_frames.append(frame)
+                used.append(frame)
                 by_side.setdefault(getattr(frame, "side", None), []).append(frame)
+        ok = self.operator_stage.observe(used)
+        self._pending_frames.extend(used)
         now = self.now()
         for side, frames_of_side in by_side.items():
-            if side not in self._last_command:
+            if side not in self.operator_stage.last_command:
                 continue  # a hand this embodiment does not use (the operator counted it)
             self.frames_superseded += len(frames_of_side) - 1
             self.superseded_by_side[side] = (
@@ -468,46 +440,18 @@ class TeleopLoop:
             self._command_side(side, now, ok, self._pending_commands)
 
     def _command_side(self, side: str, now: float, ok: bool, commands: dict) -> None:
-        """Command ``side``'s effectors now and apply the commands to the twin at once."""
-        dt = min(max(now - self._last_command[side], MIN_COMMAND_DT_S), self.dt)
-        self._last_command[side] = now
-        if ok:
-            ok, out = self._operator_call("command", self.operator.command, now, side, dt)
-        if not ok:
-            out = {
-                n: c
-                for n, c in self._hold_all("error").items()
-                if self.operator.effectors[n].side == side
-            }
-        self._count_holds(out)
-        outcome = self.twin.command(out)
+        """Command ``side``'s effectors now and apply the commands to the twin at once (the
+        twin stage's ``after_command`` hooks: the command hooks)."""
+        out = self.operator_stage.command_side(side, now, ok)
+        outcome = self.twin_stage.command(out)
         self._resync_blocked(outcome.blocked)
-        for name in outcome.accepted:
-            t_receive = out[name].t_receive
-            if math.isfinite(t_receive):
-                self.latencies_ms.append((self.twin.applied_monotonic - t_receive) * 1e3)
         commands.update(out)
-        for hook in self.command_hooks:
-            try:
-                hook(outcome, out)
-            except StopTeleop:
-                raise
-            except Exception as exc:
-                self.listener_error(listener_name(hook), exc)
-
-    def _count_holds(self, commands: dict[str, JointCommand]) -> None:
-        for name, cmd in commands.items():
-            if cmd.hold:
-                count_hold(self.holds, name, cmd.reason)
 
     def _resync_blocked(self, blocked) -> None:
         """The guard refused these effectors' commands: count it, and continue each from
         where the twin holds it (its target in the action)."""
         for name in blocked:
-            count_hold(self.holds, name, "guard")
-            self._operator_call(
-                "resync", self.operator.resync, name, self.twin.action[self.twin.slices[name]]
-            )
+            self.operator_stage.guard_refused(name, self.twin.action[self.twin.slices[name]])
 
     def _notify(self, tick: Tick) -> None:
         for listener in self.listeners:
@@ -518,23 +462,9 @@ class TeleopLoop:
             except Exception as exc:
                 self.listener_error(listener_name(listener), exc)
 
-    def _operator_call(self, what: str, fn: Callable, *args) -> tuple[bool, object]:
-        return operator_call(self.operator_errors, what, fn, *args)
-
     def _hold_all(self, reason: str) -> dict[str, JointCommand]:
         """A hold of every effector at the twin's last target (nothing moves, nothing jumps)."""
-        nan = float("nan")
-        return {
-            name: JointCommand(
-                effector=name,
-                positions=self.twin.action[self.twin.slices[name]].copy(),
-                t_source=nan,
-                t_receive=nan,
-                hold=True,
-                reason=reason,
-            )
-            for name in self.operator.effectors
-        }
+        return self.operator_stage.hold(reason, self.operator.effectors)
 
     def listener_error(self, name: str, exc: BaseException) -> None:
         """Count (and log, rate-limited) an exception a tick listener raised."""
