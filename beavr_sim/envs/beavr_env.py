@@ -39,6 +39,10 @@ MAX_PHYSICS_DT = 0.002
 RENDER_MODES = ("rgb_array",)
 
 
+#: The env's control rate (Hz) unless one is given: the runners' operator commands at it.
+DEFAULT_CONTROL_HZ = 30.0
+
+
 class BeavrEnv(gym.Env):
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}
 
@@ -48,7 +52,7 @@ class BeavrEnv(gym.Env):
         embodiment: str = DEFAULT_EMBODIMENT,
         render_mode: str | None = None,
         cameras: Sequence[str] | None = None,
-        control_hz: float = 30.0,
+        control_hz: float = DEFAULT_CONTROL_HZ,
         max_episode_seconds: float | None = None,
         camera_height: int = 480,
         camera_width: int = 640,

@@ -28,6 +28,21 @@ holds when hand frames stop; the supervisor reports the death and stops on its o
 Processes are started with the ``spawn`` method (no state inherited from the parent) and
 report their final counters to the supervisor as JSON over a pipe.
 
+The per-frame path is the one of the single-process loop: both processes run its stages
+(``stages.py``: the operator process an :class:`~beavr_sim.teleop.stages.OperatorStage`, the
+twin process a :class:`~beavr_sim.teleop.stages.TwinStage`, whose hooks the mirror and
+:class:`Attachment` s follow), each built from its frozen config (:class:`OperatorProcessConfig`,
+:class:`TwinProcessConfig`) passed whole to the spawned process. The operator forwards the
+both-hands-pinch e-stop to the twin (:class:`~beavr_sim.wire.messages.OperatorEventMsg`, which
+latches the mirror); the twin's states carry whether the operator holds paused (the browser
+view's Pause or e-stop, the mirror's latched e-stop).
+
+On the virtual and paced clocks (a trace) the processes run in lockstep: the twin publishes
+the state of tick k, the operator answers it as one process's tick k (the frames up to k * dt,
+every effector commanded), and the twin applies those commands and steps only once every
+effector's arrived; paced, each tick's state is published at its wall deadline. A replay is
+then the same episode as in one process, command for command.
+
 Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
 of an older one; the operator re-homes from the first state of a newer epoch only, and after
 a reset request holds until that state comes (:class:`OperatorRehome`). The twin's physics
@@ -38,25 +53,30 @@ command (reason ``"error"``), it never ends the process.
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import math
 import multiprocessing as mp
 import sys
 import time
-from dataclasses import asdict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 
 import numpy as np
+import zmq
 
-from beavr_sim.teleop.pipeline import (
-    MIN_COMMAND_DT_S,
-    TeleopSummary,
-    TickSchedule,
-    _percentiles,
-    count_hold,
-    operator_call,
+from beavr_sim.teleop.pipeline import TeleopSummary, TickSchedule, _percentiles
+from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
+from beavr_sim.twin.twin import CommandOutcome
+from beavr_sim.wire.messages import (
+    JointCommandMsg,
+    OperatorEventMsg,
+    RobotStateMsg,
+    SessionMsg,
 )
 from beavr_sim.wire.ports import TransportConfig
+from beavr_sim.wire.records import JointCommand, TwinState
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 
@@ -68,39 +88,151 @@ HANDSHAKE_TIMEOUT_S = 10.0
 #: holds). More than one: a 30 Hz headset's frames come a period apart, with jitter, and a
 #: clock command just before each would repeat the last frame's.
 CLOCK_COMMAND_AFTER = 1.5
+#: The topic of the operator's session events on its command stream: no effector's name (never
+#: with "/") is a prefix of it.
+OPERATOR_EVENT_TOPIC = b"/operator_event"
 
 
-def _options_dict(options) -> dict:
-    d = asdict(options)
-    d["trace"] = str(options.trace) if options.trace is not None else None
-    return d
+@dataclass(frozen=True)
+class ViewConfig:
+    """The twin process's browser view: where it is served and how often it updates."""
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+    rate_hz: float = 30.0
+    show_collision: bool = False
+
+
+@dataclass(frozen=True)
+class Attachment:
+    """Something that attaches to the twin stage's hooks in the twin process, named by import
+    path: ``target`` is ``"package.module:function"``, called there as
+    ``function(twin_process, argument)`` with the :class:`TwinProcess`; it may return a
+    callable run when the process ends (e.g. to write what it measured). The hooks a user
+    has: the latency benchmark attaches its timing this way."""
+
+    target: str
+    argument: str = ""
+
+    def __post_init__(self) -> None:
+        module, _, name = self.target.partition(":")
+        if not module or not name:
+            raise ValueError(f"attachment target must be 'module:function', got {self.target!r}")
+
+    def resolve(self) -> Callable:
+        module, _, name = self.target.partition(":")
+        return getattr(importlib.import_module(module), name)
+
+
+@dataclass(frozen=True)
+class OperatorProcessConfig:
+    """The operator process: its stage, its source (``"quest"`` or ``"trace"`` with the
+    trace's path) and whether it runs in lockstep with the twin (virtual and paced clocks)."""
+
+    stage: OperatorConfig
+    source: str
+    trace: str | None = None
+    lockstep: bool = False
+
+
+@dataclass(frozen=True)
+class TwinProcessConfig:
+    """The twin process: the env (task, embodiment, control rate, LEAP variant; ``live``: no
+    time limit), the episode's seed, the clock (``lockstep``: the twin steps only once the
+    operator's commands for the tick arrived; ``paced``: lockstep ticks slept to the control
+    rate), when a lockstep episode ends (as the single-process loop's ``run``), the mirrored
+    rig, the browser view and the attachments."""
+
+    task: str
+    embodiment: str
+    control_hz: float
+    seed: int | None = None
+    live: bool = True
+    leap_variant: str | None = None
+    lockstep: bool = False
+    paced: bool = False
+    stop_on_success: bool = True
+    max_seconds: float | None = None
+    tail_seconds: float = 2.0
+    mirror_hardware: bool = False
+    hardware_config: str | None = None
+    dry_run: bool = False
+    view: ViewConfig | None = None
+    attach: tuple[Attachment, ...] = ()
+
+
+def effector_slices(embodiment) -> dict[str, slice]:
+    """Each effector's slice of the action vector (arm then hand joints, in effector order)."""
+    slices, start = {}, 0
+    for e in embodiment.effectors:
+        slices[e.name] = slice(start, start + len(e.joints))
+        start += len(e.joints)
+    return slices
+
+
+def command_to_wire(cmd: JointCommand, now: float, epoch: int, **lockstep) -> JointCommandMsg:
+    """The operator's command as sent to the twin (a NaN source stamp, a hold's, as 0)."""
+    return JointCommandMsg(
+        effector=cmd.effector,
+        t_source=cmd.t_source if math.isfinite(cmd.t_source) else 0.0,
+        t_command=now,
+        positions=np.asarray(cmd.positions, dtype=np.float64).tolist(),
+        hold=cmd.hold,
+        reason=cmd.reason,
+        epoch=epoch,
+        **lockstep,
+    )
+
+
+def command_from_wire(msg: JointCommandMsg, held: np.ndarray | None = None) -> JointCommand | None:
+    """A command as the twin applies it: its positions, holding or not (an ``ik_infeasible``
+    hold keeps the arm and moves the fingers: the twin applies it as one process does). A hold
+    without positions keeps the last targets: None, or a hold at ``held`` where given (the
+    lockstep tick, which applies every effector's command as one process does)."""
+    if not msg.positions:
+        if held is None:
+            return None
+        positions = held.copy()
+    else:
+        positions = np.asarray(msg.positions, dtype=np.float64)
+    t_source = msg.t_source if msg.t_source > 0 else float("nan")
+    return JointCommand(
+        effector=msg.effector,
+        positions=positions,
+        t_source=t_source,
+        t_receive=t_source,
+        hold=msg.hold,
+        reason=msg.reason,
+    )
 
 
 # ---------------------------------------------------------------------------- operator
-def operator_main(options: dict, transport: TransportConfig, conn) -> None:
-    import zmq
-
+def operator_main(config: OperatorProcessConfig, transport: TransportConfig, conn) -> None:
     from beavr_sim.headset.sources import QuestSource, TraceSource
     from beavr_sim.headset.validation import StreamValidator
     from beavr_sim.operator.operator import Operator
     from beavr_sim.robots import make_embodiment
-    from beavr_sim.wire.messages import JointCommandMsg, RobotStateMsg, SessionMsg
     from beavr_sim.wire.transport import Publisher, Subscriber
 
     context = zmq.Context()
-    embodiment = make_embodiment(options["embodiment"])
-    dt = 1.0 / options["control_hz"]
+    embodiment = make_embodiment(config.stage.embodiment)
+    control_hz = config.stage.control_hz
+    dt = 1.0 / control_hz
     operator = Operator(embodiment, dt)
-    # The detector: the headset's sockets (or a trace in real time) in this process's event
-    # loop; every valid frame is observed (none is dropped unseen).
+    # Each side's effectors are commanded when its hand frame arrives; a side without a
+    # frame for CLOCK_COMMAND_AFTER control periods is commanded on the clock (holds:
+    # tracking lost, paused, waiting), so the twin always hears from the operator.
+    stage = OperatorStage(operator, control_hz, start=time.monotonic())
+    # The detector: the headset's sockets (or a trace) in this process's event loop; every
+    # valid frame is observed (none is dropped unseen).
     validator = StreamValidator()
-    if options["source"] == "trace":
-        source = TraceSource(options["trace"], real_time=True)
+    if config.source == "trace":
+        source = TraceSource(config.trace, real_time=not config.lockstep)
     else:
         source = QuestSource(context, transport, validator, latest_only=False)
     # A trace starts playing when the supervisor says every process is ready ("resume"), so
     # the operator anchors on its first frames as it would in one process.
-    started = options["source"] != "trace"
+    started = config.source != "trace"
     received = 0
     state = Subscriber(
         context,
@@ -113,111 +245,113 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     commands = Publisher(context, transport.endpoint("commands", bind=True))
-    commands.wait_for_subscribers(len(embodiment.effectors), HANDSHAKE_TIMEOUT_S)
+    # the twin's command subscribers and its operator-event subscriber
+    commands.wait_for_subscribers(len(embodiment.effectors) + 1, HANDSHAKE_TIMEOUT_S)
     # Start from the twin's measured joints.
     first = state.recv(HANDSHAKE_TIMEOUT_S)
-    slices, start = {}, 0
-    for e in embodiment.effectors:
-        slices[e.name] = slice(start, start + len(e.joints))
-        start += len(e.joints)
-    rehome = OperatorRehome(operator, slices)
+    rehome = OperatorRehome(operator, effector_slices(embodiment))
     if first is not None:
         rehome.on_state(first)
     conn.send_bytes(b"ready")
     compute_ms: list[float] = []
-    holds: dict[str, dict[str, int]] = {}
-    errors: dict[str, int] = {}
-    sides = list(options["sides"])
-    side_effectors = {
-        side: [e.name for e in embodiment.effectors if e.side == side] for side in sides
-    }
+    sides = list(config.stage.sides)
     #: Per side: frames observed but not commanded on their own (a newer one was queued).
     superseded = dict.fromkeys(sides, 0)
     frames_commanded = dict.fromkeys(sides, 0)
     clock_commands = dict.fromkeys(sides, 0)
-    # Each side's effectors are commanded when its hand frame arrives; a side without a
-    # frame for CLOCK_COMMAND_AFTER control periods is commanded on the clock (holds:
-    # tracking lost, paused, waiting), so the twin always hears from the operator.
-    last_command = dict.fromkeys(sides, time.monotonic())
     poller = zmq.Poller()
     for socket in (*source.sockets, state.socket, session.socket):
         poller.register(socket, zmq.POLLIN)
     overruns = 0
+    session_paused = False
+    view_paused = False
+    estop_events = 0
+    answered: tuple[int, int] | None = None  # lockstep: (epoch, tick) last commanded
 
-    def guarded(what: str, fn, *args) -> tuple[bool, object]:
-        return operator_call(errors, what, fn, *args)
+    def set_paused() -> None:
+        stage.set_paused(session_paused or view_paused)
 
-    def send_hold(now: float, reason: str, names) -> None:
-        """These effectors hold (the twin keeps their last targets)."""
-        for name in names:
-            count_hold(holds, name, reason)
-            commands.send(
-                name.encode(),
-                JointCommandMsg(
-                    effector=name,
-                    t_source=0.0,
-                    t_command=now,
-                    positions=[],
-                    hold=True,
-                    reason=reason,
-                    epoch=rehome.epoch,
-                ),
-            )
+    def send(out: dict[str, JointCommand], now: float, **lockstep) -> None:
+        for name, cmd in out.items():
+            commands.send(name.encode(), command_to_wire(cmd, now, rehome.epoch, **lockstep))
+
+    def forward_events(now: float) -> None:
+        """The both-hands pinch latches the twin's mirror (the e-stop gesture)."""
+        nonlocal estop_events
+        if stage.take_events(record=False).estop:
+            estop_events += 1
+            commands.send(OPERATOR_EVENT_TOPIC, OperatorEventMsg(event="estop", t=now))
 
     def command_side(side: str, ok: bool) -> None:
         """Command ``side``'s effectors now, from what the operator has observed."""
         now = time.monotonic()
-        dt_side = min(max(now - last_command[side], MIN_COMMAND_DT_S), dt)
-        last_command[side] = now
-        names = side_effectors[side]
+        hold = None
         if rehome.waiting:
             # Hold until the twin's state after the reset comes: re-homing to a state from
             # before it would drive the robot back where it was.
             rehome.warn_if_late(now)
-            send_hold(now, "resetting", names)
+            hold = "resetting"
+        send(stage.command_side(side, now, ok, hold_reason=hold), now)
+
+    def lockstep_tick(msg: RobotStateMsg) -> None:
+        """Answer the twin's state of tick k as one process's tick k: the frames up to
+        k * dt observed, every effector commanded at that time."""
+        nonlocal received, answered
+        if msg.tick < 0 or msg.done or answered == (msg.epoch, msg.tick) or rehome.waiting:
             return
-        if ok:
-            ok, out = guarded("command", operator.command, now, side, dt_side)
-        if not ok:
-            send_hold(now, "error", names)
-            return
-        for name, cmd in out.items():
-            if cmd.hold:
-                count_hold(holds, name, cmd.reason)
-            t_source = cmd.t_source if np.isfinite(cmd.t_source) else 0.0
-            commands.send(
-                name.encode(),
-                JointCommandMsg(
-                    effector=name,
-                    t_source=t_source,
-                    t_command=now,
-                    positions=cmd.positions.tolist(),
-                    hold=cmd.hold,
-                    reason=cmd.reason,
-                    epoch=rehome.epoch,
-                ),
-            )
+        answered = (msg.epoch, msg.tick)
+        t0 = time.monotonic()
+        now = msg.tick * dt
+        used = []
+        for frame in source.poll(now):
+            received += 1
+            if source.validates or validator.check(frame) is None:
+                used.append(frame)
+        out = stage.command(now, stage.observe(used))
+        send(out, t0, tick=msg.tick, source_finished=source.finished)
+        forward_events(t0)
+        compute_ms.append((time.monotonic() - t0) * 1e3)
+
+    def take_state(msg: RobotStateMsg) -> None:
+        nonlocal view_paused
+        if config.lockstep and answered == (msg.epoch, msg.tick) and not msg.done:
+            return  # the twin asked again for a tick already answered
+        stage.call("reset", rehome.on_state, msg)
+        if msg.paused != view_paused:
+            view_paused = msg.paused
+            set_paused()
+
+    if first is not None:
+        take_state(first)
 
     receiver = getattr(source, "receiver", None)
     try:
         while True:
-            due = min(last_command.values()) + CLOCK_COMMAND_AFTER * dt
-            frame_due = source.next_due() if started else None
-            if frame_due is not None:
-                due = min(due, frame_due)
-            poller.poll(max(0, math.ceil((due - time.monotonic()) * 1000)))
+            if config.lockstep:
+                poller.poll(100)
+            else:
+                due = min(stage.last_command.values()) + CLOCK_COMMAND_AFTER * dt
+                frame_due = source.next_due() if started else None
+                if frame_due is not None:
+                    due = min(due, frame_due)
+                poller.poll(max(0, math.ceil((due - time.monotonic()) * 1000)))
             msg = session.recv(0.0)
             if msg is not None:
                 if msg.command == "stop":
                     break
                 if msg.command in ("pause", "resume"):
-                    operator.set_paused(msg.command == "pause")
+                    session_paused = msg.command == "pause"
+                    set_paused()
                     started = started or msg.command == "resume"
                 if msg.command == "reset":
                     rehome.expect(msg.epoch)
             latest = state.recv_latest(0.0)
             if latest is not None:
-                guarded("reset", rehome.on_state, latest)
+                take_state(latest)
+                if config.lockstep:
+                    lockstep_tick(latest)
+            if config.lockstep:
+                continue
             by_side: dict[str, list] = {}
             for frame in source.poll(time.monotonic()) if started else ():
                 received += 1
@@ -227,16 +361,17 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                 t0 = time.perf_counter()
                 ok = True
                 if not rehome.waiting:  # frames from before the reset are dropped
-                    for frame in frames:
-                        ok = guarded("observe", operator.observe, frame)[0] and ok
+                    ok = stage.observe(frames)
                     superseded[side] += len(frames) - 1
                     frames_commanded[side] += 1
                 command_side(side, ok)
                 compute_ms.append((time.perf_counter() - t0) * 1e3)
+            if by_side:
+                forward_events(time.monotonic())
             now = time.monotonic()
             for side in sides:
-                if now - last_command[side] >= CLOCK_COMMAND_AFTER * dt:
-                    if now - last_command[side] > 1.1 * CLOCK_COMMAND_AFTER * dt:
+                if now - stage.last_command[side] >= CLOCK_COMMAND_AFTER * dt:
+                    if now - stage.last_command[side] > 1.1 * CLOCK_COMMAND_AFTER * dt:
                         overruns += 1
                     clock_commands[side] += 1
                     command_side(side, True)
@@ -246,14 +381,15 @@ def operator_main(options: dict, transport: TransportConfig, conn) -> None:
                 {
                     "compute_ms": _percentiles(compute_ms),
                     "operator": {n: asdict(op.stats) for n, op in operator.effectors.items()},
-                    "holds": holds,
-                    "errors": errors,
+                    "holds": stage.holds,
+                    "errors": stage.errors,
                     "reset_epoch": rehome.epoch,
                     "overruns": overruns,
                     "missed_ticks": 0,
                     "frames_superseded": superseded,
                     "frames_commanded": frames_commanded,
                     "clock_commands": clock_commands,
+                    "estop_events": estop_events,
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
@@ -376,42 +512,92 @@ class OperatorRehome:
 
 
 # ---------------------------------------------------------------------------- twin
-def twin_main(options: dict, transport: TransportConfig, conn) -> None:
+#: Lockstep: seconds without the operator's commands for a tick before the twin asks again
+#: (publishes the same state once more; a lost message never stalls the episode).
+LOCKSTEP_ASK_AGAIN_S = 0.2
+
+
+class TwinProcess:
+    """What an :class:`Attachment` gets in the twin process: the config, the env, the twin
+    stage (attach to its ``after_command`` / ``after_step`` hooks), the mirror (None when not
+    mirroring), per effector the newest command's operator stamp and the moment the twin took
+    it (:attr:`received`: ``(t_command, t_take)``, monotonic), and the commands of the last
+    lockstep tick (:attr:`tick_commands`)."""
+
+    def __init__(self, config: TwinProcessConfig, env, stage: TwinStage, mirror):
+        self.config = config
+        self.env = env
+        self.stage = stage
+        self.mirror = mirror
+        self.received: dict[str, tuple[float, float]] = {}
+        self.tick_commands: dict[str, JointCommand] = {}
+
+
+def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Callable[[], None]:
+    """The hardware mirror follows the twin through its hooks: every command written (the
+    guarded action, at once) and, after a step without one, the same targets (its heartbeat).
+    ``positions``: the twin's joints at the start. Returns ``reset(positions)`` for a new
+    episode."""
+    twin = stage.twin
+    last = {"positions": positions.copy(), "submitted": False}
+
+    def after_command(outcome: CommandOutcome, commands) -> None:
+        mirror.submit(twin.action.copy(), last["positions"], outcome.blocked)
+        last["submitted"] = True
+
+    def after_step(state: TwinState) -> None:
+        if not last["submitted"]:  # no command this period: the same targets (heartbeat)
+            mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
+        last["submitted"] = False
+        last["positions"] = state.positions
+
+    def reset(q: np.ndarray) -> None:
+        last["positions"] = np.asarray(q, dtype=np.float64).copy()
+
+    after_command.__name__, after_step.__name__ = "mirror", "mirror"
+    stage.after_command.insert(0, after_command)
+    stage.after_step.insert(0, after_step)
+    return reset
+
+
+def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
     import gymnasium as gym
-    import zmq
 
     import beavr_sim  # noqa: F401
     from beavr_sim.twin.twin import TwinInterface
-    from beavr_sim.wire.messages import JointCommandMsg, RobotStateMsg, SessionMsg
-    from beavr_sim.wire.records import JointCommand
     from beavr_sim.wire.transport import Publisher, Subscriber
 
     context = zmq.Context()
-    kwargs = {} if options["source"] == "trace" else {"max_episode_seconds": 1e9}
-    if options.get("leap_variant"):
-        kwargs["hand_variant"] = options["leap_variant"]
-    env = gym.make(
-        f"beavr_sim/{options['task']}-v0", embodiment=options["embodiment"], **kwargs
-    ).unwrapped
+    kwargs: dict = {"control_hz": config.control_hz}
+    if config.live:
+        kwargs["max_episode_seconds"] = 1e9
+    if config.leap_variant:
+        kwargs["hand_variant"] = config.leap_variant
+    env = gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
     twin = TwinInterface(env)
-    twin.reset(options["seed"])
+    stage = TwinStage(twin)
+    #: The seed of the episode (a reset from the supervisor or the browser replays it).
+    episode_seed = config.seed
+    positions = twin.reset(episode_seed)  # the twin's measured joints after its last step
     mirror = None
-    closers = []
-    if options.get("mirror_hardware"):
+    closers: list[Callable[[], None]] = []
+    mirror_reset = None
+    if config.mirror_hardware:
         from beavr_sim.hardware.device import MirrorError
         from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, connect_mirror
 
         try:
-            mirror, q_measured = connect_mirror(options, env, closers)
+            mirror, q_measured = connect_mirror(config, env, closers)
         except (MirrorError, ValueError, FileNotFoundError) as exc:
             for close in reversed(closers):
                 close()
             conn.send_bytes(f"error: {exc}".encode())
             env.close()
             return
-        twin.reset(options["seed"], q_measured)  # the twin starts where the robot stands
+        positions = twin.reset(episode_seed, q_measured)  # the twin starts where the robot is
         sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)  # see teleop/mirroring.py
         mirror.start(twin.action)
+        mirror_reset = follow_with_mirror(stage, mirror, positions)
     fixtures = fixtures_to_wire(env)
     subs = {
         e.name: Subscriber(
@@ -423,27 +609,34 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         )
         for e in env.embodiment.effectors
     }
+    events = Subscriber(
+        context,
+        transport.endpoint("commands", bind=False),
+        OPERATOR_EVENT_TOPIC,
+        OperatorEventMsg,
+        conflate=False,
+    )
     session = Subscriber(
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     state_pub = Publisher(context, transport.endpoint("robot_state", bind=True))
     state_pub.wait_for_subscribers(2, HANDSHAKE_TIMEOUT_S)  # operator + supervisor
     view = None
-    if options["viser"]:
+    if config.view is not None:
         from beavr_sim.viz.twin_view import TwinView, subtree_bodies
 
         joints = env.joints
         view = TwinView(
             env.render_model,
-            host=options["viser_host"],
-            port=options["viser_port"],
+            host=config.view.host,
+            port=config.view.port,
             task=env.task.name,
             embodiment=env.embodiment.name,
             effector_bodies=subtree_bodies(
                 env.model, {n: joints.names[sl] for n, sl in joints.slices.items()}
             ),
-            rate_hz=options.get("viser_rate_hz", 30.0),
-            show_collision=options.get("show_collision", False),
+            rate_hz=config.view.rate_hz,
+            show_collision=config.view.show_collision,
             mirroring=mirror is not None,
         )
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)
@@ -452,134 +645,205 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         from beavr_sim.teleop.mirroring import BrowserEstop
 
         browser_estop = BrowserEstop(view, mirror)
+    process = TwinProcess(config, env, stage, mirror)
+    finishers: list[Callable[[], None]] = []
+    for attachment in config.attach:
+        finish = attachment.resolve()(process, attachment.argument)
+        if finish is not None:
+            finishers.append(finish)
     poller = zmq.Poller()
-    for sub in (*subs.values(), session):
+    for sub in (*subs.values(), session, events):
         poller.register(sub.socket, zmq.POLLIN)
     conn.send_bytes(b"ready")
-    latencies: list[float] = []
     blocked: set[str] = set()  # effectors the guard blocked since the last view update
     success = False
     details: dict = {}
     dt = 1.0 / env.control_hz
-    # The physics steps on its own real-time clock, one control period at a time; commands
+    # Real time: the physics steps on its own clock, one control period at a time; commands
     # are guarded and written to the actuators (and handed to the mirror) when they arrive,
-    # in between. A stall moves the grid on (no catch-up steps).
+    # in between. A stall moves the grid on (no catch-up steps). Paced lockstep: each tick's
+    # state is published at its deadline.
     schedule = TickSchedule(dt)
     schedule.restart(time.monotonic() + dt)
-    last_t_source: dict[str, float] = {}
-    # Optional timing log for ``python -m beavr_sim.bench latency`` (off unless the option
-    # names a file): every command applied, (t_apply, t_source) per effector, and every
-    # action handed to the hardware mirror, (t_submit, {effector: t_source in effect}).
-    latency_log = options.get("latency_log")
-    applied_log: dict[str, list] = {e.name: [] for e in env.embodiment.effectors}
-    # and per command applied: (detector's stamp, operator's command time, twin took it,
-    # applied), to say where the time goes
-    stage_log: dict[str, list] = {e.name: [] for e in env.embodiment.effectors}
-    submit_log: list = []
-    in_effect: dict[str, float] = {}
     epoch = 0  # resets done: stamped on every state; commands of an older epoch are dropped
     stale: dict[str, int] = {}
-    positions = twin.action.copy()  # the twin's measured joints after its last step
-    submitted = False  # an action went to the mirror since the last step
     command_poller = zmq.Poller()
     for sub in subs.values():
         command_poller.register(sub.socket, zmq.POLLIN)
+    slices = twin.slices
+    # Lockstep: the tick whose commands the twin waits for, those arrived, the episode's end.
+    tick = 0
+    pending: dict[str, JointCommandMsg] = {}
+    finished_at: float | None = None
+    done = False
+    last_state: RobotStateMsg | None = None
+    asked_at = -math.inf
+
+    def state_message(st: TwinState | None, **lockstep) -> RobotStateMsg:
+        paused = view is not None and (view.paused or view.estop_requested)
+        paused = paused or (mirror is not None and mirror.estopped)
+        if st is None:  # after a reset: the measured joints, at rest
+            return RobotStateMsg(
+                t=env.elapsed_seconds,
+                positions=positions.tolist(),
+                velocities=[0.0] * len(positions),
+                success=success,
+                epoch=epoch,
+                fixtures=fixtures,
+                paused=paused,
+                **lockstep,
+            )
+        return RobotStateMsg(
+            t=st.t,
+            positions=st.positions.tolist(),
+            velocities=st.velocities.tolist(),
+            success=success,
+            guard_blocked=st.guard_blocked,
+            guard_blocked_effectors=list(st.guard_blocked_effectors),
+            action=st.action.tolist() if st.guard_blocked_effectors else [],
+            epoch=epoch,
+            fixtures=fixtures if st.t < FIXTURES_FOR_S else [],
+            paused=paused,
+            **lockstep,
+        )
+
+    def publish(msg: RobotStateMsg) -> None:
+        nonlocal last_state, asked_at
+        last_state, asked_at = msg, time.monotonic()
+        state_pub.send(b"state", msg)
 
     def take_commands() -> None:
-        """Every effector's newest command, guarded, written to the actuators' targets and
-        handed to the mirror at once."""
-        nonlocal submitted
+        """Real time: every effector's newest command, guarded, written to the actuators'
+        targets and handed to the hooks (the mirror) at once."""
         t_take = time.monotonic()
-        applied, t_command = {}, {}
+        applied = {}
         for name, sub in subs.items():
-            cmd = sub.recv_latest(0.0)
-            if cmd is None:
+            msg = sub.recv_latest(0.0)
+            if msg is None:
                 continue
-            if cmd.epoch < epoch:  # computed from the pose before a reset: hold
+            if msg.epoch < epoch:  # computed from the pose before a reset: hold
                 stale[name] = stale.get(name, 0) + 1
                 continue
-            if cmd.hold or not cmd.positions:
-                continue  # holding: keep the last targets
-            applied[name] = JointCommand(
-                effector=name,
-                positions=np.asarray(cmd.positions),
-                t_source=cmd.t_source,
-                t_receive=cmd.t_source,
-            )
-            t_command[name] = cmd.t_command
-        if not applied:
-            return
-        outcome = twin.command(applied)
-        t_apply = twin.applied_monotonic
-        for name in outcome.accepted:
-            t_source = applied[name].t_source
-            if t_source > 0 and t_source != last_t_source.get(name):
-                latencies.append((t_apply - t_source) * 1e3)
-                last_t_source[name] = t_source
-            if latency_log:
-                applied_log[name].append((t_apply, t_source))
-                stage_log[name].append((t_source, t_command[name], t_take, t_apply))
-                in_effect[name] = t_source
-        if mirror is not None:  # the guarded action, the moment it is applied
-            if latency_log:
-                submit_log.append((time.monotonic(), dict(in_effect)))
-            mirror.submit(twin.action.copy(), positions, outcome.blocked)
-            submitted = True
+            cmd = command_from_wire(msg)
+            if cmd is None:
+                continue  # holding without targets: keep the last ones
+            applied[name] = cmd
+            process.received[name] = (msg.t_command, t_take)
+        if applied:
+            stage.command(applied)
+
+    def take_tick_commands() -> None:
+        """Lockstep: the commands answering this tick's state."""
+        for name, sub in subs.items():
+            msg = sub.recv_latest(0.0)
+            if msg is None:
+                continue
+            if msg.epoch < epoch:
+                stale[name] = stale.get(name, 0) + 1
+            elif msg.epoch == epoch and msg.tick == tick:
+                pending[name] = msg
+                process.received[name] = (msg.t_command, time.monotonic())
+
+    def lockstep_step() -> TwinState:
+        """One process's tick: every effector's command guarded and written, one step."""
+        nonlocal tick, finished_at, done
+        cmds = {
+            name: command_from_wire(msg, held=twin.action[slices[name]])
+            for name, msg in sorted(pending.items())
+        }
+        source_finished = any(msg.source_finished for msg in pending.values())
+        t_command = min(msg.t_command for msg in pending.values())
+        pending.clear()
+        process.tick_commands = cmds
+        st = stage.apply(cmds, entered_perf=0.0, latency=False)
+        for name, cmd in cmds.items():
+            if not (cmd.hold or name in st.guard_blocked_effectors) and cmd.t_source > 0:
+                stage.latencies_ms.append((twin.applied_monotonic - t_command) * 1e3)
+        tick += 1
+        elapsed = tick * dt
+        done = bool(
+            (st.success and config.stop_on_success)
+            or st.failure
+            or st.truncated
+            or (config.max_seconds is not None and elapsed >= config.max_seconds)
+        )
+        if source_finished:
+            finished_at = elapsed if finished_at is None else finished_at
+            done = done or elapsed - finished_at >= config.tail_seconds
+        return st
 
     def between_substeps() -> None:
         # Commands that arrive while the physics steps are taken between its substeps.
         if command_poller.poll(0):
             take_commands()
 
-    env.between_substeps = between_substeps
+    if not config.lockstep:
+        env.between_substeps = between_substeps
+    else:
+        if config.paced:
+            schedule.restart()
+            schedule.wait()
+        publish(state_message(None, tick=0))
     try:
         while True:
-            remaining = schedule.next - time.monotonic()
-            if remaining > 0:
-                poller.poll(math.ceil(remaining * 1000))
+            if config.lockstep:
+                poller.poll(math.ceil(LOCKSTEP_ASK_AGAIN_S * 250))
+            else:
+                remaining = schedule.next - time.monotonic()
+                if remaining > 0:
+                    poller.poll(math.ceil(remaining * 1000))
             msg = session.recv(0.0)
             if msg is not None and msg.command == "stop":
                 break
             reset = msg is not None and msg.command == "reset"
             if reset or (view is not None and view.take_reset()):  # supervisor or browser
-                positions = twin.reset(options["seed"])
+                positions = twin.reset(episode_seed)
                 epoch = max(epoch + 1, msg.epoch if reset else 0)
                 fixtures = fixtures_to_wire(env)
+                if mirror_reset is not None:
+                    mirror_reset(positions)
+                if config.lockstep:
+                    tick, finished_at, done, success = 0, None, False, False
+                    pending.clear()
+                    publish(state_message(None, tick=0))
             if msg is not None and mirror is not None and msg.command == "estop":
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
                 mirror.release()
-            take_commands()
-            now = time.monotonic()
-            if now < schedule.next:
-                continue
-            schedule.take(now)
-            st = twin.step()
+            event = events.recv(0.0)
+            while event is not None:
+                if event.event == "estop" and mirror is not None:
+                    mirror.estop("headset gesture: both hands pinch")
+                event = events.recv(0.0)
+            if config.lockstep:
+                if done:
+                    if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
+                        publish(last_state)  # the end, again: the supervisor stops on it
+                    continue
+                take_tick_commands()
+                if len(pending) < len(subs):
+                    if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
+                        publish(last_state)  # ask again: a lost message never stalls
+                    continue
+                st = lockstep_step()
+                if config.paced and not done:
+                    schedule.wait()
+            else:
+                take_commands()
+                now = time.monotonic()
+                if now < schedule.next:
+                    continue
+                schedule.take(now)
+                st = stage.step()
             positions = st.positions
-            if mirror is not None:
-                if not submitted:  # no command this period: the same targets (heartbeat)
-                    if latency_log:
-                        submit_log.append((time.monotonic(), dict(in_effect)))
-                    mirror.submit(st.action, st.positions, st.guard_blocked_effectors)
-                submitted = False
-                if browser_estop is not None:
-                    browser_estop(None)
+            if browser_estop is not None:
+                browser_estop(None)
             success = success or st.success
             details = {k: v for k, v in st.info.items() if k.startswith("task/")}
-            state_pub.send(
-                b"state",
-                RobotStateMsg(
-                    t=st.t,
-                    positions=st.positions.tolist(),
-                    velocities=st.velocities.tolist(),
-                    success=success,
-                    guard_blocked=st.guard_blocked,
-                    guard_blocked_effectors=list(st.guard_blocked_effectors),
-                    action=st.action.tolist() if st.guard_blocked_effectors else [],
-                    epoch=epoch,
-                    fixtures=fixtures if st.t < FIXTURES_FOR_S else [],
-                ),
-            )
+            if config.lockstep:
+                publish(state_message(st, tick=tick, done=done))
+            else:
+                publish(state_message(st))
             if view is not None:
                 if st.guard_blocked:  # shown at the next update even if it cleared since
                     blocked |= set(st.guard_blocked_effectors or view.guard.geoms)
@@ -592,14 +856,16 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     )
                     blocked = set()
     finally:
+        env.between_substeps = None
         hardware = {}
         if mirror is not None:
             mirror.close()
             hardware = mirror.summary()
-        if latency_log:
-            _write_latency_log(
-                latency_log, env.control_hz, applied_log, submit_log, mirror, stage_log
-            )
+        for finish in finishers:
+            try:
+                finish()
+            except Exception as exc:
+                log.error("twin attachment failed at the end: %r", exc)
         for close in reversed(closers):
             close()
         conn.send_bytes(
@@ -623,8 +889,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                     "reset_epoch": epoch,
                     "overruns": schedule.overruns,
                     "missed_ticks": schedule.missed_ticks,
-                    "latency_ms": _percentiles(latencies),
+                    "latency_ms": _percentiles(stage.latencies_ms),
+                    "hook_errors": dict(stage.hook_errors),
                     "duration_s": env.elapsed_seconds,
+                    "ticks": tick if config.lockstep else int(round(env.elapsed_seconds / dt)),
                     "task": env.task.name,
                     "embodiment": env.embodiment.name,
                 }
@@ -633,38 +901,10 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         if view is not None:
             view.close()
         state_pub.close()
-        for s in (*subs.values(), session):
+        for s in (*subs.values(), session, events):
             s.close()
         env.close()
         context.term()
-
-
-def _write_latency_log(path, control_hz, applied_log, submit_log, mirror, stage_log) -> None:
-    """The twin's timing log (``options["latency_log"]``) as JSON: see ``bench/latency.py``."""
-    links = []
-    if mirror is not None:
-        for link, effector in zip(mirror.links, mirror._link_effector, strict=True):
-            links.append(
-                {
-                    "name": link.name,
-                    "effector": effector,
-                    # monotonic time the writer took the tick, and ms from the tick's
-                    # hand-off to the first write having left the driver
-                    "write_times": list(link.stats.write_times),
-                    "write_latency_ms": list(link.stats.write_latency_ms),
-                }
-            )
-    with open(path, "w") as f:
-        json.dump(
-            {
-                "control_hz": control_hz,
-                "applied": applied_log,
-                "stages": stage_log,
-                "submits": submit_log,
-                "links": links,
-            },
-            f,
-        )
 
 
 TARGETS = {"operator": operator_main, "twin": twin_main}
@@ -673,24 +913,18 @@ TARGETS = {"operator": operator_main, "twin": twin_main}
 class MultiprocessSession:
     """Starts the three processes, watches them, stops them; see the module docstring."""
 
-    def __init__(self, options, transport: TransportConfig | None = None):
-        from beavr_sim.robots import make_embodiment
-        from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
-
+    def __init__(
+        self,
+        options,
+        transport: TransportConfig | None = None,
+        attach: tuple[Attachment, ...] = (),
+    ):
+        """``options``: a :class:`~beavr_sim.teleop.session.SessionOptions`; ``attach``: what
+        attaches to the twin stage's hooks in the twin process (:class:`Attachment`)."""
         self.transport = transport or options.transport or TransportConfig()
-        opts = _options_dict(options)
-        opts.pop("transport", None)
-        if options.source == "trace":
-            from beavr_sim.traces.format import TraceReader
-
-            meta = TraceReader(options.trace).metadata
-            opts["embodiment"] = opts["embodiment"] or meta.embodiment or None
-            opts["seed"] = opts["seed"] if opts["seed"] is not None else meta.seed
-        opts["embodiment"] = opts["embodiment"] or DEFAULT_EMBODIMENT
-        embodiment = make_embodiment(opts["embodiment"])
-        opts["sides"] = sorted({e.side for e in embodiment.effectors})
-        opts["control_hz"] = 30.0
-        self.options = opts
+        self.operator_config, self.twin_config = process_configs(options, attach)
+        self.lockstep = self.twin_config.lockstep
+        self.mirror_hardware = options.mirror_hardware
         self.ctx = mp.get_context("spawn")
         self.processes: dict[str, mp.process.BaseProcess] = {}
         self.pipes: dict[str, object] = {}
@@ -699,10 +933,11 @@ class MultiprocessSession:
         #: Resets requested (each names the reset epoch the operator waits for).
         self.resets = 0
 
-    def start(self) -> None:
-        import zmq
+    @property
+    def control_hz(self) -> float:
+        return self.twin_config.control_hz
 
-        from beavr_sim.wire.messages import RobotStateMsg, SessionMsg
+    def start(self) -> None:
         from beavr_sim.wire.transport import Publisher, Subscriber
 
         self.context = zmq.Context()
@@ -715,11 +950,12 @@ class MultiprocessSession:
             liveness_timeout_s=LIVENESS_TIMEOUT_S,
         )
         self._session_type = SessionMsg
+        configs = {"operator": self.operator_config, "twin": self.twin_config}
         for name in ("twin", "operator"):
             parent, child = self.ctx.Pipe()
             proc = self.ctx.Process(
                 target=TARGETS[name],
-                args=(self.options, self.transport, child),
+                args=(configs[name], self.transport, child),
                 name=name,
                 daemon=True,
             )
@@ -773,7 +1009,7 @@ class MultiprocessSession:
     def run(self, max_seconds: float | None, stop_on_success: bool) -> TeleopSummary:
         self.start()
         requests: list[str] = []  # from the keyboard thread; sent from this one
-        if self.options.get("mirror_hardware") and sys.stdin is not None and sys.stdin.isatty():
+        if self.mirror_hardware and sys.stdin is not None and sys.stdin.isatty():
             from beavr_sim.teleop.episodes import KeyboardControl
 
             keyboard = KeyboardControl(
@@ -794,6 +1030,8 @@ class MultiprocessSession:
                     self.send(requests.pop(0))
                 if state is not None:
                     success = success or state.success
+                    if self.lockstep and state.done:
+                        break  # the twin ended the episode as one process's loop would
                 for name in self.dead():
                     if name not in reported:
                         reported.add(name)
@@ -804,10 +1042,12 @@ class MultiprocessSession:
                             self.processes[name].exitcode,
                         )
                 elapsed = time.monotonic() - t0
-                if (success and stop_on_success) or (max_seconds and elapsed >= max_seconds):
+                if not self.lockstep and (
+                    (success and stop_on_success) or (max_seconds and elapsed >= max_seconds)
+                ):
                     break
-                if "twin" in reported:
-                    break
+                if "twin" in reported or (self.lockstep and reported):
+                    break  # lockstep: no tick follows without both processes
         finally:
             self.stop()
         return self.summary(success, died=reported)
@@ -818,8 +1058,8 @@ class MultiprocessSession:
         op, twin = self.results.get("operator", {}), self.results.get("twin", {})
         det = op.get("detector", {})
         return TeleopSummary(
-            task=twin.get("task", self.options["task"]),
-            embodiment=twin.get("embodiment", self.options["embodiment"]),
+            task=twin.get("task", self.twin_config.task),
+            embodiment=twin.get("embodiment", self.twin_config.embodiment),
             success=bool(twin.get("success", success)),
             frames_received=det.get("frames_received", 0),
             frames_rejected=det.get("frames_rejected", 0),
@@ -832,6 +1072,8 @@ class MultiprocessSession:
             processes={n: ("died" if n in died else "ok") for n in self.processes},
             guard_blocks=twin.get("guard_blocks", {}),
             hardware=twin.get("hardware", {}),
+            ticks=twin.get("ticks", 0),
+            listener_errors=twin.get("hook_errors", {}),
             overruns=op.get("overruns", 0) + twin.get("overruns", 0),
             missed_ticks=op.get("missed_ticks", 0) + twin.get("missed_ticks", 0),
             frames_superseded=sum(det.get("frames_superseded", {}).values())
@@ -853,6 +1095,61 @@ def merged_holds(operator: dict, twin: dict) -> dict[str, dict[str, int]]:
             if n:
                 count_hold(holds, name, reason, int(n))
     return holds
+
+
+def process_configs(
+    options, attach: tuple[Attachment, ...] = ()
+) -> tuple[OperatorProcessConfig, TwinProcessConfig]:
+    """The two processes' configs from a :class:`~beavr_sim.teleop.session.SessionOptions`:
+    a trace's embodiment and seed where the options leave them open, the env's control rate,
+    lockstep on the virtual and paced clocks."""
+    from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+    from beavr_sim.robots import make_embodiment
+    from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+
+    embodiment, seed = options.embodiment, options.seed
+    if options.source == "trace":
+        from beavr_sim.traces.format import TraceReader
+
+        meta = TraceReader(options.trace).metadata
+        embodiment = embodiment or meta.embodiment or None
+        seed = seed if seed is not None else meta.seed
+    embodiment = embodiment or DEFAULT_EMBODIMENT
+    sides = tuple(sorted({e.side for e in make_embodiment(embodiment).effectors}))
+    lockstep = options.clock in ("virtual", "paced")
+    stage = OperatorConfig(embodiment=embodiment, control_hz=DEFAULT_CONTROL_HZ, sides=sides)
+    view = None
+    if options.viser:
+        view = ViewConfig(
+            host=options.viser_host,
+            port=options.viser_port,
+            rate_hz=options.viser_rate_hz,
+            show_collision=options.show_collision,
+        )
+    operator = OperatorProcessConfig(
+        stage=stage,
+        source=options.source,
+        trace=str(options.trace) if options.trace is not None else None,
+        lockstep=lockstep,
+    )
+    twin = TwinProcessConfig(
+        task=options.task,
+        embodiment=embodiment,
+        control_hz=stage.control_hz,
+        seed=seed,
+        live=options.source != "trace",
+        leap_variant=options.leap_variant,
+        lockstep=lockstep,
+        paced=options.clock == "paced",
+        stop_on_success=options.source == "trace",
+        max_seconds=options.max_seconds,
+        mirror_hardware=options.mirror_hardware,
+        hardware_config=options.hardware_config,
+        dry_run=options.dry_run,
+        view=view,
+        attach=tuple(attach),
+    )
+    return operator, twin
 
 
 def run_multiprocess(options) -> TeleopSummary:

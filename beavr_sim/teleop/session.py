@@ -123,11 +123,10 @@ class SessionOptions:
         elif self.dry_run or self.hardware_config is not None:
             raise ValueError("--dry-run and --hardware-config need --mirror-hardware")
         self.leap_variant = self._twin_leap_variant()
-        if self.clock is None:
-            self.clock = "virtual" if self.source == "trace" and not self.viser else "real"
+        if self.clock is None:  # --multiprocess: the real clock unless one is asked for
+            virtual = self.source == "trace" and not self.viser and not self.multiprocess
+            self.clock = "virtual" if virtual else "real"
         check_name("clock", self.clock, ("real", "virtual", "paced"))
-        if self.multiprocess and self.clock == "paced":
-            raise ValueError("--multiprocess runs on the real clock; leave out --clock paced")
         if self.clock != "real" and self.source != "trace":
             raise ValueError(f"a {self.clock} clock needs a recorded source (--source trace)")
         if self.max_seconds is not None and not self.max_seconds > 0:

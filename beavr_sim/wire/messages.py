@@ -144,9 +144,16 @@ class JointCommandMsg(msgspec.Struct, tag="joint_command", kw_only=True, frozen=
     hold: bool = False
     reason: str = ""
     epoch: int = 0
+    #: Lockstep (virtual and paced clocks): the tick of the twin's state the command answers
+    #: (-1: real time, the command applies when it arrives).
+    tick: int = -1
+    #: Lockstep: the operator's source has ended (the twin plays the tail, then stops).
+    source_finished: bool = False
 
     def __post_init__(self) -> None:
         _coerce(self, ("t_source", "t_command"), ("positions",))
+        if self.tick < -1:
+            raise ValueError(f"tick must be >= -1 (-1: real time), got {self.tick}")
         _check_epoch(self.epoch)
         if not self.effector or "/" in self.effector:
             raise ValueError(
@@ -212,10 +219,19 @@ class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True
     #: The task's fixtures as this epoch's reset placed them (the operator's IK keeps the
     #: hands off them); every state carries them, so a conflated stream cannot lose them.
     fixtures: list[FixtureMsg] = []
+    #: The operator holds (reason ``"paused"``): the browser view's Pause, its e-stop button
+    #: or the mirror's latched emergency stop.
+    paused: bool = False
+    #: Lockstep (virtual and paced clocks): the tick this state asks the operator's commands
+    #: for (-1: real time); ``done``: the episode ended, no tick follows.
+    tick: int = -1
+    done: bool = False
 
     def __post_init__(self) -> None:
         _coerce(self, ("t",), ("positions", "velocities", "action"))
         _check_epoch(self.epoch)
+        if self.tick < -1:
+            raise ValueError(f"tick must be >= -1 (-1: real time), got {self.tick}")
         _check_finite("t", self.t)
         _check_length("velocities", self.velocities, len(self.positions))
         if self.action:
@@ -244,8 +260,31 @@ class SessionMsg(msgspec.Struct, tag="session", kw_only=True, frozen=True):
         _check_finite("t", self.t)
 
 
-Message = HandFrameMsg | JointCommandMsg | RobotStateMsg | SessionMsg
-MESSAGE_TYPES: tuple[type, ...] = (HandFrameMsg, JointCommandMsg, RobotStateMsg, SessionMsg)
+#: Session events the operator recognises in the hands (operator -> twin).
+OPERATOR_EVENTS = ("estop",)  # both hands pinch at once: the mirror latches its e-stop
+
+
+class OperatorEventMsg(msgspec.Struct, tag="operator_event", kw_only=True, frozen=True):
+    """A session event the operator recognised (``event``, one of :data:`OPERATOR_EVENTS`) at
+    ``t`` (the operator's clock); the twin acts on it (the e-stop latches its mirror)."""
+
+    event: str
+    t: float = 0.0
+
+    def __post_init__(self) -> None:
+        _coerce(self, ("t",), ())
+        check_name("operator event", self.event, OPERATOR_EVENTS)
+        _check_finite("t", self.t)
+
+
+Message = HandFrameMsg | JointCommandMsg | RobotStateMsg | SessionMsg | OperatorEventMsg
+MESSAGE_TYPES: tuple[type, ...] = (
+    HandFrameMsg,
+    JointCommandMsg,
+    RobotStateMsg,
+    SessionMsg,
+    OperatorEventMsg,
+)
 
 
 @functools.cache
