@@ -8,8 +8,10 @@ embodiment uses, and the pause status ``High`` with each app frame. The pipeline
 is the ``--multiprocess`` runner (``--layout processes``: the operator process, which owns
 the headset's sockets and the detector's parsing, and the twin process, over loopback
 ZeroMQ) or the single-process runner (``--layout single``), mirroring to the emulated hardware
-(``hardware_config="emulated"``), with a timing log (``options["latency_log"]``, written by
-the twin; see ``processes.py``).
+(``hardware_config="emulated"``), with a timing log written by the twin: the benchmark
+attaches to the twin stage's hooks (:func:`attach_twin_timing`, a
+:class:`~beavr_sim.teleop.processes.Attachment` of the twin process; the single process's
+command hook), as any user's code can.
 
 The pipeline is event-driven: one command per hand frame at the headset rate, each applied by
 the twin on arrival and submitted to the hardware mirror at once; the twin also submits a
@@ -502,7 +504,7 @@ def _max_payload(lives) -> bytes:
 
 def start_session(live: LiveSession) -> None:
     """Start ``live``'s ``--multiprocess`` pipeline on its own free ports, with a timing log."""
-    from beavr_sim.teleop.processes import MultiprocessSession
+    from beavr_sim.teleop.processes import Attachment, MultiprocessSession
     from beavr_sim.teleop.session import SessionOptions
     from beavr_sim.wire.ports import PortConfig, TransportConfig
 
@@ -524,8 +526,8 @@ def start_session(live: LiveSession) -> None:
     if live.layout == "single":
         session = SingleProcessSession(options, live.log_path)
     else:
-        session = MultiprocessSession(options)
-        session.options["latency_log"] = live.log_path
+        timing = Attachment(f"{__name__}:attach_twin_timing", live.log_path)
+        session = MultiprocessSession(options, attach=(timing,))
     t_start = time.monotonic()
     try:
         session.start()
@@ -543,6 +545,75 @@ def start_session(live: LiveSession) -> None:
 LAYOUTS = ("processes", "single")
 
 
+def write_latency_log(path, control_hz, applied_log, submit_log, mirror, stage_log) -> None:
+    """The twin's timing log as JSON: ``applied`` (t_apply, t_source) per command applied,
+    ``stages`` (t_source, t_command, t_take, t_apply) per command, ``submits`` (t_submit,
+    {effector: t_source in effect}) per action handed to the mirror, ``links`` (each device's
+    write times and hand-off -> write latencies)."""
+    links = []
+    if mirror is not None:
+        for link, effector in zip(mirror.links, mirror._link_effector, strict=True):
+            links.append(
+                {
+                    "name": link.name,
+                    "effector": effector,
+                    # monotonic time the writer took the tick, and ms from the tick's
+                    # hand-off to the first write having left the driver
+                    "write_times": list(link.stats.write_times),
+                    "write_latency_ms": list(link.stats.write_latency_ms),
+                }
+            )
+    with open(path, "w") as f:
+        json.dump(
+            {
+                "control_hz": control_hz,
+                "applied": applied_log,
+                "stages": stage_log,
+                "submits": submit_log,
+                "links": links,
+            },
+            f,
+        )
+
+
+def attach_twin_timing(process, path: str):
+    """The timing log, attached to the twin process's stage (an
+    :class:`~beavr_sim.teleop.processes.Attachment`): every command applied and every action
+    handed to the mirror (its hooks run first), written to ``path`` when the process ends."""
+    stage, mirror = process.stage, process.mirror
+    names = [e.name for e in process.env.embodiment.effectors]
+    applied: dict[str, list] = {name: [] for name in names}
+    stages: dict[str, list] = {name: [] for name in names}
+    submits: list = []
+    in_effect: dict[str, float] = {}
+    submitted = [False]
+
+    def timing_command(outcome, commands) -> None:
+        t_apply = stage.twin.applied_monotonic
+        for name in outcome.accepted:
+            t_source = float(commands[name].t_source)
+            applied[name].append((t_apply, t_source))
+            t_command, t_take = process.received.get(name, (float("nan"), float("nan")))
+            stages[name].append((t_source, t_command, t_take, t_apply))
+            in_effect[name] = t_source
+        if mirror is not None:
+            submits.append((time.monotonic(), dict(in_effect)))
+            submitted[0] = True
+
+    def timing_step(state) -> None:
+        if mirror is not None and not submitted[0]:  # the mirror's heartbeat
+            submits.append((time.monotonic(), dict(in_effect)))
+        submitted[0] = False
+
+    stage.after_command.append(timing_command)
+    stage.after_step.append(timing_step)
+
+    def finish() -> None:
+        write_latency_log(path, process.env.control_hz, applied, submits, mirror, stages)
+
+    return finish
+
+
 def single_process_main(options, log_path: str, conn) -> None:
     """The single-process runner (own process, as ``python -m beavr_sim.teleop`` runs it
     without ``--multiprocess``) with the twin's timing log of the multiprocess runner:
@@ -550,7 +621,6 @@ def single_process_main(options, log_path: str, conn) -> None:
     the mirror, ``links``; runs until the pipe says stop, then sends its counters."""
     import zmq
 
-    from beavr_sim.teleop.processes import _write_latency_log
     from beavr_sim.teleop.session import build_loop, start_mirror
 
     context = zmq.Context()
@@ -578,7 +648,7 @@ def single_process_main(options, log_path: str, conn) -> None:
     finally:
         if mirror is not None:
             mirror.close()
-        _write_latency_log(
+        write_latency_log(
             log_path, loop.twin.env.control_hz, applied, submits, mirror, {n: [] for n in applied}
         )
         receiver = loop.source.receiver
@@ -608,7 +678,9 @@ class SingleProcessSession:
     harness uses (``start``, ``dead``, ``stop``, ``results``, ``options``, ``exits``)."""
 
     def __init__(self, options, log_path: str):
-        self.options = {"control_hz": 30.0}
+        from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+
+        self.control_hz = DEFAULT_CONTROL_HZ
         self.results: dict = {}
         self.exits: dict = {}
         ctx = mp.get_context("spawn")
@@ -785,7 +857,7 @@ def run(
         "headset_hz": rate_hz,
         "target_hz": rate_hz,
         "control_hz": live.log["control_hz"],
-        "operator_hz": session.options["control_hz"],
+        "operator_hz": session.control_hz,
         "seconds": seconds,
         "warmup_s": WARMUP_S,
         "startup_s": round(live.startup_s, 2),

@@ -127,8 +127,7 @@ class SessionThread:
     """``teleop --source webxr`` (:func:`~beavr_sim.teleop.session.run_session`) in a thread;
     :attr:`loop` once built. :meth:`stop` ends it from a tick listener.
 
-    To reach the loop, ``session.build_loop`` is wrapped while the session starts (restored
-    once the loop is built): one session at a time."""
+    The loop is reached through ``run_session``'s ``on_loop`` (a stop listener added)."""
 
     def __init__(self, options, start_timeout_s: float = 120.0):
         from beavr_sim.teleop import session
@@ -139,7 +138,6 @@ class SessionThread:
         self.summary = None
         self._stop = threading.Event()
         self._built = threading.Event()
-        build = session.build_loop
         thread_self = self
 
         class _Stop(StopTeleop):
@@ -149,25 +147,19 @@ class SessionThread:
             if thread_self._stop.is_set():
                 raise _Stop
 
-        def build_loop(opts, context=None):
-            session.build_loop = build
-            loop = build(opts, context)
+        def on_loop(loop) -> None:
             loop.listeners.append(stop_listener)
             thread_self.loop = loop
             thread_self._built.set()
-            return loop
-
-        session.build_loop = build_loop
 
         def run() -> None:
             try:
-                self.summary = session.run_session(options)
+                self.summary = session.run_session(options, on_loop=on_loop)
             except _Stop:
                 pass
             except BaseException as exc:
                 self.error = exc
             finally:
-                session.build_loop = build
                 self._built.set()
 
         self.thread = threading.Thread(target=run, name="teleop-session", daemon=True)

@@ -88,6 +88,10 @@ HANDSHAKE_TIMEOUT_S = 10.0
 #: holds). More than one: a 30 Hz headset's frames come a period apart, with jitter, and a
 #: clock command just before each would repeat the last frame's.
 CLOCK_COMMAND_AFTER = 1.5
+#: ``--source webxr``: the operator waits on the page server this long at most at a time
+#: (ms), then looks at its streams (robot state, session).
+WEBXR_WAIT_MS = 5
+
 #: The topic of the operator's session events on its command stream: no effector's name (never
 #: with "/") is a prefix of it.
 OPERATOR_EVENT_TOPIC = b"/operator_event"
@@ -126,13 +130,15 @@ class Attachment:
 
 @dataclass(frozen=True)
 class OperatorProcessConfig:
-    """The operator process: its stage, its source (``"quest"`` or ``"trace"`` with the
-    trace's path) and whether it runs in lockstep with the twin (virtual and paced clocks)."""
+    """The operator process: its stage, its source (``"quest"``, ``"webxr"`` with the page
+    server's config, hosted by this process, or ``"trace"`` with the trace's path) and whether it runs in lockstep with the twin (virtual and paced clocks)."""
 
     stage: OperatorConfig
     source: str
     trace: str | None = None
     lockstep: bool = False
+    #: ``source="webxr"``: the page server this process hosts (a ``WebXRConfig``).
+    webxr: object | None = None
 
 
 @dataclass(frozen=True)
@@ -209,6 +215,7 @@ def command_from_wire(msg: JointCommandMsg, held: np.ndarray | None = None) -> J
 # ---------------------------------------------------------------------------- operator
 def operator_main(config: OperatorProcessConfig, transport: TransportConfig, conn) -> None:
     from beavr_sim.headset.sources import QuestSource, TraceSource
+    from beavr_sim.headset.sources import WebXRSource as WebXRSourceType
     from beavr_sim.headset.validation import StreamValidator
     from beavr_sim.operator.operator import Operator
     from beavr_sim.robots import make_embodiment
@@ -228,6 +235,9 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     validator = StreamValidator()
     if config.source == "trace":
         source = TraceSource(config.trace, real_time=not config.lockstep)
+    elif config.source == "webxr":
+        source = WebXRSourceType(config.webxr, validator)
+        print(f"WebXR page (open it in the headset's browser): {source.url}", file=sys.stderr)
     else:
         source = QuestSource(context, transport, validator, latest_only=False)
     # A trace starts playing when the supervisor says every process is ready ("resume"), so
@@ -327,6 +337,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     receiver = getattr(source, "receiver", None)
     try:
         while True:
+            early: list = []  # webxr: frames taken while waiting
             if config.lockstep:
                 poller.poll(100)
             else:
@@ -334,7 +345,14 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                 frame_due = source.next_due() if started else None
                 if frame_due is not None:
                     due = min(due, frame_due)
-                poller.poll(max(0, math.ceil((due - time.monotonic()) * 1000)))
+                timeout_ms = max(0, math.ceil((due - time.monotonic()) * 1000))
+                if isinstance(source, WebXRSourceType):
+                    # frames come from the page server's thread, not a socket: wait on it,
+                    # a short while at a time, and look at the streams in between
+                    poller.poll(0)
+                    early = source.wait(min(timeout_ms, WEBXR_WAIT_MS) / 1000)
+                else:
+                    poller.poll(timeout_ms)
             msg = session.recv(0.0)
             if msg is not None:
                 if msg.command == "stop":
@@ -353,7 +371,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             if config.lockstep:
                 continue
             by_side: dict[str, list] = {}
-            for frame in source.poll(time.monotonic()) if started else ():
+            for frame in [*early, *source.poll(time.monotonic())] if started else ():
                 received += 1
                 if (source.validates or validator.check(frame) is None) and frame.side in sides:
                     by_side.setdefault(frame.side, []).append(frame)
@@ -1131,6 +1149,7 @@ def process_configs(
         source=options.source,
         trace=str(options.trace) if options.trace is not None else None,
         lockstep=lockstep,
+        webxr=options.webxr_config() if options.source == "webxr" else None,
     )
     twin = TwinProcessConfig(
         task=options.task,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,8 +102,11 @@ class SessionOptions:
             raise ValueError("--trace needs --source trace")
         if self.source == "webxr":
             self.webxr_config()  # raises on a bad host or port
-            if self.multiprocess:
-                raise ValueError("--source webxr runs in one process; leave out --multiprocess")
+            if self.multiprocess and not self.headless:
+                raise ValueError(
+                    "--source webxr --multiprocess: the twin drawn on the page needs the twin "
+                    "in the page server's process; add --headless or leave out --multiprocess"
+                )
         if self.mirror_hardware:
             if self.clock == "virtual":
                 raise ValueError(
@@ -313,7 +317,11 @@ def build_loop(options: SessionOptions, context=None):
     return loop
 
 
-def run_session(options: SessionOptions) -> TeleopSummary:
+def run_session(
+    options: SessionOptions, on_loop: Callable[[TeleopLoop], None] | None = None
+) -> TeleopSummary:
+    """Run the session of ``options``; ``on_loop``: called with the single-process loop once
+    it is built, before it runs (attach listeners and command hooks to it)."""
     if options.multiprocess:
         from beavr_sim.teleop.processes import run_multiprocess
 
@@ -325,6 +333,8 @@ def run_session(options: SessionOptions) -> TeleopSummary:
         context = zmq.Context()
     loop = build_loop(options, context)
     closers = [loop.source.close, loop.twin.env.close]
+    if on_loop is not None:
+        on_loop(loop)
     control = None
     progress = ProgressLine(loop, options.progress)
     mirror = None
