@@ -66,7 +66,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import zmq
 
-from beavr_sim.teleop.pipeline import TeleopSummary, TickSchedule, _percentiles
+from beavr_sim.teleop.pipeline import TeleopSummary, ThreadedListener, TickSchedule, _percentiles
+from beavr_sim.teleop.session import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
 from beavr_sim.twin.twin import CommandOutcome
 from beavr_sim.wire.messages import (
@@ -105,6 +106,15 @@ class ViewConfig:
     port: int = 8080
     rate_hz: float = 30.0
     show_collision: bool = False
+
+
+@dataclass(frozen=True)
+class HeadsetImagesConfig:
+    """The twin process renders its headset camera and publishes the images to the Quest
+    app (``--source quest`` without ``--headless``): at most ``rate_hz``, ``size`` (W, H)."""
+
+    rate_hz: float = 10.0
+    size: tuple[int, int] = (640, 360)
 
 
 @dataclass(frozen=True)
@@ -147,7 +157,7 @@ class TwinProcessConfig:
     time limit), the episode's seed, the clock (``lockstep``: the twin steps only once the
     operator's commands for the tick arrived; ``paced``: lockstep ticks slept to the control
     rate), when a lockstep episode ends (as the single-process loop's ``run``), the mirrored
-    rig, the browser view and the attachments."""
+    rig, the browser view, the headset images and the attachments."""
 
     task: str
     embodiment: str
@@ -164,6 +174,7 @@ class TwinProcessConfig:
     hardware_config: str | None = None
     dry_run: bool = False
     view: ViewConfig | None = None
+    headset_images: HeadsetImagesConfig | None = None
     attach: tuple[Attachment, ...] = ()
 
 
@@ -663,6 +674,28 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         from beavr_sim.teleop.mirroring import BrowserEstop
 
         browser_estop = BrowserEstop(view, mirror)
+    if config.headset_images is not None:
+        from beavr_sim.headset.quest_io import HeadsetImagePublisher
+
+        images = config.headset_images
+        publisher = HeadsetImagePublisher(context, transport, rate_hz=images.rate_hz)
+        closers.append(publisher.close)
+        renderer = HeadsetRenderer(
+            publisher, env.render_model, headset_camera(env.embodiment), images.size
+        )
+        next_due = [0.0]
+
+        def headset_pose(state: TwinState) -> ScenePose | None:
+            now = time.monotonic()
+            if now < next_due[0]:
+                return None
+            next_due[0] = now + 1.0 / images.rate_hz
+            return ScenePose.of(env.data)
+
+        # rendered and sent off the physics' thread; closed before the publisher
+        headset = ThreadedListener(renderer, snapshot=headset_pose, name="headset_images")
+        closers.append(headset.close)
+        stage.after_step.append(headset)
     process = TwinProcess(config, env, stage, mirror)
     finishers: list[Callable[[], None]] = []
     for attachment in config.attach:
@@ -1166,6 +1199,11 @@ def process_configs(
         hardware_config=options.hardware_config,
         dry_run=options.dry_run,
         view=view,
+        headset_images=(
+            HeadsetImagesConfig(options.headset_image_hz, tuple(options.headset_image_size))
+            if options.source == "quest" and not options.headless
+            else None
+        ),
         attach=tuple(attach),
     )
     return operator, twin
