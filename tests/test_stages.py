@@ -9,7 +9,10 @@ final ``qpos``. The digests hold for this machine's MuJoCo and numpy builds.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import itertools
+import time
 
 import numpy as np
 import pytest
@@ -226,3 +229,185 @@ def test_multiprocess_replays_a_trace_to_the_same_commands_as_one_process(
     for field in ("success", "frames_received", "commands_applied", "ticks", "holds"):
         assert getattr(multi, field) == getattr(one, field), field
     assert multi.latency_ms["n"] == one.latency_ms["n"]
+
+
+# ------------------------------------------------------------------ the feature matrix
+SOURCES = ("quest", "webxr", "trace")
+CLOCKS = (None, "real", "virtual", "paced")
+FEATURES = ("plain", "mirror", "view", "estop_inputs", "record", "rerun", "headset_images")
+
+
+def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
+    kwargs = dict(
+        task="PickupBox",
+        source=source,
+        clock=clock,
+        viser=feature in ("view", "estop_inputs"),
+        headless=feature != "headset_images",
+        progress=False,
+        multiprocess=multiprocess,
+    )
+    if feature in ("mirror", "estop_inputs"):  # keyboard, browser button, headset gesture
+        kwargs.update(mirror_hardware=True, hardware_config="emulated")
+    if feature == "record":
+        kwargs["record"] = tmp_path / "dataset"
+    if feature == "rerun":
+        kwargs["rerun"] = tmp_path / "session.rrd"
+    return kwargs
+
+
+def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
+    """What the combination is refused for (words one of which the error names; any one
+    applies); empty: it must work."""
+    reasons = []
+    if feature in ("mirror", "estop_inputs") and clock == "virtual":
+        reasons.append("real control rate")
+    if clock in ("virtual", "paced") and source != "trace":
+        reasons.append("recorded source")
+    if multiprocess and feature == "record":
+        reasons.append("--record")
+    if multiprocess and feature == "rerun":
+        reasons.append("--rerun")
+    if multiprocess and source == "webxr" and feature == "headset_images":
+        reasons.append("--headless")
+    return tuple(reasons)
+
+
+@pytest.mark.parametrize("multiprocess", [False, True], ids=["one_process", "multiprocess"])
+def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(multiprocess, tmp_path):
+    """Each combination of source x clock x feature is either refused with a one-line
+    reason or carried into what the layout runs (the processes' configs): never silently
+    ignored. Main refuses --clock paced and --source webxr with --multiprocess and runs
+    --clock virtual there on the real clock."""
+    from beavr_sim.teleop.processes import process_configs
+
+    wrong = []
+    for source, clock, feature in itertools.product(SOURCES, CLOCKS, FEATURES):
+        case = f"{source} x {clock} x {feature}"
+        expected = refusals(source, clock, feature, multiprocess)
+        try:
+            options = SessionOptions(
+                **matrix_options(source, clock, feature, multiprocess, tmp_path)
+            )
+        except ValueError as exc:
+            message = str(exc)
+            if not any(word in message for word in expected) or "\n" in message:
+                wrong.append(f"{case}: refused ({message})")
+            continue
+        if expected:
+            wrong.append(f"{case}: accepted, expected a refusal naming one of {expected}")
+            continue
+        if not multiprocess:
+            continue  # the single-process session is the reference
+        op, twin = process_configs(options)
+        carried = {
+            "source": op.source == source and (op.webxr is not None) == (source == "webxr"),
+            "clock": (twin.lockstep, twin.paced)
+            == (options.clock in ("virtual", "paced"), options.clock == "paced"),
+            "mirror": twin.mirror_hardware == (feature in ("mirror", "estop_inputs")),
+            "view": (twin.view is not None) == (feature in ("view", "estop_inputs")),
+            "headset_images": (twin.headset_images is not None)
+            == (feature == "headset_images" and source == "quest"),
+            "control_rate": op.stage.control_hz == twin.control_hz,
+        }
+        wrong += [f"{case}: {what} not carried" for what, ok in carried.items() if not ok]
+    assert not wrong, "\n".join(wrong)
+
+
+# ------------------------------------------------------------------ the e-stop gesture
+def pinching_trace(path, t_pinch: float = 1.0):
+    """The bundled RX-1 PickupBox trace with both hands pinching from ``t_pinch`` on."""
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.traces.format import TraceReader, TraceWriter
+
+    reader = TraceReader(bundled_trace("PickupBox", "rx1"))
+    with TraceWriter(path, reader.metadata) as writer:
+        for _t, kind, payload in reader.events():
+            if kind == "hand":
+                writer.write_hand(dataclasses.replace(payload, pinch=payload.t_source >= t_pinch))
+    return path
+
+
+@pytest.mark.parametrize("multiprocess", [False, True], ids=["one_process", "multiprocess"])
+def test_both_hands_pinching_latches_the_estop_on_every_mirrored_device(multiprocess, tmp_path):
+    """The headset's e-stop gesture reaches the mirror in both layouts (main's --multiprocess
+    never forwarded it: the devices went on moving)."""
+    from beavr_sim.teleop.session import run_session
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+    options = SessionOptions(
+        task="PickupBox",
+        embodiment="rx1",
+        source="trace",
+        trace=pinching_trace(tmp_path / "pinch.mcap"),
+        viser=False,
+        headless=True,
+        progress=False,
+        multiprocess=multiprocess,
+        mirror_hardware=True,
+        hardware_config="emulated",
+        max_seconds=3.0,
+        transport=TransportConfig(ports=PortConfig.free()),
+    )
+    summary = run_session(options)
+    assert summary.hardware, summary
+    for name, device in summary.hardware.items():
+        assert "headset gesture" in device["holding"], (name, device)
+
+
+# ------------------------------------------------------------------ the twin process's rules
+def test_an_ik_infeasible_hold_moves_the_fingers_in_the_twin_process_as_in_one():
+    """The operator's ``ik_infeasible`` hold keeps the arm and moves the fingers: the twin
+    process applies its positions as one process does (main's twin_main skipped every hold,
+    fingers included); a hold without positions keeps the last targets."""
+    from beavr_sim.teleop.processes import command_from_wire
+    from beavr_sim.wire.messages import JointCommandMsg
+
+    positions = [0.1 * i for i in range(23)]
+    msg = JointCommandMsg(
+        effector="right",
+        t_source=1.5,
+        t_command=1.6,
+        positions=positions,
+        hold=True,
+        reason="ik_infeasible",
+    )
+    cmd = command_from_wire(msg)
+    assert cmd is not None and cmd.hold and cmd.reason == "ik_infeasible"
+    np.testing.assert_array_equal(cmd.positions, positions)
+    empty = JointCommandMsg(effector="right", t_source=0.0, t_command=1.6, positions=[], hold=True)
+    assert command_from_wire(empty) is None
+    held = np.arange(23.0)
+    np.testing.assert_array_equal(command_from_wire(empty, held=held).positions, held)
+
+
+def test_the_twin_stage_counts_latency_per_command_and_isolates_its_hooks():
+    """Every accepted command counts (main's twin process counted only distinct t_source
+    values); a hook that raises is counted, the stage goes on."""
+    import gymnasium as gym
+
+    from beavr_sim.teleop.stages import TwinStage
+    from beavr_sim.twin.twin import TwinInterface
+    from beavr_sim.wire.records import JointCommand
+
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    try:
+        twin = TwinInterface(env)
+        q = twin.reset(0)
+        stage = TwinStage(twin)
+        seen = []
+
+        def broken(outcome, commands):
+            raise RuntimeError("a viewer bug")
+
+        stage.after_command += [lambda outcome, commands: seen.append(outcome), broken]
+        t = time.monotonic()
+        same = JointCommand("right", q[twin.slices["right"]].copy(), t, t)
+        for _ in range(3):  # one hand frame's command, applied three times
+            outcome = stage.command({"right": same})
+            assert outcome.accepted == ("right",)
+        stage.step()
+        assert len(stage.latencies_ms) == 3 and len(seen) == 3
+        assert stage.hook_errors == {"broken": 3}
+    finally:
+        env.close()
