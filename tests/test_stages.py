@@ -411,3 +411,59 @@ def test_the_twin_stage_counts_latency_per_command_and_isolates_its_hooks():
         assert stage.hook_errors == {"broken": 3}
     finally:
         env.close()
+
+
+# ------------------------------------------------------------------ WebXR across processes
+def test_a_webxr_page_drives_a_multiprocess_session_and_its_pinch_latches_every_device():
+    """--source webxr --multiprocess (main refused it): the operator process hosts the page
+    server; a raw WebSocket client sends both hands, then both pinch: every emulated device
+    latches the e-stop (the twin's state says the operator holds)."""
+    import json
+
+    from websockets.sync.client import connect
+
+    from beavr_sim.headset.layouts import LAYOUTS
+    from beavr_sim.headset.webxr_protocol import encode_hands
+    from beavr_sim.teleop.processes import MultiprocessSession
+    from beavr_sim.wire.hand import N_JOINTS
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+    options = SessionOptions(
+        task="PickupBox",
+        embodiment="rx1",
+        source="webxr",
+        viser=False,
+        headless=True,
+        progress=False,
+        multiprocess=True,
+        mirror_hardware=True,
+        hardware_config="emulated",
+        transport=TransportConfig(ports=PortConfig.free()),
+    )
+    rng = np.random.default_rng(0)
+    canonical = np.array([0.3, 0.0, 1.1]) + rng.uniform(-0.09, 0.09, size=(N_JOINTS, 3))
+    hand = LAYOUTS["webxr25"].from_canonical(canonical)
+    session = MultiprocessSession(options)
+    session.start()  # returns once both processes are ready: the page server is up
+    try:
+        url = f"ws://127.0.0.1:{options.webxr_config().port}/ws"
+        t_ms = 1.7e12
+        with connect(url) as ws:
+            assert json.loads(ws.recv())["type"] == "welcome"
+            for i in range(40):
+                pinch = {"left": i >= 20, "right": i >= 20}
+                hands = {"left": hand, "right": hand}
+                ws.send(encode_hands(t_ms + 33 * i, hands, seq=i, pinch=pinch))
+            deadline = time.monotonic() + 120.0
+            while time.monotonic() < deadline:  # the twin's states say when it latched
+                state = session.state_sub.recv_latest(0.5)
+                if state is not None and state.paused:
+                    break
+            else:
+                raise AssertionError("the mirror never latched its e-stop")
+    finally:
+        session.stop()
+    op, twin = session.results["operator"], session.results["twin"]
+    assert op["detector"]["frames_received"] == 80 and op["estop_events"] == 1
+    for name, device in twin["hardware"].items():
+        assert "headset gesture" in device["holding"], (name, device)
