@@ -48,8 +48,7 @@ beyond the session rules above:
   untracked ones.
 - ``"ik_infeasible"``: the arm IK's QP had no solution (e.g. already closer to the table than
   the collision margin): the arm holds its previous joints (``hold=True``) while the fingers
-  still follow the hand in that tick. A consumer that skips held commands (the process
-  twin) then keeps the previous targets, fingers included, for that tick.
+  still follow the hand in that tick (both runners' twins apply the command's positions).
 - ``"retarget_infeasible"``: the LEAP retargeting's QP had no solution: the fingers hold their
   previous joints while the arm moves, so the command is not a hold (``hold=False``) but
   carries the reason; counted in ``holds`` like the others. A tick where both QPs failed
