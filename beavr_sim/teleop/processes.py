@@ -66,8 +66,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import zmq
 
+from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.pipeline import TeleopSummary, ThreadedListener, TickSchedule, _percentiles
-from beavr_sim.teleop.session import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
 from beavr_sim.twin.twin import CommandOutcome
 from beavr_sim.wire.messages import (

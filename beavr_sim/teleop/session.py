@@ -12,10 +12,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, ThreadedListener
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
@@ -586,54 +585,6 @@ def record_episodes(
     if summary is None:
         summary = loop.summary(False)
     return summary
-
-
-def headset_camera(embodiment) -> str:
-    """The camera whose images go to the headset: the robot's own first camera where it has one
-    (the RX-1's ``head``: the operator sees what the robot's head sees), else ``front``."""
-    return embodiment.cameras[0] if embodiment.cameras else "front"
-
-
-@dataclass(frozen=True)
-class ScenePose:
-    """What a render of the scene needs of the env's state, copied on the control thread."""
-
-    qpos: np.ndarray
-    mocap_pos: np.ndarray
-    mocap_quat: np.ndarray
-
-    @classmethod
-    def of(cls, data) -> ScenePose:
-        return cls(data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy())
-
-
-class HeadsetRenderer:
-    """Renders the headset camera from a :class:`ScenePose` into its own ``MjData`` and
-    publishes the image; it runs on a :class:`ThreadedListener`'s thread, so it never reads the
-    env's ``MjData`` while the control thread steps it."""
-
-    def __init__(self, publisher, model, camera: str, size: tuple[int, int]):
-        import mujoco
-
-        from beavr_sim.envs.cameras import OffscreenCameras
-
-        self.publisher = publisher
-        self.model = model
-        self.camera = camera
-        self.data = mujoco.MjData(model)
-        self.cameras = OffscreenCameras(model, size[1], size[0])
-
-    def __call__(self, pose: ScenePose) -> None:
-        import mujoco
-
-        self.data.qpos[:] = pose.qpos
-        self.data.mocap_pos[:] = pose.mocap_pos
-        self.data.mocap_quat[:] = pose.mocap_quat
-        mujoco.mj_forward(self.model, self.data)
-        self.publisher.publish(self.cameras.render(self.data, self.camera))
-
-    def close(self) -> None:
-        self.cameras.close()
 
 
 def headset_listener(
