@@ -62,6 +62,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import zmq
@@ -78,6 +79,9 @@ from beavr_sim.wire.messages import (
 )
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import JointCommand, TwinState
+
+if TYPE_CHECKING:
+    from beavr_sim.headset.webxr_server import WebXRConfig
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 
@@ -147,8 +151,8 @@ class OperatorProcessConfig:
     source: str
     trace: str | None = None
     lockstep: bool = False
-    #: ``source="webxr"``: the page server this process hosts (a ``WebXRConfig``).
-    webxr: object | None = None
+    #: ``source="webxr"``: the page server this process hosts.
+    webxr: WebXRConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -271,9 +275,6 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     # Start from the twin's measured joints.
     first = state.recv(HANDSHAKE_TIMEOUT_S)
     rehome = OperatorRehome(operator, effector_slices(embodiment))
-    if first is not None:
-        rehome.on_state(first)
-    conn.send_bytes(b"ready")
     compute_ms: list[float] = []
     sides = list(config.stage.sides)
     #: Per side: frames observed but not commanded on their own (a newer one was queued).
@@ -342,8 +343,11 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             view_paused = msg.paused
             set_paused()
 
-    if first is not None:
+    if first is not None:  # homed on the twin's measured joints, then ready
         take_state(first)
+    conn.send_bytes(b"ready")
+    if first is not None and config.lockstep:
+        lockstep_tick(first)
 
     receiver = getattr(source, "receiver", None)
     try:
