@@ -56,7 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="real time; a virtual clock (deterministic; trace only); or paced: the virtual "
         "clock slept to the control rate (deterministic at real speed; trace only). Default: "
-        "virtual for a trace without the browser view, paced for a mirrored trace, real otherwise",
+        "virtual for a trace without the browser view, paced for a mirrored trace, real otherwise "
+        "(--multiprocess: real unless given; virtual and paced run the processes in lockstep, "
+        "the same episode as one process)",
     )
     p.add_argument("--headless", action="store_true", help="no rendered view to the headset")
     p.add_argument("--no-viser", action="store_true", help="no browser view")
