@@ -63,6 +63,7 @@ class BeavrQuestTeleop(Teleoperator):
         self.source = None
         self._context = None
         self._validator = None
+        self._stage = None  # the operator stage, once connected
         self._slices: dict[str, slice] = {}
         self._action: np.ndarray | None = None
         self._ticks = 0
@@ -108,6 +109,7 @@ class BeavrQuestTeleop(Teleoperator):
         from beavr_sim.headset.validation import StreamValidator
         from beavr_sim.operator.obstacles import fixture_obstacles
         from beavr_sim.operator.operator import Operator
+        from beavr_sim.teleop.stages import OperatorStage
 
         cfg = self.config
         # The task's scene at the seed's layout: the joints' order and home, and the fixtures.
@@ -147,6 +149,12 @@ class BeavrQuestTeleop(Teleoperator):
         self._action = home
         self._ticks, self._origin = 0, 0.0
         self.operator = operator
+        # the runners' operator stage: an operator exception holds (reason "error")
+        self._stage = OperatorStage(
+            operator,
+            cfg.fps,
+            hold_positions=lambda name: self._action[self._slices[name]].copy(),
+        )
         log.info("%s connected (%s, %s clock)", self, cfg.source, cfg.clock)
 
     def disconnect(self) -> None:
@@ -179,13 +187,15 @@ class BeavrQuestTeleop(Teleoperator):
             operator.reset(self._action, self._slices)  # re-anchor: nothing jumps
             self.restarts += 1
         frames = source.poll(now - self._origin if self.config.clock == "tick" else now)
+        used = []
         for frame in frames:
             self.frames_received += 1
             if source.validates or self._validator.check(frame) is None:
-                operator.observe(frame)
+                used.append(frame)
             else:
                 self.frames_rejected += 1
-        for name, command in operator.command(now).items():
+        stage = self._stage
+        for name, command in stage.command(now, stage.observe(used)).items():
             self._action[self._slices[name]] = command.positions
         self._ticks += 1
         return action_dict(self._action, self.joint_names)
