@@ -33,7 +33,11 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--out", type=Path, required=True, help="dataset root folder")
     g.add_argument("--embodiment", default="xarm7_leap_right")
     g.add_argument("--keep-failed", action="store_true", help="also write failed episodes")
-    g.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    g.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start anew: delete the dataset at --out (default: resume it, skipping its seeds)",
+    )
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_args(g)
     add_scale_args(g)
