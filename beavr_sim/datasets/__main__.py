@@ -21,6 +21,7 @@ import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.datasets.cli import add_recording_args, recording_config
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
+from beavr_sim.scaling.executors import LOG_FORMAT
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     add_recording_args(g)
     add_scale_args(g)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.ERROR, format=LOG_FORMAT)
     from beavr_sim.scaling.executors import JobFailed
     from beavr_sim.synthetic.generate import generate
 

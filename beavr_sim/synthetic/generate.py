@@ -44,6 +44,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
 from beavr_sim.datasets.shards import TRACES, Shard, merge_shards, read_log
 from beavr_sim.datasets.writer import EpisodeWriter, dataset_exists
@@ -225,6 +226,7 @@ def run_episode_job(job: EpisodeJob) -> EpisodeOutcome:
     ``outcome.json`` is written last, so a shard without it is unfinished."""
     import beavr_sim  # noqa: F401  (registers the envs in a fresh worker)
 
+    quiet_dataset_writes()
     shard = Path(job.shard)
     if shard.exists():
         shutil.rmtree(shard)
@@ -348,6 +350,7 @@ def generate(
     repo_id = repo_id or f"beavr_sim/{task.lower()}"
     plan = plan_output(out, task, embodiment, overwrite)
     print(plan.describe(out, task, embodiment), file=sys.stderr)
+    quiet_dataset_writes()
     if scale is None or scale.in_process:
         summary = _generate_serial(
             task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress
