@@ -1,9 +1,11 @@
 """Quiet logs: a recording writes no encoder banners or ``datasets`` progress bars, and local
-workers log in the command lines' format."""
+workers log in the command lines' format; a local worker's job may start processes (LeRobot's
+video encoding of two cameras does)."""
 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -46,3 +48,20 @@ def test_local_workers_log_in_the_command_lines_format(capfd):
         pool.close()
     err = capfd.readouterr().err
     assert "[beavr-worker] WARNING root: hello from a worker" in err, err
+
+
+def child_exit_code(code: int) -> int:
+    """A job that starts a process of its own (as LeRobot's parallel video encoding does)."""
+    child = multiprocessing.get_context("spawn").Process(target=sys.exit, args=(code,))
+    child.start()
+    child.join()
+    return child.exitcode
+
+
+def test_a_local_workers_job_may_start_processes_of_its_own():
+    pool = LocalPool(f"{Path(__file__).stem}:child_exit_code", 1, max_attempts=1)
+    try:
+        pool.submit(0, 7)
+        assert pool.next_result() == (0, 7)
+    finally:
+        pool.close()

@@ -287,7 +287,10 @@ class LocalPool:
             target=_worker_main,
             args=(child, self.function, self.env, self.log_level),
             name="beavr-worker",
-            daemon=True,
+            # Not daemonic: a job may start processes of its own (LeRobot encodes the videos
+            # of several cameras in a process pool). A worker still ends with this process:
+            # its pipe closes, and close() stops it.
+            daemon=False,
         )
         process.start()
         child.close()

@@ -46,7 +46,8 @@ from tqdm import tqdm
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
-from beavr_sim.datasets.shards import TRACES, Shard, merge_shards, read_log
+from beavr_sim.datasets.resume import plan_output
+from beavr_sim.datasets.shards import TRACES, Shard, merge_shards
 from beavr_sim.datasets.writer import EpisodeWriter, dataset_exists
 from beavr_sim.scaling.executors import ScaleConfig, make_executor
 
@@ -78,52 +79,6 @@ class GenerateSummary:
     mode: str = "new"
     #: Seeds of this run already in the dataset: not run again, not in ``episodes_written``.
     seeds_skipped: list[int] = field(default_factory=list)
-
-
-#: The values of :attr:`GenerateSummary.mode`.
-MODES = ("new", "resume", "overwrite")
-
-
-@dataclass(frozen=True)
-class OutputPlan:
-    """What a run does with ``out``: :data:`MODES`, and the seeds already recorded there."""
-
-    mode: str
-    episodes_there: int
-    seeds_there: frozenset[int]
-    overwrite: bool = False  # asked for: also drops the shards of an unfinished parallel run
-
-    def describe(self, out: Path, task: str, embodiment: str) -> str:
-        if self.mode == "overwrite":
-            return f"overwriting {out} ({self.episodes_there} episodes there are deleted)"
-        if self.mode == "new":
-            return f"new dataset at {out}"
-        seeds = sorted(self.seeds_there)
-        shown = ", ".join(map(str, seeds[:8])) + (", ..." if len(seeds) > 8 else "")
-        return (
-            f"resuming {out}: it holds {self.episodes_there} episodes; seeds of {task} on "
-            f"{embodiment} already there are skipped ({shown or 'none'}); "
-            "pass --overwrite to start anew"
-        )
-
-
-def plan_output(out: Path, task: str, embodiment: str, overwrite: bool) -> OutputPlan:
-    """Resume, overwrite or create the dataset at ``out`` (reads, never writes)."""
-    if not dataset_exists(out):
-        mode = "overwrite" if overwrite and out.exists() and any(out.iterdir()) else "new"
-        return OutputPlan(mode, 0, frozenset(), overwrite)
-    total = int(json.loads((out / "meta" / "info.json").read_text())["total_episodes"])
-    if overwrite:
-        return OutputPlan("overwrite", total, frozenset(), overwrite)
-    seeds = frozenset(
-        int(r["seed"])
-        for r in read_log(out)
-        if r.get("kept")
-        and isinstance(r.get("seed"), int)
-        and r.get("task") == task
-        and r.get("embodiment") == embodiment
-    )
-    return OutputPlan("resume", total, seeds)
 
 
 @dataclass(frozen=True)
