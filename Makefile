@@ -82,10 +82,13 @@ bench: venv
 # Regenerate the bundled VR traces (after changing the operator or the experts).
 TRACE_TASKS ?= pickup_box pick_place stack_blocks flip_cube lantern tape pour
 RX1_TRACE_TASKS ?= pick_place pickup_box stack_blocks pour
+BIMANUAL_TRACE_TASKS ?= pick_place stack_blocks pour
 traces: venv
 	@for t in $(TRACE_TASKS); do MUJOCO_GL=egl $(PY) -m beavr_sim.traces synth --task $$t --seed 0 --tries 10 --out assets/traces/$$t.mcap || exit 1; done
 	@mkdir -p assets/traces/rx1
 	@for t in $(RX1_TRACE_TASKS); do MUJOCO_GL=egl $(PY) -m beavr_sim.traces synth --task $$t --embodiment rx1 --seed 0 --tries 10 --out assets/traces/rx1/$$t.mcap || exit 1; done
+	@mkdir -p assets/traces/xarm7_leap_bimanual
+	@for t in $(BIMANUAL_TRACE_TASKS); do MUJOCO_GL=egl $(PY) -m beavr_sim.traces synth --task $$t --embodiment xarm7_leap_bimanual --seed 0 --tries 10 --out assets/traces/xarm7_leap_bimanual/$$t.mcap || exit 1; done
 
 lint: venv
 	$(PY) -m ruff check beavr_sim tests plugins

@@ -21,6 +21,7 @@ import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.datasets.cli import add_recording_args, recording_config
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
+from beavr_sim.scaling.executors import LOG_FORMAT
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,12 +34,16 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--out", type=Path, required=True, help="dataset root folder")
     g.add_argument("--embodiment", default="xarm7_leap_right")
     g.add_argument("--keep-failed", action="store_true", help="also write failed episodes")
-    g.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    g.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start anew: delete the dataset at --out (default: resume it, skipping its seeds)",
+    )
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_args(g)
     add_scale_args(g)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.ERROR, format=LOG_FORMAT)
     from beavr_sim.scaling.executors import JobFailed
     from beavr_sim.synthetic.generate import generate
 

@@ -1,8 +1,14 @@
 """A LeRobot pretrained policy directory, loaded through LeRobot's factory, behind three calls:
-``reset``, ``act`` (one action) and ``chunk`` (an action chunk), on env observations."""
+``reset``, ``act`` (one action) and ``chunk`` (an action chunk), on env observations.
+
+Loading writes nothing on stdout (LeRobot prints ``Loading weights from local directory``
+there; it goes to stderr), which the evaluation commands keep for their JSON summary.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +36,8 @@ class LoadedPolicy:
         config.device = device
         self.config = config
         self.type = config.type
-        self.policy = get_policy_class(config.type).from_pretrained(str(path), config=config)
+        with contextlib.redirect_stdout(sys.stderr):
+            self.policy = get_policy_class(config.type).from_pretrained(str(path), config=config)
         self.policy.eval()
         self.preprocessor, self.postprocessor = make_pre_post_processors(
             config,

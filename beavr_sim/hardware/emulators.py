@@ -23,6 +23,7 @@ faults did, ``{name: {"lost": requests, "dropped": replies, "corrupted": replies
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from typing import Any
@@ -39,15 +40,50 @@ from beavr_sim.hardware.leap.config import counts_to_model
 from beavr_sim.hardware.leap.emulator import DynamixelEmulator
 from beavr_sim.hardware.xarm.emulator import XArmEmulator
 
+EXAMPLE = (
+    "example: python -m beavr_sim.hardware.emulators "
+    "'[[\"arm\", \"xarm7\", [0, 0, 0, 0, 0, 0, 0]]]' 'arm:freeze@2'"
+)
+
+
+def parse_plan(text: str) -> list[tuple[str, str, Any]]:
+    """``PLAN``: a JSON list of ``[name, kind, start]``; ValueError naming what is wrong."""
+    try:
+        plan = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"PLAN is not JSON ({exc}): {text[:80]!r}") from None
+    if not isinstance(plan, list) or not plan:
+        raise ValueError(f"PLAN must be a non-empty JSON list of [name, kind, start], got {text!r}")
+    for entry in plan:
+        if not (isinstance(entry, list) and len(entry) == 3 and isinstance(entry[0], str)):
+            raise ValueError(f"each PLAN entry is [name, kind, start], got {json.dumps(entry)}")
+    return [tuple(entry) for entry in plan]
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m beavr_sim.hardware.emulators",
+        description=__doc__,
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("plan", metavar="PLAN", help="JSON list of [name, kind, start]")
+    parser.add_argument(
+        "faults", metavar="FAULTS", nargs="?", default=None, help="faults to start under"
+    )
+    return parser
+
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) not in (1, 2):
-        print(__doc__, file=sys.stderr)
-        return 2
+    parser = _parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        plan = parse_plan(args.plan)
+    except ValueError as exc:
+        parser.error(str(exc))  # exits 2 with the usage line
     emulators: dict = {}
     where: dict = {}
-    for name, kind, start in json.loads(argv[0]):
+    for name, kind, start in plan:
         if kind == "xarm7":
             emulators[name] = XArmEmulator(initial_joints=tuple(start), name=name)
             where[name] = [emulators[name].host, emulators[name].port]
@@ -79,9 +115,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"unknown emulator kind {kind!r}; valid: xarm7, leap, feetech", file=sys.stderr)
             return 2
-    if len(argv) == 2:
+    if args.faults is not None:
         try:
-            _inject(emulators, argv[1])
+            _inject(emulators, args.faults)
         except ValueError as exc:
             print(f"--faults: {exc}", file=sys.stderr)
             return 2

@@ -61,8 +61,26 @@ def check_rows(
     return verdicts
 
 
+#: The first bytes of a ``.npy`` file (``numpy.save``).
+NPY_MAGIC = b"\x93NUMPY"
+
+
 def load_rows(path: Path, n_joints: int) -> np.ndarray:
-    rows = np.load(path, allow_pickle=False)
+    """The (N, n_joints) float array in the ``.npy`` file ``path``; ValueError naming what is
+    wrong (not a .npy file, object data, a wrong shape)."""
+    with open(path, "rb") as f:
+        head = f.read(len(NPY_MAGIC))
+    if head != NPY_MAGIC:
+        kind = "a .npz archive" if head.startswith(b"PK") else f"starts with {head!r}"
+        raise ValueError(
+            f"{path} is not a .npy file ({kind}); --qpos-file takes numpy.save output, e.g. "
+            f"python -c \"import numpy; numpy.save('q.npy', numpy.loadtxt('q.txt'))\" for a "
+            "text file of one row of joint targets per line"
+        )
+    try:
+        rows = np.load(path, allow_pickle=False)
+    except ValueError as exc:  # object arrays need pickle, which a target file never does
+        raise ValueError(f"{path} holds object data, not joint targets: {exc}") from None
     rows = np.asarray(rows, dtype=np.float64)
     if rows.ndim == 1:
         rows = rows[None]

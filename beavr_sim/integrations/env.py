@@ -10,12 +10,20 @@ env, each sub-env behind :class:`LeRobotView`. Observations are the env's own: `
 the keys ``beavr_sim.datasets`` records, so a policy trained on such a dataset evaluates
 without a rename map (set ``cameras``, ``image_height`` / ``image_width`` and
 ``environment_state`` as the dataset was recorded). ``info["is_success"]`` is set every step.
+
+LeRobot hands an env config no policy, so :meth:`BeavrSimEnvConfig.create_envs` reads the
+policy folder of the command line (``--policy.path``, through LeRobot's own parser) and warns
+when the env's cameras, image size or ``environment_state`` differ from what the policy was
+trained on (``beavr_sim.eval`` takes them from the policy instead).
 """
 
 from __future__ import annotations
 
 import functools
+import json
+import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import gymnasium as gym
 from lerobot.configs import FeatureType, PolicyFeature
@@ -35,6 +43,52 @@ from beavr_sim.integrations.options import (
 
 #: The env type on LeRobot's command line (``--env.type=beavr_sim``).
 ENV_TYPE = "beavr_sim"
+
+log = logging.getLogger(__name__)
+
+
+def policy_mismatches(
+    policy_path: str | Path,
+    cameras: list[str],
+    image_height: int,
+    image_width: int,
+    environment_state: bool,
+) -> list[str]:
+    """How an env with these settings differs from what the pretrained policy at
+    ``policy_path`` (its ``config.json``) takes, each with the option that fixes it; empty
+    when they agree or the folder holds no readable config."""
+    try:
+        config = json.loads((Path(policy_path) / "config.json").read_text())
+        inputs = dict(config["input_features"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    images = {
+        key.removeprefix(f"{OBS_IMAGES}."): tuple(ft.get("shape", ()))
+        for key, ft in inputs.items()
+        if key.startswith(f"{OBS_IMAGES}.")
+    }
+    found: list[str] = []
+    if images and set(images) != set(cameras):
+        found.append(
+            f"cameras {sorted(cameras)}, the policy's {sorted(images)}: "
+            f"--env.cameras='[{', '.join(sorted(images))}]'"
+        )
+    sizes = {shape[1:] for shape in images.values() if len(shape) == 3}
+    if len(sizes) == 1:
+        ((height, width),) = sizes
+        if (height, width) != (image_height, image_width):
+            found.append(
+                f"images {image_height}x{image_width}, the policy's {height}x{width}: "
+                f"--env.image_height={height} --env.image_width={width}"
+            )
+    wants_state = OBS_ENV_STATE in inputs
+    if wants_state != bool(environment_state):
+        found.append(
+            f"environment_state {str(bool(environment_state)).lower()}, the policy "
+            f"{'takes' if wants_state else 'does not take'} it: "
+            f"--env.environment_state={str(wants_state).lower()}"
+        )
+    return found
 
 
 class LeRobotView(gym.ObservationWrapper):
@@ -154,11 +208,28 @@ class BeavrSimEnvConfig(EnvConfig):
             "max_episode_steps": self.episode_length,
         }
 
+    def warn_if_policy_differs(self, policy_path: str | Path | None = None) -> list[str]:
+        """Log a warning for each way this env differs from the policy at ``policy_path``
+        (default: ``--policy.path`` on the command line, if any); returns them."""
+        if policy_path is None:
+            from lerobot.configs.parser import get_path_arg
+
+            policy_path = get_path_arg("policy")
+        if policy_path is None:
+            return []
+        found = policy_mismatches(
+            policy_path, self.cameras, self.image_height, self.image_width, self.environment_state
+        )
+        for mismatch in found:
+            log.warning("the env differs from the policy at %s: %s", policy_path, mismatch)
+        return found
+
     def create_envs(
         self, n_envs: int, use_async_envs: bool = False
     ) -> dict[str, dict[int, gym.vector.VectorEnv]]:
         """``{"beavr_sim": {0: vector env of n_envs}}`` (LeRobot's layout for one task)."""
         check_positive_int("n_envs", n_envs)
+        self.warn_if_policy_differs()
         make_one = functools.partial(
             make_lerobot_env,
             self.gym_id,

@@ -16,6 +16,9 @@ function must therefore be idempotent: a second attempt must start from scratch.
   a dead worker is replaced.
 - :class:`RayExecutor`: one Ray task per job (``num_cpus=1``), Ray's own retries
   (``max_retries`` for dead workers and nodes, ``retry_exceptions`` for exceptions).
+
+Logs: a local worker logs to stderr in :data:`LOG_FORMAT` (the command lines' format) at the
+level this process had when the pool was made, its records marked with its process name.
 """
 
 from __future__ import annotations
@@ -32,6 +35,18 @@ from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
 
 log = logging.getLogger("beavr_sim.scaling")
+
+#: The one log format of the command lines (``logging.basicConfig(format=LOG_FORMAT)``) and of
+#: their local workers.
+LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
+#: What a worker puts before :data:`LOG_FORMAT`: which worker logged.
+WORKER_LOG_PREFIX = "[%(processName)s] "
+
+
+def configure_worker_logging(level: int) -> None:
+    """A worker's root logger: stderr, :data:`WORKER_LOG_PREFIX` + :data:`LOG_FORMAT`."""
+    logging.basicConfig(level=level, format=WORKER_LOG_PREFIX + LOG_FORMAT, force=True)
+
 
 #: Set in every worker (unless already set there): one thread of BLAS / OpenMP / torch and of
 #: Mesa's software rasterizer (llvmpipe) per worker process, as the processes themselves are
@@ -189,10 +204,14 @@ class InlineExecutor:
         self._queue.clear()
 
 
-def _worker_main(conn: Connection, function: str, env: Mapping[str, str]) -> None:
-    """A local worker: set the environment, import the job function, run jobs until None."""
+def _worker_main(
+    conn: Connection, function: str, env: Mapping[str, str], log_level: int = logging.WARNING
+) -> None:
+    """A local worker: set the environment and the log format, import the job function, run
+    jobs until None."""
     for name, value in env.items():
         os.environ.setdefault(name, value)
+    configure_worker_logging(log_level)
     fn = resolve(function)
     while True:
         try:
@@ -248,6 +267,7 @@ class LocalPool:
         self._queue: deque[tuple[Hashable, Any]] = deque()
         self._retries = _Retries(max_attempts)
         self.stats = PoolStats()
+        self.log_level = logging.getLogger().getEffectiveLevel()
 
     @property
     def pending(self) -> int:
@@ -265,9 +285,12 @@ class LocalPool:
         parent, child = self._ctx.Pipe(duplex=True)
         process = self._ctx.Process(
             target=_worker_main,
-            args=(child, self.function, self.env),
+            args=(child, self.function, self.env, self.log_level),
             name="beavr-worker",
-            daemon=True,
+            # Not daemonic: a job may start processes of its own (LeRobot encodes the videos
+            # of several cameras in a process pool). A worker still ends with this process:
+            # its pipe closes, and close() stops it.
+            daemon=False,
         )
         process.start()
         child.close()

@@ -11,6 +11,12 @@ Seeds: episodes are tried with seeds ``seed``, ``seed + 1``, ... in order; a see
 synthesized episode fails is skipped (unless ``keep_failed``) until ``episodes`` are written,
 or given up after ``5 * episodes + 10`` failures.
 
+Into an existing dataset (a re-run): the run resumes. A seed whose episode of this task and
+embodiment is already in the dataset (its ``meta/beavr_episodes.jsonl``) counts as written and
+is not run again, so ``--episodes 2 --seed 0`` twice leaves seeds 0 and 1 once each, and a run
+stopped half-way completes its seeds. ``overwrite`` starts anew instead. Which of the two (or
+a new dataset) is said on stderr before the first episode, and in the summary's ``mode``.
+
 Beyond one process (``scale``): every seed is a job that writes a shard of its own (see
 :mod:`beavr_sim.datasets.shards`) in local worker processes or as a Ray task; the jobs are
 handed out in seed order, no more at a time than there are workers and never more than could
@@ -38,7 +44,9 @@ from pathlib import Path
 from tqdm import tqdm
 
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
+from beavr_sim.datasets.resume import plan_output
 from beavr_sim.datasets.shards import TRACES, Shard, merge_shards
 from beavr_sim.datasets.writer import EpisodeWriter, dataset_exists
 from beavr_sim.scaling.executors import ScaleConfig, make_executor
@@ -66,6 +74,11 @@ class GenerateSummary:
     backend: str = "inline"
     workers: int = 1
     retried: int = 0
+    #: ``new`` (no dataset at ``out``), ``resume`` (episodes appended; seeds already there
+    #: skipped) or ``overwrite`` (the dataset at ``out`` replaced).
+    mode: str = "new"
+    #: Seeds of this run already in the dataset: not run again, not in ``episodes_written``.
+    seeds_skipped: list[int] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -168,6 +181,7 @@ def run_episode_job(job: EpisodeJob) -> EpisodeOutcome:
     ``outcome.json`` is written last, so a shard without it is unfinished."""
     import beavr_sim  # noqa: F401  (registers the envs in a fresh worker)
 
+    quiet_dataset_writes()
     shard = Path(job.shard)
     if shard.exists():
         shutil.rmtree(shard)
@@ -239,6 +253,7 @@ class _SerialRules:
     frames: int = 0
     seeds_failed: list[int] = field(default_factory=list)
     used: list[int] = field(default_factory=list)  # seeds the serial run would have tried
+    skipped: list[int] = field(default_factory=list)  # seeds already in the dataset
     gave_up: bool = False
 
     @property
@@ -257,6 +272,11 @@ class _SerialRules:
         if self.failures > 5 * self.episodes + 10:
             self.gave_up = True
 
+    def skip(self, seed: int) -> None:
+        """A seed whose episode is already in the dataset: written, by an earlier run."""
+        self.skipped.append(seed)
+        self.written += 1
+
 
 def generate(
     task: str,
@@ -271,9 +291,10 @@ def generate(
     progress: bool = True,
     scale: ScaleConfig | None = None,
 ) -> GenerateSummary:
-    """``episodes`` demonstrations into the LeRobot dataset at ``out`` (appended to if it holds
-    one). ``scale``: None or one local worker writes in this process, episode by episode;
-    otherwise see the module docstring."""
+    """``episodes`` demonstrations into the LeRobot dataset at ``out`` (resumed if it holds
+    one: seeds already there are skipped; replaced with ``overwrite``). ``scale``: None or one
+    local worker writes in this process, episode by episode; otherwise see the module
+    docstring."""
     from beavr_sim.tasks.registry import canonical_task_name
 
     task = canonical_task_name(task)
@@ -282,18 +303,24 @@ def generate(
     config = config or RecordingConfig()
     out = Path(out)
     repo_id = repo_id or f"beavr_sim/{task.lower()}"
+    plan = plan_output(out, task, embodiment, overwrite)
+    print(plan.describe(out, task, embodiment), file=sys.stderr)
+    quiet_dataset_writes()
     if scale is None or scale.in_process:
-        return _generate_serial(
-            task, episodes, seed, out, repo_id, embodiment, config, keep_failed, overwrite, progress
+        summary = _generate_serial(
+            task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress
         )
-    return _generate_parallel(
-        task, episodes, seed, out, repo_id, embodiment, config, keep_failed, overwrite, progress,
-        scale,
-    )  # fmt: skip
+    else:
+        summary = _generate_parallel(
+            task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress,
+            scale,
+        )  # fmt: skip
+    summary.mode = plan.mode
+    return summary
 
 
 def _generate_serial(
-    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, overwrite, progress
+    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress
 ) -> GenerateSummary:
     features = _features(task, embodiment, config)
     writer = EpisodeWriter(
@@ -303,7 +330,7 @@ def _generate_serial(
         config.fps,
         robot_type=embodiment,
         use_videos=config.use_videos,
-        overwrite=overwrite,
+        overwrite=plan.mode == "overwrite",
     )
     summary = GenerateSummary(task, embodiment, str(out), repo_id, episodes, 0, 0, 0)
     rules = _SerialRules(episodes)
@@ -312,6 +339,11 @@ def _generate_serial(
     episode_seed = seed
     try:
         while not rules.done:
+            if episode_seed in plan.seeds_there:
+                rules.skip(episode_seed)
+                bar.update(1)
+                episode_seed += 1
+                continue
             outcome = run_episode(
                 task, episode_seed, embodiment, config, keep_failed, writer, out / "beavr_traces"
             )
@@ -330,7 +362,8 @@ def _generate_serial(
 
 
 def _fill(summary: GenerateSummary, rules: _SerialRules) -> None:
-    summary.episodes_written = rules.written
+    summary.episodes_written = rules.written - len(rules.skipped)
+    summary.seeds_skipped = list(rules.skipped)
     summary.successes = rules.successes
     summary.failures = rules.failures
     summary.seeds_failed = list(rules.seeds_failed)
@@ -357,11 +390,12 @@ def _preload_merge() -> threading.Thread:
 
 
 def _generate_parallel(
-    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, overwrite, progress, scale
+    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, scale
 ) -> GenerateSummary:
     features = _features(task, embodiment, config)  # validates fps before any worker starts
     staging = staging_dir(out)
-    if overwrite:  # a fresh start: no dataset, no shards of an earlier run
+    there = plan.seeds_there
+    if plan.overwrite:  # a fresh start: no dataset, no shards of an earlier run
         for path in (out, staging):
             if path.exists():
                 shutil.rmtree(path)
@@ -402,8 +436,11 @@ def _generate_parallel(
     def serial_view() -> _SerialRules:
         rules = _SerialRules(episodes)
         s = seed
-        while not rules.done and s in outcomes:
-            rules.take(outcomes[s])
+        while not rules.done and (s in there or s in outcomes):
+            if s in there:
+                rules.skip(s)
+            else:
+                rules.take(outcomes[s])
             s += 1
         return rules
 
@@ -429,7 +466,9 @@ def _generate_parallel(
                 and tried[0] + len(running) < episodes
                 and tried[1] <= limit
             ):
-                if next_seed in outcomes:  # finished by an earlier, resumed run
+                if next_seed in there:  # in the dataset already
+                    tried[0] += 1
+                elif next_seed in outcomes:  # finished by an earlier, resumed run
                     count(outcomes[next_seed])
                 else:
                     job = EpisodeJob(
@@ -457,6 +496,7 @@ def _generate_parallel(
             count(outcome)
             bar.update(int(outcome.written))
             bar.set_postfix(ok=tried[0], failed=tried[1])
+        bar.update(len(rules.skipped))
         bar.close()
         executor.retire_idle()  # all idle now: they exit while the shards are merged
         if rules.gave_up:

@@ -4,6 +4,8 @@
   metadata).
 - ``record --out TRACE [--headset-host H] [--seconds N]``: record the BEAVR Quest app's hand
   streams (Ctrl-C finishes the file cleanly); times are seconds from the first frame.
+- ``recover TRACE --out OUT [--task T] [--embodiment E]``: the readable frames of a truncated
+  trace written as a complete one (then one JSON line: frames kept, where the file was cut).
 - ``synth ...``: a trace from a task's scripted expert (:mod:`beavr_sim.synthetic.trace`;
   ``synth --help``).
 """
@@ -17,7 +19,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from beavr_sim.traces.format import HAND_TOPICS, TraceError, TraceMetadata, TraceReader, TraceWriter
+from beavr_sim.traces.format import (
+    HAND_TOPICS,
+    TraceError,
+    TraceMetadata,
+    TraceReader,
+    TraceWriter,
+    recover_trace,
+)
 from beavr_sim.wire.ports import TransportConfig
 
 
@@ -102,6 +111,30 @@ def record_trace(
     return counts
 
 
+def recover(path: Path, out: Path, task: str | None, embodiment: str | None) -> int:
+    salvage = recover_trace(path, out, task=task, embodiment=embodiment)
+    cut = "not cut short" if salvage.truncated_at is None else f"cut at byte {salvage.size}"
+    print(
+        f"{path} ({cut}): wrote {salvage.hand_frames} hand frames ({salvage.duration_s:.2f} s) "
+        f"to {out}" + (f"; {salvage.invalid} invalid messages left out" if salvage.invalid else ""),
+        file=sys.stderr,
+    )
+    print(
+        json.dumps(
+            {
+                "out": str(out),
+                "hand_frames": salvage.hand_frames,
+                "duration_s": round(salvage.duration_s, 3),
+                "truncated_at": salvage.truncated_at,
+                "size": salvage.size,
+                "invalid": salvage.invalid,
+                "metadata_recovered": salvage.metadata is not None,
+            }
+        )
+    )
+    return 0
+
+
 def _synth(argv: list[str]) -> int:
     """``synth ...``: the synthetic operator lives above the pipeline it drives."""
     from beavr_sim.synthetic.trace import main as synth_main
@@ -130,11 +163,20 @@ def main(argv: list[str] | None = None) -> int:
     p_record.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
     p_record.add_argument("--task", default="", help="task name stored in the metadata")
     p_record.add_argument("--embodiment", default="", help="embodiment stored in the metadata")
+    p_recover = commands.add_parser(
+        "recover", help="write the readable frames of a truncated trace as a complete one"
+    )
+    p_recover.add_argument("trace", type=Path)
+    p_recover.add_argument("--out", type=Path, required=True, help="trace file to write (.mcap)")
+    p_recover.add_argument("--task", default=None, help="task name for the metadata")
+    p_recover.add_argument("--embodiment", default=None, help="embodiment for the metadata")
     commands.add_parser("synth", help="synthesise a trace (see 'synth --help')")
     args = parser.parse_args(argv)
     try:
         if args.command == "info":
             return info(args.trace)
+        if args.command == "recover":
+            return recover(args.trace, args.out, args.task, args.embodiment)
         if args.seconds is not None and not args.seconds > 0:
             parser.error(f"--seconds must be positive, got {args.seconds}")
         config = TransportConfig(headset_host=args.headset_host)

@@ -9,10 +9,17 @@ tools), zstd-compressed chunks; the log time of each message is its ``t_source``
   the headset's buttons, written when they change.
 
 A metadata record named ``beavr_sim`` holds :class:`TraceMetadata`. See ``docs/formats.md``.
+
+A file cut short (a copy interrupted, a disk full, a writer killed) raises
+:class:`TraceTruncatedError` saying where it ends and how many frames before that are readable;
+:func:`salvage_trace` reads them (whole records, from whole chunks and the readable start of a
+cut one) and :func:`recover_trace` writes them as a complete trace
+(``python -m beavr_sim.traces recover``).
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -81,6 +88,14 @@ CONTROL_JSON_SCHEMAS: dict[str, dict[str, Any]] = {
 
 class TraceError(ValueError):
     """A trace file that is missing, corrupt, truncated or not a beavr_sim trace."""
+
+
+class TraceTruncatedError(TraceError):
+    """A trace file cut short; ``salvage`` is what is readable before the cut."""
+
+    def __init__(self, message: str, salvage: Salvage):
+        super().__init__(message)
+        self.salvage = salvage
 
 
 @dataclass(frozen=True)
@@ -314,15 +329,18 @@ class TraceReader:
                 reader = make_reader(f)
                 summary = reader.get_summary()
                 if summary is None or summary.statistics is None:
-                    raise TraceError(
+                    raise _unreadable(
+                        self.path,
                         f"{self.path}: MCAP file has no summary (truncated, or the writer was "
-                        f"killed before it finished)"
+                        f"killed before it finished)",
                     )
                 records = [m for m in reader.iter_metadata() if m.name == METADATA_NAME]
         except TraceError:
             raise
         except Exception as err:  # the mcap reader raises many kinds on bad bytes
-            raise TraceError(f"{self.path} is not a readable MCAP file: {err!r}") from err
+            raise _unreadable(
+                self.path, f"{self.path} is not a readable MCAP file: {err!r}"
+            ) from err
         if not records:
             raise TraceError(
                 f"{self.path} is not a beavr_sim trace: no '{METADATA_NAME}' metadata record"
@@ -398,3 +416,196 @@ class TraceReader:
                 "generator": self.metadata.generator,
             },
         }
+
+
+# ---------------------------------------------------------------------------- truncated files
+_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEAD = 9  # opcode (1 byte) + length (8 bytes)
+
+
+@dataclass(frozen=True)
+class Salvage:
+    """What is readable of a trace file, in time order.
+
+    ``truncated_at``: the byte at which the first record the file cuts short starts (None: no
+    record is cut short). ``metadata``: the ``beavr_sim`` record if it is readable (the
+    writer puts it before the last chunk). ``invalid``: whole messages that did not decode.
+    """
+
+    path: Path
+    size: int
+    truncated_at: int | None
+    metadata: TraceMetadata | None
+    events: tuple[tuple[float, str, Any], ...]
+    invalid: int = 0
+
+    @property
+    def hand_frames(self) -> int:
+        return sum(kind == "hand" for _, kind, _ in self.events)
+
+    @property
+    def duration_s(self) -> float:
+        return self.events[-1][0] - self.events[0][0] if self.events else 0.0
+
+
+def _chunk_records(body: bytes, complete: bool) -> bytes:
+    """The records of a chunk record's content ``body`` (cut short unless ``complete``): all
+    of them, or as much of the start as decompresses."""
+    from mcap.data_stream import ReadDataStream
+
+    stream = ReadDataStream(io.BytesIO(body))
+    try:
+        for _ in range(3):  # message start and end time, uncompressed size
+            stream.read8()
+        stream.read4()  # crc
+        compression = stream.read_prefixed_string()
+        stream.read8()  # compressed size
+    except Exception:  # the header itself is cut short
+        return b""
+    data = body[stream.count :]
+    if compression == "":
+        return data
+    if compression == "zstd":
+        import zstandard
+
+        try:  # a streaming decompressor returns what the bytes so far hold
+            return zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        except zstandard.ZstdError:
+            return b""
+    if compression == "lz4" and complete:
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    return b""
+
+
+def salvage_trace(path: str | os.PathLike) -> Salvage:
+    """Every whole message of ``path`` up to where it is cut short (see :class:`Salvage`)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Message, Metadata
+
+    path = Path(path)
+    data = path.read_bytes()
+    if not data.startswith(_MAGIC):
+        raise TraceError(f"{path} is not an MCAP file (it does not start with the MCAP magic)")
+    records = bytearray()  # the data section's records, chunks unpacked, in file order
+    pos, cut = len(_MAGIC), None
+    while pos < len(data):
+        if pos + _RECORD_HEAD > len(data):
+            cut = pos
+            break
+        opcode = data[pos]
+        end = pos + _RECORD_HEAD + int.from_bytes(data[pos + 1 : pos + _RECORD_HEAD], "little")
+        if opcode == Opcode.CHUNK:
+            body = data[pos + _RECORD_HEAD : min(end, len(data))]
+            records += _chunk_records(body, complete=end <= len(data))
+        elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            break  # the data section is whole
+        elif end <= len(data):
+            records += data[pos:end]
+        if end > len(data):
+            cut = pos
+            break
+        pos = end
+    topics: dict[int, str] = {}
+    metadata: TraceMetadata | None = None
+    messages: list[tuple[int, str, bytes]] = []
+    pos = 0
+    while pos + _RECORD_HEAD <= len(records):
+        opcode = records[pos]
+        length = int.from_bytes(records[pos + 1 : pos + _RECORD_HEAD], "little")
+        if pos + _RECORD_HEAD + length > len(records):
+            break  # the cut one
+        stream = ReadDataStream(io.BytesIO(bytes(records[pos + _RECORD_HEAD :][:length])))
+        if opcode == Opcode.CHANNEL:
+            channel = Channel.read(stream)
+            topics[channel.id] = channel.topic
+        elif opcode == Opcode.MESSAGE:
+            message = Message.read(stream, length)
+            if message.channel_id in topics:
+                topic = topics[message.channel_id]
+                messages.append((message.log_time, topic, message.data))
+        elif opcode == Opcode.METADATA:
+            record = Metadata.read(stream)
+            if record.name == METADATA_NAME:
+                try:
+                    metadata = TraceMetadata.from_record(dict(record.metadata))
+                except TraceError:
+                    metadata = None
+        pos += _RECORD_HEAD + length
+    kinds = {topic: "hand" for topic in HAND_TOPICS.values()}
+    kinds.update({topic: name for name, topic in CONTROL_TOPICS.items()})
+    events: list[tuple[float, str, Any]] = []
+    invalid = 0
+    for log_time, topic, payload in sorted(messages, key=lambda m: m[0]):
+        kind = kinds.get(topic)
+        if kind is None:
+            continue
+        try:
+            if kind == "hand":
+                value: Any = hand_from_json(payload)
+                if HAND_TOPICS[value.side] != topic:
+                    raise ValueError(f"a {value.side} hand on {topic}")
+            else:
+                value = _check_control(
+                    kind, msgspec.json.decode(payload, type=_ControlRecord).value
+                )
+        except (ValueError, msgspec.DecodeError):
+            invalid += 1
+            continue
+        events.append((log_time / 1e9, kind, value))
+    return Salvage(path, len(data), cut, metadata, tuple(events), invalid)
+
+
+def _unreadable(path: Path, message: str) -> TraceError:
+    """The error for a file the MCAP reader cannot open: :class:`TraceTruncatedError` when
+    it is cut short, else ``message``."""
+    try:
+        salvage = salvage_trace(path)
+    except Exception:  # not even the start is MCAP: the reader's message says enough
+        return TraceError(message)
+    if salvage.truncated_at is None:
+        return TraceError(message)
+    where = (
+        f"{path} is truncated at byte {salvage.size} (the record from byte "
+        f"{salvage.truncated_at} on is cut short)"
+    )
+    if not salvage.hand_frames:
+        return TraceTruncatedError(f"{where}; no hand frame before the cut is readable", salvage)
+    out = path.with_name(f"{path.stem}_recovered.mcap")
+    return TraceTruncatedError(
+        f"{where}; the first {salvage.hand_frames} hand frames ({salvage.duration_s:.2f} s) are "
+        f"readable: python -m beavr_sim.traces recover {path} --out {out}",
+        salvage,
+    )
+
+
+def recover_trace(
+    path: str | os.PathLike,
+    out: str | os.PathLike,
+    task: str | None = None,
+    embodiment: str | None = None,
+) -> Salvage:
+    """Write the readable messages of ``path`` to ``out`` as a complete trace, with the file's
+    metadata if it is readable (else ``source="record"``); ``task`` / ``embodiment`` replace
+    its fields."""
+    from dataclasses import replace
+
+    if Path(out).resolve() == Path(path).resolve():
+        raise ValueError(f"the recovered trace must go to another file than {path}")
+    salvage = salvage_trace(path)
+    if not salvage.events:
+        raise TraceError(f"{path}: no readable messages to recover")
+    metadata = salvage.metadata or TraceMetadata(source="record")
+    if task is not None:
+        metadata = replace(metadata, task=task)
+    if embodiment is not None:
+        metadata = replace(metadata, embodiment=embodiment)
+    with TraceWriter(out, metadata) as writer:
+        for t, kind, payload in salvage.events:
+            if kind == "hand":
+                writer.write_hand(payload)
+            else:
+                writer.write_control(kind, t, payload)
+    return salvage

@@ -21,8 +21,10 @@ port requires ``enable_report=False``. Tested only against
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import sys
 import threading
 import time
 from typing import Any
@@ -186,6 +188,7 @@ class XArm7(Device):
 
     def _open(self, timeout_s: float) -> Any:
         """``XArmAPI`` connected within ``timeout_s``, or DeviceError."""
+        _sdk_output_to_stderr()
         from xarm.core.config.x_config import XCONF
         from xarm.wrapper import XArmAPI
 
@@ -424,6 +427,44 @@ class _ModeReminderFilter(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith("The mode may be incorrect")
+
+
+class _Stderr:
+    """A stream that writes to whatever ``sys.stderr`` is at the time of the write."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
+_STDERR = _Stderr()
+
+
+def _print_to_stderr(*args: Any, **kwargs: Any) -> None:
+    """``print`` for the SDK's modules: to stderr unless a file is named."""
+    if kwargs.get("file") is None:
+        kwargs["file"] = _STDERR
+    print(*args, **kwargs)
+
+
+def _sdk_output_to_stderr() -> None:
+    """The SDK prints (``SDK_VERSION ...`` on import, ``ROBOT_IP ...`` on connect) and logs
+    (``[motion_enable] ...``, through handlers on stdout) where our commands print their JSON
+    summary: send all of it to stderr. Only the SDK's own modules and loggers change;
+    idempotent."""
+    with contextlib.redirect_stdout(_STDERR):
+        import xarm.wrapper  # noqa: F401  (the SDK prints its version on first import)
+    from xarm.core.utils import log as sdk_log
+
+    for name, module in list(sys.modules.items()):
+        if module is not None and (name == "xarm" or name.startswith("xarm.")):
+            module.print = _print_to_stderr  # the SDK's print() calls look here first
+    for sdk_logger in (sdk_log.logger, sdk_log.origin_logger):
+        for handler in sdk_logger.handlers:
+            if isinstance(handler, logging.StreamHandler) and handler.stream is not _STDERR:
+                handler.setStream(_STDERR)
 
 
 def _quiet_mode_reminder() -> None:
