@@ -17,7 +17,11 @@ object in the hand, ms per env step; ``bench/contact.py``); JSON.
 
 ``python -m beavr_sim.bench scaling [--episodes N] [--workers 1,2] [--ray] ...``: generation
 with 1 and N local workers (and Ray), and where a replay tick goes (``bench/scaling.py``,
-its own options: ``python -m beavr_sim.bench scaling --help``); JSON on the last line."""
+its own options: ``python -m beavr_sim.bench scaling --help``); JSON on the last line.
+
+``python -m beavr_sim.bench soak --minutes N``: a looping trace mirrored to the emulated rig
+for N minutes; the resident memory's slope after warm-up in MB per hour (target <= 1;
+``bench/soak.py``, its own options); JSON on the last line."""
 
 from __future__ import annotations
 
@@ -38,6 +42,7 @@ BENCHMARKS = (
     "tracking",
     "contact",
     "scaling",
+    "soak",
 )
 
 
@@ -47,6 +52,10 @@ def main(argv: list[str] | None = None) -> int:
         from beavr_sim.bench.scaling import main as scaling_main
 
         return scaling_main(argv[1:])
+    if argv[:1] == ["soak"]:  # options of its own
+        from beavr_sim.bench.soak import main as soak_main
+
+        return soak_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
     parser.add_argument(

@@ -96,10 +96,11 @@ class FollowLimits:
 def _not_live(devices: Sequence) -> str:
     """The devices of a health snapshot that are not following, as one line."""
     parts = []
-    for name, state, reason in devices:
-        kind = getattr(state, "name", str(state))
+    for device in devices:
+        kind = device.state.name
         if kind not in ("FOLLOWING", "CATCHING_UP"):
-            parts.append(f"{name} {kind.lower()}" + (f" ({reason})" if reason else ""))
+            detail = device.detail
+            parts.append(f"{device.name} {kind.lower()}" + (f" ({detail})" if detail else ""))
     return "; ".join(parts) or "a device was not live"
 
 
@@ -107,7 +108,8 @@ class HardwareWatch:
     """Per recorded frame: is the measured state true? (See the module docstring.)
 
     ``health``: the mirror's cheap snapshot (``HardwareMirror.health``: ``.live``,
-    ``.devices`` as (name, state, reason), ``.episode_faults``). The measured state of a frame
+    ``.devices``: each ``.name``, ``.state`` (an enum: ``FOLLOWING``, ``CATCHING_UP``, ...),
+    ``.detail``; ``.episode_faults``). The measured state of a frame
     (read before the tick) is compared with the command in force when it was read (the
     previous frame's action; the first frame's own)."""
 

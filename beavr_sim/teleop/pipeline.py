@@ -323,12 +323,17 @@ class RunRecord:
     hardware_fault: str = ""
     #: Recording: whether the episode was written to the dataset (None: not recording).
     saved: bool | None = None
+    #: Mirrored: wall seconds the rig took to reach the run's start pose (None: no rig).
+    sync_s: float | None = None
 
     def to_dict(self) -> dict:
         out = asdict(self)
         out["duration_s"] = round(self.duration_s, 3)
-        if self.saved is None:
-            del out["saved"]
+        for key in ("saved", "sync_s"):
+            if out[key] is None:
+                del out[key]
+        if self.sync_s is not None:
+            out["sync_s"] = round(self.sync_s, 2)
         return out
 
 

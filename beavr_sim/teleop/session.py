@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.headset.sources import HandSource
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
@@ -353,7 +354,7 @@ class HardwareSync:
         self.syncing = False
         #: Why the last sync did not complete ("" when it did, or none ran).
         self.fault = ""
-        #: Completed syncs, and how long (wall s) the last one took.
+        #: Completed syncs, and how long (wall s) the last one took (or ran until its fault).
         self.synced = 0
         self.last_sync_s = 0.0
         self._source: HandSource | None = None
@@ -363,10 +364,8 @@ class HardwareSync:
     def start(self) -> None:
         """The twin was just reset to the episode's start: tell the mirror, and hold the
         operator (no frames, paused) until the devices are there."""
-        env = self.loop.twin.env
         self.mirror.begin_episode(
-            self.loop.twin.action.copy(),
-            fixtures=(env.data.mocap_pos.copy(), env.data.mocap_quat.copy()),
+            self.loop.twin.action.copy(), fixtures=Fixtures.of(self.loop.twin.env.data)
         )
         if not isinstance(self.loop.source, _NoFrames):  # (a new one since a start: kept)
             self._source = self.loop.source
@@ -385,7 +384,6 @@ class HardwareSync:
             self._finish("")
             self.loop.reset(self.loop.seed)  # the seeded start again: the simulated episode
             self.synced += 1
-            self.last_sync_s = self.clock() - self._started
             return
         failed = list(self.mirror.failed_devices)
         if failed and not self.interactive:
@@ -410,13 +408,14 @@ class HardwareSync:
         if faults:
             return faults[-1]
         parts = [
-            f"{name} {getattr(state, 'name', state)!s}".lower() + (f" ({reason})" if reason else "")
-            for name, state, reason in health.devices
+            f"{d.name} {d.state.name.lower()}" + (f" ({d.detail})" if d.detail else "")
+            for d in health.devices
         ]
         return "; ".join(parts) or "no device reported why"
 
     def _finish(self, fault: str) -> None:
         self.syncing = False
+        self.last_sync_s = self.clock() - self._started
         self.fault = fault
         if self._source is not None:
             self.loop.source = self._source
@@ -640,10 +639,12 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         if sync is not None or run > 0:
             loop.reset(loop.seed)
         progress.success = False
+        sync_s = None
         if sync is not None:
             fault = sync.run()
+            sync_s = sync.last_sync_s
             if fault:
-                records.append(RunRecord(run + 1, False, 0.0, hardware_fault=fault))
+                records.append(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
                 stopped = f"run {run + 1}: {fault}"
                 break
         remaining = None if options.max_seconds is None else options.max_seconds - played
@@ -656,7 +657,9 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         run += 1
         played += summary.duration_s
         fault = episode_fault(mirror) if mirror is not None else ""
-        records.append(RunRecord(run, bool(summary.success), summary.duration_s, fault))
+        records.append(
+            RunRecord(run, bool(summary.success), summary.duration_s, fault, sync_s=sync_s)
+        )
         if options.progress:
             print(
                 f"\nrun {run}: {'success' if summary.success else 'no success'}, "
@@ -767,6 +770,9 @@ def record_episodes(
         progress.success = False
         return sync.run() if sync is not None else ""
 
+    def sync_s() -> float | None:
+        return sync.last_sync_s if sync is not None else None
+
     try:
         while saved < options.episodes and not (trace and attempts >= options.episodes):
             name = f"episode {saved + 1}/{options.episodes}"
@@ -787,7 +793,9 @@ def record_episodes(
                 progress.label = f"{name}: sync"
                 fault = fresh_episode()
                 if fault:
-                    records.append(RunRecord(attempts + 1, False, 0.0, fault, saved=False))
+                    records.append(
+                        RunRecord(attempts + 1, False, 0.0, fault, saved=False, sync_s=sync_s())
+                    )
                     stopped = f"{name}: {fault}"
                     if options.progress:
                         print(
@@ -815,7 +823,14 @@ def record_episodes(
             attempts += 1
             saved += int(written and not fault)
             records.append(
-                RunRecord(attempts, bool(summary.success), summary.duration_s, fault, written)
+                RunRecord(
+                    attempts,
+                    bool(summary.success),
+                    summary.duration_s,
+                    fault,
+                    written,
+                    sync_s=sync_s(),
+                )
             )
             if options.progress:
                 outcome = (
