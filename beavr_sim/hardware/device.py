@@ -7,7 +7,8 @@ inside its driver, in one tested place.
 
 Lifecycle: :meth:`Device.connect` (raises :class:`DeviceError` naming the device and what to
 check when it cannot be reached), then any number of :meth:`read_positions` /
-:meth:`send_positions` / :meth:`hold`, then :meth:`disconnect` (idempotent, never raises).
+:meth:`send_positions` / :meth:`hold`, then :meth:`disconnect` (idempotent, never raises);
+:meth:`reconnect` after a device stopped answering.
 """
 
 from __future__ import annotations
@@ -64,6 +65,13 @@ class Device(ABC):
     @abstractmethod
     def disconnect(self) -> None:
         """Release the device (idempotent; never raises)."""
+
+    def reconnect(self) -> np.ndarray:
+        """Connect again after the device stopped answering (:meth:`disconnect`, then
+        :meth:`connect`); returns the joints measured then. Raises :class:`DeviceError`."""
+        self.disconnect()
+        self.connect()
+        return self.read_positions()
 
     def check_positions(self, positions: np.ndarray) -> np.ndarray:
         """``positions`` as a finite float64 vector of this device's length, or ValueError."""
