@@ -582,6 +582,7 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
     class FakeMirror:
         estopped = False
         submitted = 0
+        failed_devices: list[str] = []
 
         def submit(self, *args):
             self.submitted += 1
@@ -591,6 +592,7 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
 
         def release(self):
             self.estopped = False
+            self.failed_devices = []  # (re-armed)
 
     class FakeOperator:
         paused = False
@@ -629,6 +631,15 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
     browser(tick)
     assert not view.estop_requested  # the keyboard's release shows on the button
     assert mirror.submitted == 2
+    # A failed device shows as latched; the button's release re-arms it.
+    mirror.failed_devices = ["right_hand"]
+    browser(tick)
+    assert view.estop_requested and not mirror.estopped
+    view.estop_requested = False  # clicked: release
+    browser(tick)
+    assert mirror.failed_devices == [] and not mirror.estopped
+    browser(tick)
+    assert not view.estop_requested
 
 
 def _rig_toml(rig_config: RigConfig, path) -> None:

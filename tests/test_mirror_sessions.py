@@ -18,6 +18,7 @@ import os
 import signal
 import time
 import tracemalloc
+from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
@@ -33,6 +34,7 @@ from beavr_sim.hardware.mirror import (
     LinkState,
 )
 from beavr_sim.hardware.rig import EmulatedRig, MirrorConfig
+from beavr_sim.teleop.mirroring import BrowserEstop
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
 
@@ -228,8 +230,10 @@ def test_a_short_freeze_holds_the_rig_and_resumes(session):
 
 
 def test_a_long_outage_fails_until_rearmed_then_follows():
-    """Frozen for longer than ``reconnect_s``: the devices fail and stay failed when the
-    emulators answer again (the operator must look first); re-armed, they follow again."""
+    """Frozen for longer than ``reconnect_s``: the devices fail, a re-arm while they still do
+    not answer leaves them failed, and they stay failed when the emulators answer again (the
+    operator must look first); re-armed from the browser view's release button, they follow
+    again."""
     s = Session(reconnect_s=0.6)
     try:
         mirror = s.mirror
@@ -238,22 +242,32 @@ def test_a_long_outage_fails_until_rearmed_then_follows():
         s.tick_until(
             lambda: any(d.state is LinkState.FAILED for d in mirror.health().devices), "failed"
         )
-        failed = [d for d in mirror.health().devices if d.state is LinkState.FAILED]
-        assert all(d.reason is HoldReason.NO_ANSWER for d in failed), failed
-        s.thaw()
-        # Answering again does not resume a failed device: ticks go on, it stays out and
-        # the rest of the rig holds.
         s.tick_until(
             lambda: all(d.state is not LinkState.OUTAGE for d in mirror.health().devices),
             "every outage decided",
         )
+        failed = [d for d in mirror.health().devices if d.state is LinkState.FAILED]
+        assert all(d.reason is HoldReason.NO_ANSWER for d in failed), failed
+        assert mirror.rearm(timeout_s=HANG_S) == mirror.failed_devices != []  # still frozen
+        s.thaw()
+        # Answering again does not resume a failed device: ticks go on, it stays out and
+        # the rest of the rig holds.
         for _ in range(10):
             s.tick()
         assert mirror.failed_devices and not mirror.health().live
         for d in mirror.health().devices:
             assert d.state in (LinkState.FAILED, LinkState.HOLDING), d
-        assert mirror.rearm() == []
+        # The browser's button shows the failed rig as latched; its release re-arms it.
+        view = SimpleNamespace(estop_requested=False)
+        view.set_estop = lambda latched: setattr(view, "estop_requested", latched)
+        button = BrowserEstop(view, mirror)
+        button(None)
+        assert view.estop_requested
+        view.estop_requested = False  # clicked
+        button(None)
         s.tick_until(lambda: mirror.health().live and mirror.in_sync(), "re-armed, in sync")
+        button(None)
+        assert not view.estop_requested and not mirror.estopped
         target = s.twin.action.copy()
         target[0] += 0.2
         s.tick_until(
