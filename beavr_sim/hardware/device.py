@@ -1,4 +1,4 @@
-"""The one interface every hardware device implements (xArm7, LEAP hand, later Feetech).
+"""The one interface every hardware device implements (xArm7, LEAP hand, Feetech servo groups).
 
 A device drives the joints of one part of one effector (an arm, or a hand) in the model's
 joint convention: radians, the order of :class:`~beavr_sim.robots.embodiment.JointIndex`
@@ -7,8 +7,13 @@ inside its driver, in one tested place.
 
 Lifecycle: :meth:`Device.connect` (raises :class:`DeviceError` naming the device and what to
 check when it cannot be reached), then any number of :meth:`read_positions` /
-:meth:`send_positions` / :meth:`hold`, then :meth:`disconnect` (idempotent, never raises);
-:meth:`reconnect` after a device stopped answering.
+:meth:`send_positions` / :meth:`hold`, then :meth:`disconnect` (idempotent, never raises).
+
+Transient faults: a request whose reply does not come (or comes garbled) is asked again a few
+times (each device's config says how many), each counted in :attr:`Device.retries`; only then
+:class:`DeviceError`. After one, :meth:`Device.reconnect` re-opens the connection and re-reads
+the joints, or raises :class:`DeviceError` (one line) within about the device's reply timeout:
+safe to call again and again while a device is out.
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ class Device(ABC):
     #: The device's own joint speed cap (rad/s), if it has one below the guard's: a mirror
     #: never sends targets faster than this.
     max_velocity: float | None = None
+    #: Requests asked again after their reply did not come or came garbled (drivers count).
+    retries: int = 0
 
     @property
     def n_joints(self) -> int:
@@ -67,8 +74,9 @@ class Device(ABC):
         """Release the device (idempotent; never raises)."""
 
     def reconnect(self) -> np.ndarray:
-        """Connect again after the device stopped answering (:meth:`disconnect`, then
-        :meth:`connect`); returns the joints measured then. Raises :class:`DeviceError`."""
+        """Re-open the connection after a failure and return the measured joints; raises
+        :class:`DeviceError` (one line) when the device still does not answer. Safe to call
+        repeatedly. This default is ``disconnect()``, ``connect()``, ``read_positions()``."""
         self.disconnect()
         self.connect()
         return self.read_positions()
