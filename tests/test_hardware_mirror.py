@@ -555,10 +555,10 @@ def test_bimanual_rig_is_the_same_code():
         mirror.close()
         summary = mirror.summary()
         assert set(summary) == {"left_arm", "left_hand", "right_arm", "right_hand"}
-        assert all(d["errors"] == 0 and d["commands_sent"] >= 10 for d in summary.values()), {
-            k: (d["commands_sent"], d["unchanged"], d["superseded"], d["state"])
-            for k, d in summary.items()
-        }
+        # Every submit written, or passed over for a newer one (a busy machine: two submits
+        # before the writer took the first).
+        for name, d in summary.items():
+            assert d["errors"] == 0 and d["commands_sent"] + d["superseded"] >= 10, (name, d)
         left0, right0 = twin.slices["left"].start, twin.slices["right"].start
         # The left shoulder followed (read after its last write: up to a tick behind).
         assert abs(measured[left0] - target[left0]) < 0.03
