@@ -79,6 +79,8 @@ MIN_INTERVAL_S = 1e-3
 RECONNECT_INTERVAL_S = 0.2
 #: Writes whose timing each device keeps (the ring the latency percentiles come from).
 WRITE_LOG_SIZE = 16384
+#: Fault lines kept per episode (all are counted: :attr:`HardwareMirror.faults_total`).
+MAX_FAULTS = 100
 #: How long (s) :meth:`HardwareMirror.close` waits for a writer thread (one inside a reconnect
 #: waits for its driver's connect timeout).
 JOIN_TIMEOUT_S = 5.0
@@ -549,7 +551,9 @@ class _Link:
             self.stats.errors += 1
             self.stats.outages += 1
             self.stats.last_error = message
-            held = self.last
+            # Where it was: between its last reading and its last target (a device finishing
+            # its last move, or fingers stopped on what they hold, is where it was held).
+            where = [q for q in (self.measured, self.last) if q is not None]
             self._set(LinkState.OUTAGE, HoldReason.DEVICE_ERROR, message)
             m._fault(f"{self.name} stopped answering: {message}")
             m._cond.notify_all()
@@ -575,7 +579,10 @@ class _Link:
                         f"no answer within reconnect_s = {config.reconnect_s:g} s: {message}",
                     )
                     return
-        moved = 0.0 if held is None else float(np.max(np.abs(q - held), initial=0.0))
+        moved = 0.0
+        if where:
+            lo, hi = np.minimum.reduce(where), np.maximum.reduce(where)
+            moved = float(np.max(np.maximum(np.maximum(lo - q, q - hi), 0.0), initial=0.0))
         if moved > self.sync_tolerance:
             self._failed(
                 HoldReason.MOVED,
@@ -1019,8 +1026,9 @@ class HardwareMirror:
         )
 
     def _fault(self, line: str) -> None:
-        """Under the lock: a fault of this episode."""
-        self._faults.append(line)
+        """Under the lock: a fault of this episode (the first MAX_FAULTS kept)."""
+        if len(self._faults) < MAX_FAULTS:
+            self._faults.append(line)
         self._faults_total += 1
 
     # ------------------------------------------------------------------ safety
@@ -1061,6 +1069,12 @@ class HardwareMirror:
                     lambda: not any(link.rearm_requested for link in self.links), timeout=wait
                 )
         return self.failed_devices
+
+    @property
+    def faults_total(self) -> int:
+        """Faults (e-stops, divergences, outages, failures) over the whole session."""
+        with self._cond:
+            return self._faults_total
 
     @property
     def estopped(self) -> bool:
