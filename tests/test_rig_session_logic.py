@@ -20,6 +20,7 @@ from beavr_sim.teleop.session import HardwareSync, ProgressLine, SessionOptions,
 class State(enum.Enum):
     FOLLOWING = "following"
     HOLDING = "holding"
+    OUTAGE = "outage"
     FAILED = "failed"
 
 
@@ -155,7 +156,16 @@ def test_sync_times_out_or_ends_on_a_failed_device(loop):
     assert "within 3 s" in fault and "right_arm holding (e-stop)" in fault
     assert sync.progress.status.startswith("HARDWARE FAULT")
     loop.listeners.remove(sync)
+    # A device in an outage may come back: the sync waits for it (here: until the timeout).
+    out = FakeMirror(sync_after=10**9, failed=["right_hand"])
+    out.health_now = Health(False, (Device("right_hand", State.OUTAGE, detail="reconnecting"),))
+    sync = HardwareSync(loop, out, ProgressLine(loop, enabled=False), 3.0, clock=tick_clock)
+    loop.listeners.append(sync)
+    assert "within 3 s" in sync.run()
+    loop.listeners.remove(sync)
+    # A failed one (not re-armed, nobody at the keyboard) ends the sync at once.
     dead = FakeMirror(sync_after=10**9, failed=["right_hand"])
+    dead.health_now = Health(False, (Device("right_hand", State.FAILED, detail="no answer"),))
     sync = HardwareSync(loop, dead, ProgressLine(loop, enabled=False), 30.0)
     loop.listeners.append(sync)
     assert sync.run().startswith("right_hand failed and was not re-armed")

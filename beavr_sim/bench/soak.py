@@ -7,7 +7,7 @@ the resident memory (``VmRSS`` of ``/proc/<pid>/status``) of this process and of
 process every ``--sample-s`` seconds. Reports the slope of a least-squares line through the
 samples after the warm-up (MB per hour; its standard error), target <= 1 MB per hour for this
 process: every per-write and per-frame statistic is kept in bounded form, so a day's session
-holds what a minute's does. JSON on the last stdout line. Figures: docs/benchmarks.md.
+holds what a minute's does. JSON on the last stdout line. Figures: docs/hardware.md ("A recording day").
 """
 
 from __future__ import annotations

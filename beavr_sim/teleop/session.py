@@ -6,7 +6,7 @@ components in separate processes (``beavr_sim.teleop.processes``).
 On a mirrored rig every episode (a ``--repeat`` play, a recorded episode, a browser Reset)
 starts the same way (:class:`HardwareSync`): the twin is reset to the task's start pose, the
 mirror is told (``begin_episode``) and brings every device there by its guarded, speed-capped
-catch-up while the loop ticks with the operator paused and no hand frames taken (a trace is not
+catch-up while the loop ticks with no hand frames taken (the operator holds; a trace is not
 consumed), and only once the mirror is in sync is the twin reset again (the same seeded start,
 so the episode is the one its simulation would be) and the episode started. A rig that does not
 come in sync within ``sync_timeout_s``, or a device that failed and was not re-armed, ends the
@@ -363,7 +363,9 @@ class HardwareSync:
 
     def start(self) -> None:
         """The twin was just reset to the episode's start: tell the mirror, and hold the
-        operator (no frames, paused) until the devices are there."""
+        operator (no frames: it holds) until the devices are there. (Not by pausing it: a
+        resume re-anchors the operator, and the episode after the sync would not be the one
+        its simulation is.)"""
         self.mirror.begin_episode(
             self.loop.twin.action.copy(), fixtures=Fixtures.of(self.loop.twin.env.data)
         )
@@ -372,7 +374,6 @@ class HardwareSync:
             self.loop.source = _NoFrames(self._source.real_time)
         self.syncing = True
         self.fault = ""
-        self.loop.operator.set_paused(True)
         self.progress.status = "syncing hardware"
         self._started = self.clock()
         self._deadline = self._started + self.timeout_s
@@ -385,7 +386,7 @@ class HardwareSync:
             self.loop.reset(self.loop.seed)  # the seeded start again: the simulated episode
             self.synced += 1
             return
-        failed = list(self.mirror.failed_devices)
+        failed = failed_for_good(self.mirror)
         if failed and not self.interactive:
             self._finish(f"{', '.join(failed)} failed and was not re-armed: {self._why()}")
         elif self.clock() > self._deadline:
@@ -420,7 +421,6 @@ class HardwareSync:
         if self._source is not None:
             self.loop.source = self._source
             self._source = None
-        self.loop.operator.set_paused(bool(self.mirror.estopped))
         self.progress.status = f"HARDWARE FAULT: {fault}" if fault else ""
 
 
@@ -432,6 +432,12 @@ def episode_fault(mirror) -> str:
         return faults[0]
     failed = list(mirror.failed_devices)
     return f"{', '.join(failed)} failed" if failed else ""
+
+
+def failed_for_good(mirror) -> list[str]:
+    """Devices that failed and stay out until re-armed (``FAILED``; a device in an outage
+    is still being reconnected and may come back by itself)."""
+    return [d.name for d in mirror.health().devices if d.state.name == "FAILED"]
 
 
 def build_loop(options: SessionOptions, context=None):
@@ -619,7 +625,7 @@ def _hardware_stop(mirror, interactive: bool):
     non-interactive session) ends the run at once; None without a mirror."""
     if mirror is None or interactive:
         return None
-    return lambda: bool(mirror.failed_devices)
+    return lambda: bool(failed_for_good(mirror))
 
 
 def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync) -> TeleopSummary:
@@ -666,7 +672,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
                 f"{summary.duration_s:.1f} s" + (f"; HARDWARE FAULT: {fault}" if fault else ""),
                 file=sys.stderr,
             )
-        if mirror is not None and mirror.failed_devices and stop_when is not None:
+        if mirror is not None and failed_for_good(mirror) and stop_when is not None:
             stopped = f"run {run}: {fault}"
             break
         if options.repeat and run >= options.repeat:
@@ -852,7 +858,7 @@ def record_episodes(
             progress.status = f"last episode: HARDWARE FAULT ({fault})" if fault else ""
             if "quit" in asked:
                 break
-            if mirror is not None and mirror.failed_devices and not (sync and sync.interactive):
+            if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
                 stopped = f"{name}: {fault or episode_fault(mirror)}"
                 break
     finally:
