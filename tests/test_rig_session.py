@@ -72,17 +72,23 @@ def _check_true(state: np.ndarray, action: np.ndarray, names: list[str], episode
 
 
 def _check_recording(root: Path, repo_id: str, episodes: int, summary: dict) -> None:
+    """Every saved episode true, and ``episodes`` of them. On a busy machine an emulated device
+    can miss a reply (an outage it recovers from): that episode must then be reported as a
+    hardware fault and not saved, and the trace is played again."""
     saved = _episodes(root, repo_id)
     assert len(saved) == episodes
     for e, (state, action, names) in saved.items():
         _check_true(state, action, names, e)
     log = [json.loads(line) for line in (root / "meta" / "beavr_episodes.jsonl").open()]
-    assert [r["hardware_fault"] for r in log] == [None] * episodes
-    assert summary["runs"] == episodes and summary["hardware_faults"] == 0
-    assert [r["run"] for r in summary["per_run"]] == list(range(1, episodes + 1))
-    for record in summary["per_run"]:
-        assert record["saved"] is True and record["hardware_fault"] == ""
+    assert [r["hardware_fault"] is None for r in log] == [r["kept"] for r in log], log
+    runs = summary["per_run"]
+    assert summary["runs"] == len(runs) == len(log) >= episodes
+    assert [r["run"] for r in runs] == list(range(1, len(runs) + 1))
+    for record in runs:
+        assert record["saved"] is (record["hardware_fault"] == ""), record
         assert record["duration_s"] > 0 and record["sync_s"] >= 0
+        assert "diverged" not in record["hardware_fault"], record  # a reset never latches
+    assert summary["hardware_faults"] == len(runs) - episodes
     assert summary["failed_devices"] == [] and summary["stopped_early"] == ""
 
 
@@ -128,9 +134,10 @@ def test_repeated_session_syncs_every_run_and_reports_them_all(capsys):
     assert code == 0
     assert summary["runs"] == 3, summary.get("per_run")
     runs = summary["per_run"]
-    assert [r["hardware_fault"] for r in runs] == ["", "", ""]
+    # No reset latches a hold (on a busy machine a device may still miss a reply: an outage,
+    # recovered, reported in that run's line).
+    assert not any("diverged" in r["hardware_fault"] for r in runs), runs
     assert runs[0]["success"] and runs[1]["success"]
-    assert summary["successes"] >= 2
     # The last run is the cut-short one the old summary described alone.
     assert runs[-1]["duration_s"] < runs[0]["duration_s"]
     assert summary["duration_s"] == pytest.approx(runs[-1]["duration_s"], abs=1e-3)

@@ -40,7 +40,8 @@ EPILOG = """exit codes:
   2  bad options or input (the error line names it and the valid choices)
   3  the rig could not be started (a device did not connect: the line says which, what to check)
   4  a mirrored device failed during the session and was not recovered or re-armed
-  5  the rig did not reach an episode's start pose in time (--sync-timeout): the session ended
+  5  the rig ended the session early: it did not reach an episode's start pose within
+     --sync-timeout, or spoilt 3 recorded episodes in a row
   130 interrupted (Ctrl-C)
 Device errors are one line each; --debug adds Python tracebacks. See docs/hardware.md."""
 

@@ -33,6 +33,8 @@ from beavr_sim.wire.records import Tick
 
 SOURCES = ("quest", "trace", "webxr")
 
+#: Recording: this many episodes in a row spoilt by the hardware end the session.
+MAX_FAULTS_IN_A_ROW = 3
 #: The longest ``--emulate-faults`` spec accepted (it is one line of the emulators' language).
 MAX_FAULT_SPEC_CHARS = 500
 
@@ -767,6 +769,9 @@ def record_episodes(
     attempts = saved = 0
     records: list[RunRecord] = []
     stopped = ""
+    # A trace's episode the hardware spoilt is played again (it does not count towards
+    # --episodes), but a rig that spoils MAX_FAULTS_IN_A_ROW in a row ends the session.
+    faulty = in_a_row = 0
 
     def fresh_episode() -> str:
         """Reset (and, mirrored, sync) for the next episode; the sync's fault or ""."""
@@ -780,7 +785,7 @@ def record_episodes(
         return sync.last_sync_s if sync is not None else None
 
     try:
-        while saved < options.episodes and not (trace and attempts >= options.episodes):
+        while saved < options.episodes and not (trace and attempts - faulty >= options.episodes):
             name = f"episode {saved + 1}/{options.episodes}"
             if not options.auto_start:
                 progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
@@ -828,6 +833,8 @@ def record_episodes(
             )
             attempts += 1
             saved += int(written and not fault)
+            faulty += int(bool(fault))
+            in_a_row = in_a_row + 1 if fault else 0
             records.append(
                 RunRecord(
                     attempts,
@@ -860,6 +867,9 @@ def record_episodes(
                 break
             if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
                 stopped = f"{name}: {fault or episode_fault(mirror)}"
+                break
+            if in_a_row >= MAX_FAULTS_IN_A_ROW:
+                stopped = f"{in_a_row} episodes in a row spoilt by the hardware; the last: {fault}"
                 break
     finally:
         recorder.close()
