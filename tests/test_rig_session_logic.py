@@ -208,3 +208,16 @@ def test_summary_counts_runs_and_the_cli_outcome():
     assert code == 4 and "right_arm" in line and "no answer within 5 s" in line
     code, line = hardware_outcome({"stopped_early": "episode 2/3: not in sync"})
     assert code == 5 and "not in sync" in line
+
+
+def test_watch_allows_the_devices_lag_but_not_a_frozen_state():
+    """Within ``lag_s`` a device may trail its commands (judged against the commands of that
+    stretch, as the mirror judges what it sent); a frozen one still fails."""
+    limits = FollowLimits(np.array([0.3]), 0.5, ("j1",), lag_s=0.25)
+    lagging = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
+    lagging.begin()
+    ramp = [np.array([0.1 * k]) for k in range(60)]
+    assert not any(lagging.check(ramp[max(0, k - 5)], ramp[k]) for k in range(60))
+    frozen = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
+    frozen.begin()
+    assert any(frozen.check(np.zeros(1), ramp[k]) for k in range(60))

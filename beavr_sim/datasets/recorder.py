@@ -21,7 +21,9 @@ is never recorded as if it were live.
 from __future__ import annotations
 
 import json
+import math
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,19 +80,23 @@ class CameraSet:
 class FollowLimits:
     """How far a mirrored rig's measured joints may be from the command, per joint (action
     order; ``inf`` for a joint no device measures), and for how long (the rig's
-    ``MirrorConfig.divergence_window_s``) before the frame is untrue."""
+    ``MirrorConfig.divergence_window_s``) before the frame is untrue. ``lag_s``: a device
+    trails its commands (``MirrorConfig.device_lag_s``); a measured joint is judged against
+    the commands of that last stretch (between the lowest and highest of them), as the
+    mirror judges a device against the targets it sent."""
 
     limit_rad: np.ndarray
     window_s: float
     joint_names: tuple[str, ...]
+    lag_s: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.joint_names) != len(self.limit_rad):
             raise ValueError(
                 f"{len(self.limit_rad)} limits for {len(self.joint_names)} joints: one per joint"
             )
-        if not (np.all(self.limit_rad > 0) and self.window_s >= 0):
-            raise ValueError("divergence limits must be positive and the window >= 0")
+        if not (np.all(self.limit_rad > 0) and self.window_s >= 0 and self.lag_s >= 0):
+            raise ValueError("divergence limits must be positive, the window and lag >= 0")
 
 
 def _not_live(devices: Sequence) -> str:
@@ -110,8 +116,8 @@ class HardwareWatch:
     ``health``: the mirror's cheap snapshot (``HardwareMirror.health``: ``.live``,
     ``.devices``: each ``.name``, ``.state`` (an enum: ``FOLLOWING``, ``CATCHING_UP``, ...),
     ``.detail``; ``.episode_faults``). The measured state of a frame
-    (read before the tick) is compared with the command in force when it was read (the
-    previous frame's action; the first frame's own)."""
+    (read before the tick) is compared with the commands in force when it was read (the
+    previous frames' actions within the lag; the first frame's own)."""
 
     def __init__(self, health: Callable[[], object], limits: FollowLimits, fps: float):
         self.health = health
@@ -119,27 +125,32 @@ class HardwareWatch:
         self.fps = float(fps)
         self.fault = ""
         self.max_gap_rad = 0.0
-        self._previous_action: np.ndarray | None = None
+        self._recent: deque[np.ndarray] = deque(maxlen=max(1, math.ceil(limits.lag_s * fps)))
         self._diverged_frames = 0
 
     def begin(self) -> None:
         self.fault = ""
         self.max_gap_rad = 0.0
-        self._previous_action = None
+        self._recent.clear()
         self._diverged_frames = 0
 
     def check(self, state: np.ndarray, action: np.ndarray) -> str:
         """The frame's fault ("" when it is true); the first one is kept in :attr:`fault`."""
         health = self.health()
-        command = action if self._previous_action is None else self._previous_action
-        self._previous_action = np.array(action, dtype=np.float64)
+        if self._recent:
+            asked = np.stack(self._recent)
+            low, high = asked.min(axis=0), asked.max(axis=0)
+        else:
+            low = high = np.asarray(action, dtype=np.float64)
+        self._recent.append(np.array(action, dtype=np.float64))
         fault = ""
         faults = tuple(getattr(health, "episode_faults", ()))
         if not health.live:
             fault = faults[0] if faults else _not_live(health.devices)
         elif faults:
             fault = faults[0]
-        gap = np.abs(np.asarray(state, dtype=np.float64) - command)
+        measured = np.asarray(state, dtype=np.float64)
+        gap = np.maximum(np.maximum(low - measured, measured - high), 0.0)
         over = gap > self.limits.limit_rad
         finite = np.isfinite(self.limits.limit_rad)
         if finite.any():
@@ -148,7 +159,7 @@ class HardwareWatch:
         if not fault and self._diverged_frames / self.fps > self.limits.window_s:
             j = int(np.argmax(np.where(over, gap - self.limits.limit_rad, -np.inf)))
             fault = (
-                f"measured {self.limits.joint_names[j]} {gap[j]:.3f} rad from the command for "
+                f"measured {self.limits.joint_names[j]} {gap[j]:.3f} rad from the commands for "
                 f"{self._diverged_frames / self.fps:.2f} s (limit {self.limits.limit_rad[j]:g} "
                 "rad)"
             )

@@ -406,15 +406,17 @@ class HardwareSync:
         return self.fault
 
     def _why(self) -> str:
+        """Which devices are not there and why, and the episode's last fault line."""
         health = self.mirror.health()
-        faults = tuple(health.episode_faults)
-        if faults:
-            return faults[-1]
         parts = [
             f"{d.name} {d.state.name.lower()}" + (f" ({d.detail})" if d.detail else "")
             for d in health.devices
-        ]
-        return "; ".join(parts) or "no device reported why"
+            if d.state.name != "FOLLOWING"
+        ] or ["every device follows, but not yet within the sync tolerance of the twin"]
+        faults = tuple(health.episode_faults)
+        if faults:
+            parts.append(f"last fault: {faults[-1]}")
+        return "; ".join(parts)
 
     def _finish(self, fault: str) -> None:
         self.syncing = False
@@ -895,6 +897,7 @@ def follow_limits(mirror, env):
         limit_rad=limit,
         window_s=float(mirror.rig.mirror.divergence_window_s),
         joint_names=tuple(env.joints.names),
+        lag_s=float(mirror.rig.mirror.device_lag_s),
     )
 
 
