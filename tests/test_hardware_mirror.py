@@ -26,7 +26,7 @@ from beavr_sim.hardware.leap import (
     counts_to_model,
     model_to_counts,
 )
-from beavr_sim.hardware.mirror import HardwareMirror, LinkState
+from beavr_sim.hardware.mirror import HardwareMirror, HoldReason, LinkState
 from beavr_sim.hardware.rig import DeviceEntry, MirrorConfig, RigConfig
 from beavr_sim.hardware.xarm import XArmConfig
 from beavr_sim.hardware.xarm_emulator import XArmEmulator
@@ -119,7 +119,9 @@ class Bench:
             self.wait_written()
         return state
 
-    def wait_written(self, timeout: float = 2.0) -> None:
+    def wait_written(self, timeout: float = 30.0) -> None:
+        """Until every writer took the newest dispatch and every stream finished (a
+        readiness wait: ``timeout`` is a hang guard)."""
         deadline = time.monotonic() + timeout
         m = self.mirror
         while time.monotonic() < deadline:
@@ -128,10 +130,17 @@ class Bench:
                 break
             time.sleep(0.002)
         while time.monotonic() < deadline:  # (a loaded machine: until its last step is out)
+            # Every streamed device that is to write it (one held for a command timeout
+            # resumes with this dispatch; one held by an e-stop, a divergence or another
+            # device does not).
             streaming = [
                 link
                 for link in m.links
-                if link.device.stream_hz and link.state in (FOLLOWING, CATCHING_UP)
+                if link.device.stream_hz
+                and (link.state in (FOLLOWING, CATCHING_UP) or link.reason is HoldReason.TIMEOUT)
+                and not m.estopped
+                and not link.latched
+                and not m.failed_devices
             ]
             if all(
                 np.abs(link.last - m._dispatch.target[link.index]).max() < 1e-5

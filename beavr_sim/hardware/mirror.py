@@ -182,6 +182,10 @@ class _Dispatch:
     t_submit: float  # monotonic
     interval: float  # the time this target stands for
 
+    def __post_init__(self) -> None:
+        self.target.flags.writeable = False  # shared with the writers: read-only
+        self.twin.flags.writeable = False
+
 
 @dataclass(frozen=True)
 class _Orders:
@@ -778,7 +782,7 @@ class HardwareMirror:
         self._stopping = threading.Event()
         home = joints.home.astype(np.float64).copy()
         self._dispatch = _Dispatch(
-            0, home, home, (False,) * len(self.links), 0.0, time.monotonic(), self._period
+            0, home, home.copy(), (False,) * len(self.links), 0.0, time.monotonic(), self._period
         )
         #: The time (``clock``) of the previous submit (none yet: the first stands for a whole
         #: period).
