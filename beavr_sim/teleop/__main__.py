@@ -157,10 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     hw.add_argument(
         "--sync-timeout",
         type=float,
-        default=30.0,
+        default=None,
         metavar="S",
-        help="seconds the devices may take to reach an episode's start pose (default 30); "
-        "past it the session ends (exit 5)",
+        help="seconds the devices may take to reach an episode's start pose (default: the rig "
+        "file's sync_timeout_s, 30); past it the session ends (exit 5)",
     )
     hw.add_argument(
         "--emulate-faults",

@@ -101,8 +101,9 @@ class SessionOptions:
     #: (default: discard it).
     keep_faulty_episodes: bool = False
     #: Mirrored rig: how long (wall s) the devices may take to reach an episode's start pose
-    #: before the episode is a hardware fault and the session ends.
-    sync_timeout_s: float = 30.0
+    #: before the episode is a hardware fault and the session ends; None: the rig file's
+    #: ``MirrorConfig.sync_timeout_s``.
+    sync_timeout_s: float | None = None
     #: ``--hardware-config emulated``: faults the emulators inject, in their spec language
     #: (``hardware.rig.parse_fault_specs``); None: none.
     emulate_faults: str | None = None
@@ -187,7 +188,7 @@ class SessionOptions:
             raise ValueError(f"--rerun-twin-hz must be >= 0 (0: none), got {self.rerun_twin_hz}")
         if self.keep_faulty_episodes and self.record is None:
             raise ValueError("--keep-faulty-episodes needs --record")
-        if not 0 < self.sync_timeout_s < float("inf"):
+        if self.sync_timeout_s is not None and not 0 < self.sync_timeout_s < float("inf"):
             raise ValueError(f"--sync-timeout must be positive, got {self.sync_timeout_s}")
         if self.emulate_faults is not None:
             spec = self.emulate_faults.strip()
@@ -276,7 +277,7 @@ class SessionOptions:
             webxr_host=getattr(args, "webxr_host", "127.0.0.1"),
             webxr_port=getattr(args, "webxr_port", None),
             keep_faulty_episodes=getattr(args, "keep_faulty_episodes", False),
-            sync_timeout_s=getattr(args, "sync_timeout", 30.0),
+            sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
         )
 
@@ -525,7 +526,8 @@ def run_session(options: SessionOptions) -> TeleopSummary:
                 "r": ("release the emergency stop", mirror.release),
                 "a": ("re-arm failed devices", lambda: rearm(mirror)),
             }
-            sync = HardwareSync(loop, mirror, progress, options.sync_timeout_s, interactive)
+            timeout_s = options.sync_timeout_s or mirror.rig.mirror.sync_timeout_s
+            sync = HardwareSync(loop, mirror, progress, timeout_s, interactive)
             loop.listeners.append(sync)
         if interactive and ((control is not None and not options.auto_start) or keys):
             from beavr_sim.teleop.episodes import KeyboardControl
