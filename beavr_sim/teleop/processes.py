@@ -399,6 +399,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
     closers = []
     if options.get("mirror_hardware"):
         from beavr_sim.hardware.device import MirrorError
+        from beavr_sim.hardware.mirror import Fixtures
         from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, connect_mirror
 
         try:
@@ -412,6 +413,7 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
         twin.reset(options["seed"], q_measured)  # the twin starts where the robot stands
         sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)  # see teleop/mirroring.py
         mirror.start(twin.action)
+        mirror.begin_episode(twin.action.copy(), Fixtures.of(env.data))  # its guard: fixtures
     fixtures = fixtures_to_wire(env)
     subs = {
         e.name: Subscriber(
@@ -545,6 +547,8 @@ def twin_main(options: dict, transport: TransportConfig, conn) -> None:
                 positions = twin.reset(options["seed"])
                 epoch = max(epoch + 1, msg.epoch if reset else 0)
                 fixtures = fixtures_to_wire(env)
+                if mirror is not None:  # the devices catch up with the twin's start, guarded
+                    mirror.begin_episode(twin.action.copy(), Fixtures.of(env.data))
             if msg is not None and mirror is not None and msg.command == "estop":
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
