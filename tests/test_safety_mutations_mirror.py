@@ -3,8 +3,9 @@
 When the devices are further from the twin than one period's motion (after a hold, a release,
 a reset) the mirror makes its own targets on the straight line to the twin's; its guard checks
 each along its path, and a refused one is not sent (the device holds short of it). These tests
-drive a catch-up whose straight path crosses the table (or Tape's box: a strict xfail, the
-mirror's guard does not know where the reset put it), and check every target the emulated
+drive a catch-up whose straight path crosses the table or Tape's box (where this episode's
+reset put it: :meth:`~beavr_sim.hardware.mirror.HardwareMirror.begin_episode` tells the
+mirror's guard), and check every target the emulated
 xArm received (:attr:`~beavr_sim.hardware.rig.EmulatedRig.received`) against a guard.
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 import pytest
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.hardware.mirror import HardwareMirror
+from beavr_sim.hardware.mirror import Fixtures, HardwareMirror
 from beavr_sim.hardware.rig import EmulatedRig
 from beavr_sim.twin.guard import CollisionGuard
 
@@ -85,6 +86,7 @@ def _catch_up(env, start: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, dic
             measured = mirror.connect()
             np.testing.assert_allclose(measured[ARM], start[ARM], atol=1e-4)
             mirror.start(measured)
+            mirror.begin_episode(measured, Fixtures.of(env.data))  # this episode's fixtures
             distance = float(np.abs(goal - measured).max())
             for _ in range(math.ceil(distance / (mirror_config.arm_catch_up_speed * period)) + 20):
                 clock.t += period
@@ -136,12 +138,6 @@ def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
     _check_received(guard, qpos, start, goal, targets, summary)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the mirror's own guard never learns the fixtures' poses (it checks Tape's box at "
-    "the model's default pose, not where the reset put it): HardwareMirror has no way to be "
-    "told, and no caller tells it; reported to the lead (issue 45)",
-)
 def test_a_catch_up_whose_path_crosses_a_fixture_stops_short_of_it():
     """Tape's box where the reset put it (away from its default pose): a catch-up whose path
     crosses it stops short of it, as for the table."""

@@ -234,7 +234,16 @@ def test_multiprocess_replays_a_trace_to_the_same_commands_as_one_process(
 # ------------------------------------------------------------------ the feature matrix
 SOURCES = ("quest", "webxr", "trace")
 CLOCKS = (None, "real", "virtual", "paced")
-FEATURES = ("plain", "mirror", "view", "estop_inputs", "record", "rerun", "headset_images")
+FEATURES = (
+    "plain",
+    "mirror",
+    "view",
+    "estop_inputs",
+    "record",
+    "rerun",
+    "headset_images",
+    "sync_timeout",
+)
 
 
 def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
@@ -247,8 +256,10 @@ def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
         progress=False,
         multiprocess=multiprocess,
     )
-    if feature in ("mirror", "estop_inputs"):  # keyboard, browser button, headset gesture
+    if feature in ("mirror", "estop_inputs", "sync_timeout"):  # e-stop: keys, button, gesture
         kwargs.update(mirror_hardware=True, hardware_config="emulated")
+    if feature == "sync_timeout":
+        kwargs["sync_timeout_s"] = 5.0
     if feature == "record":
         kwargs["record"] = tmp_path / "dataset"
     if feature == "rerun":
@@ -260,8 +271,10 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
     """What the combination is refused for (words one of which the error names; any one
     applies); empty: it must work."""
     reasons = []
-    if feature in ("mirror", "estop_inputs") and clock == "virtual":
+    if feature in ("mirror", "estop_inputs", "sync_timeout") and clock == "virtual":
         reasons.append("real control rate")
+    if multiprocess and feature == "sync_timeout":
+        reasons.append("--sync-timeout")
     if clock in ("virtual", "paced") and source != "trace":
         reasons.append("recorded source")
     if multiprocess and feature == "record":
@@ -305,6 +318,7 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "clock": (twin.lockstep, twin.paced)
             == (options.clock in ("virtual", "paced"), options.clock == "paced"),
             "mirror": twin.mirror_hardware == (feature in ("mirror", "estop_inputs")),
+            "rig": twin.hardware_config == options.hardware_config,
             "view": (twin.view is not None) == (feature in ("view", "estop_inputs")),
             "headset_images": (twin.headset_images is not None)
             == (feature == "headset_images" and source == "quest"),

@@ -21,7 +21,11 @@ its own options: ``python -m beavr_sim.bench scaling --help``); JSON on the last
 
 ``python -m beavr_sim.bench mutations [--only NAME,...] [--list] [--json FILE]``: one planted
 bug per safety rule, each in a copy of the repository, against the tests that claim the rule
-(``bench/mutations.py``, its own options); a table and caught / total."""
+(``bench/mutations.py``, its own options); a table and caught / total.
+
+``python -m beavr_sim.bench soak --minutes N``: a looping trace mirrored to the emulated rig
+for N minutes; the resident memory's slope after warm-up in MB per hour (target <= 1;
+``bench/soak.py``, its own options); JSON on the last line."""
 
 from __future__ import annotations
 
@@ -43,6 +47,7 @@ BENCHMARKS = (
     "contact",
     "scaling",
     "mutations",
+    "soak",
 )
 
 
@@ -56,6 +61,10 @@ def main(argv: list[str] | None = None) -> int:
         from beavr_sim.bench.mutations import main as mutations_main
 
         return mutations_main(argv[1:])
+    if argv[:1] == ["soak"]:  # options of its own
+        from beavr_sim.bench.soak import main as soak_main
+
+        return soak_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
     parser.add_argument(

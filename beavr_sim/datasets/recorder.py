@@ -9,13 +9,23 @@ included). Hand keypoints are the newest frame of each side up to that tick.
 Episodes: :meth:`EpisodeRecorder.begin` after the env reset, :meth:`EpisodeRecorder.end` with
 keep or drop. A summary line per episode goes to ``meta/beavr_episodes.jsonl`` beside LeRobot's
 metadata (seed, success, duration, source): LeRobot has no field for them.
+
+Mirrored hardware (``observation.state`` measured by the devices): a :class:`HardwareWatch`
+checks every frame that every device is live and that the measured joints follow the command
+(within the rig's divergence limits for no longer than its window). The first fault is kept in
+:attr:`EpisodeRecorder.fault` (the session ends the episode on it) and written as the episode's
+``hardware_fault`` in ``meta/beavr_episodes.jsonl``: an episode whose state was frozen or stale
+is never recorded as if it were live.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -66,6 +76,98 @@ class CameraSet:
             self._cameras.close()
 
 
+@dataclass(frozen=True)
+class FollowLimits:
+    """How far a mirrored rig's measured joints may be from the command, per joint (action
+    order; ``inf`` for a joint no device measures), and for how long (the rig's
+    ``MirrorConfig.divergence_window_s``) before the frame is untrue. ``lag_s``: a device
+    trails its commands (``MirrorConfig.device_lag_s``); a measured joint is judged against
+    the commands of that last stretch (between the lowest and highest of them), as the
+    mirror judges a device against the targets it sent."""
+
+    limit_rad: np.ndarray
+    window_s: float
+    joint_names: tuple[str, ...]
+    lag_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if len(self.joint_names) != len(self.limit_rad):
+            raise ValueError(
+                f"{len(self.limit_rad)} limits for {len(self.joint_names)} joints: one per joint"
+            )
+        if not (np.all(self.limit_rad > 0) and self.window_s >= 0 and self.lag_s >= 0):
+            raise ValueError("divergence limits must be positive, the window and lag >= 0")
+
+
+def _not_live(devices: Sequence) -> str:
+    """The devices of a health snapshot that are not following, as one line."""
+    parts = []
+    for device in devices:
+        kind = device.state.name
+        if kind not in ("FOLLOWING", "CATCHING_UP"):
+            detail = device.detail
+            parts.append(f"{device.name} {kind.lower()}" + (f" ({detail})" if detail else ""))
+    return "; ".join(parts) or "a device was not live"
+
+
+class HardwareWatch:
+    """Per recorded frame: is the measured state true? (See the module docstring.)
+
+    ``health``: the mirror's cheap snapshot (``HardwareMirror.health``: ``.live``,
+    ``.devices``: each ``.name``, ``.state`` (an enum: ``FOLLOWING``, ``CATCHING_UP``, ...),
+    ``.detail``; ``.episode_faults``). The measured state of a frame
+    (read before the tick) is compared with the commands in force when it was read (the
+    previous frames' actions within the lag; the first frame's own)."""
+
+    def __init__(self, health: Callable[[], object], limits: FollowLimits, fps: float):
+        self.health = health
+        self.limits = limits
+        self.fps = float(fps)
+        self.fault = ""
+        self.max_gap_rad = 0.0
+        self._recent: deque[np.ndarray] = deque(maxlen=max(1, math.ceil(limits.lag_s * fps)))
+        self._diverged_frames = 0
+
+    def begin(self) -> None:
+        self.fault = ""
+        self.max_gap_rad = 0.0
+        self._recent.clear()
+        self._diverged_frames = 0
+
+    def check(self, state: np.ndarray, action: np.ndarray) -> str:
+        """The frame's fault ("" when it is true); the first one is kept in :attr:`fault`."""
+        health = self.health()
+        if self._recent:
+            asked = np.stack(self._recent)
+            low, high = asked.min(axis=0), asked.max(axis=0)
+        else:
+            low = high = np.asarray(action, dtype=np.float64)
+        self._recent.append(np.array(action, dtype=np.float64))
+        fault = ""
+        faults = tuple(getattr(health, "episode_faults", ()))
+        if not health.live:
+            fault = faults[0] if faults else _not_live(health.devices)
+        elif faults:
+            fault = faults[0]
+        measured = np.asarray(state, dtype=np.float64)
+        gap = np.maximum(np.maximum(low - measured, measured - high), 0.0)
+        over = gap > self.limits.limit_rad
+        finite = np.isfinite(self.limits.limit_rad)
+        if finite.any():
+            self.max_gap_rad = max(self.max_gap_rad, float(np.max(gap[finite])))
+        self._diverged_frames = self._diverged_frames + 1 if over.any() else 0
+        if not fault and self._diverged_frames / self.fps > self.limits.window_s:
+            j = int(np.argmax(np.where(over, gap - self.limits.limit_rad, -np.inf)))
+            fault = (
+                f"measured {self.limits.joint_names[j]} {gap[j]:.3f} rad from the commands for "
+                f"{self._diverged_frames / self.fps:.2f} s (limit {self.limits.limit_rad[j]:g} "
+                "rad)"
+            )
+        if fault and not self.fault:
+            self.fault = fault
+        return fault
+
+
 class EpisodeRecorder:
     """A teleop-loop listener writing the ticks of each episode as LeRobot frames."""
 
@@ -75,6 +177,7 @@ class EpisodeRecorder:
         env,
         config: RecordingConfig,
         state_source: Callable[[], np.ndarray] | None = None,
+        watch: HardwareWatch | None = None,
     ):
         self.writer = writer
         self.env = env
@@ -82,6 +185,8 @@ class EpisodeRecorder:
         #: Where ``observation.state`` comes from: the twin's joints by default; the measured
         #: hardware joints when mirroring (``HardwareMirror.latest_measured``).
         self.state_source = state_source
+        #: Mirrored hardware: the per-frame check that the measured state is true.
+        self.watch = watch
         self.task_text = env.task.instruction or env.task.name
         self.sides = hand_sides(env.embodiment)
         self.cameras = CameraSet.of_env(
@@ -104,6 +209,13 @@ class EpisodeRecorder:
         self.recording = True
         self.frames = 0
         self._started_wall = time.perf_counter()
+        if self.watch is not None:
+            self.watch.begin()
+
+    @property
+    def fault(self) -> str:
+        """The episode's first hardware fault ("" when none, or no hardware)."""
+        return self.watch.fault if self.watch is not None else ""
 
     def end(self, keep: bool, **info) -> bool:
         """End the episode: write it (``keep``) or drop it. Returns whether it was written."""
@@ -120,6 +232,9 @@ class EpisodeRecorder:
             "embodiment": self.env.embodiment.name,
             **info,
         }
+        if self.watch is not None:
+            record["hardware_fault"] = self.watch.fault or None
+            record["max_state_gap_rad"] = round(self.watch.max_gap_rad, 4)
         log_path = Path(self.writer.root) / "meta" / "beavr_episodes.jsonl"
         log_path.parent.mkdir(parents=True, exist_ok=True)
         with log_path.open("a") as f:
@@ -153,6 +268,8 @@ class EpisodeRecorder:
             self._tracked[i] = frame.tracked
         row = dict(self._observation)
         row[ACTION] = np.asarray(tick.state.action, dtype=np.float32)
+        if self.watch is not None:
+            self.watch.check(row[STATE], tick.state.action)
         if self.config.hand_keypoints:
             row[KEYPOINTS] = self._keypoints.reshape(-1).copy()
             row[TRACKED] = self._tracked.reshape(-1).copy()
@@ -165,8 +282,13 @@ def run_recorded_episode(
     loop, recorder: EpisodeRecorder, config: RecordingConfig, progress=None, stop_when=None
 ):
     """Run the loop's current episode while recording, until it ends by itself (success,
-    failure, time limit, end of a trace) or ``stop_when()``; ticks on for ``tail_seconds``
-    after success so the data shows the outcome settled. Returns the loop's summary."""
+    failure, time limit, end of a trace), ``stop_when()`` or a hardware fault
+    (:attr:`EpisodeRecorder.fault`); ticks on for ``tail_seconds`` after success so the data
+    shows the outcome settled. Returns the loop's summary."""
+
+    def stop() -> bool:
+        return bool(recorder.fault) or (stop_when is not None and stop_when())
+
     recorder.begin()
     loop.listeners.append(recorder)
     try:
@@ -174,11 +296,15 @@ def run_recorded_episode(
             max_seconds=config.episode_seconds,
             stop_on_success=True,
             progress=progress,
-            stop_when=stop_when,
+            stop_when=stop,
         )
         if summary.success:
             for _ in range(int(round(config.tail_seconds * config.fps))):
-                loop.tick()
+                if recorder.fault:
+                    break
+                tick = loop.tick()
+                if progress is not None:
+                    progress(tick)
     finally:
         loop.listeners.remove(recorder)
     return summary

@@ -5,6 +5,11 @@ LeRobot keeps its parquet writers open across episodes and writes their footers 
 :class:`EpisodeWriter` therefore finalizes after every saved episode and resumes the dataset
 for the next one (``LeRobotDataset.resume``); each episode lands in files of its own, so a
 crash during episode k loses only episode k. Metadata is flushed per episode as well.
+
+Every dataset the project opens is opened with the PyAV video backend (:data:`VIDEO_BACKEND`,
+:func:`open_dataset`): LeRobot's default probes torchcodec first, whose libraries need the
+system's FFmpeg of a matching version, and where that is missing it logs the whole load
+traceback before falling back to PyAV.
 """
 
 from __future__ import annotations
@@ -34,6 +39,18 @@ def require_lerobot():
             "(pip install 'lerobot[training]'; Python 3.12). " + str(exc)
         ) from exc
     return LeRobotDataset
+
+
+def open_dataset(root: str | Path, repo_id: str | None = None, **kwargs):
+    """A recorded dataset, read back with the PyAV video backend (no torchcodec probe);
+    ``kwargs`` go to ``LeRobotDataset`` (``episodes``, ``delta_timestamps``, ...). The repo
+    id defaults to the one the dataset was written with."""
+    root = Path(root)
+    if not dataset_exists(root):
+        raise FileNotFoundError(f"no LeRobot dataset in {root} (meta/info.json is missing)")
+    dataset_cls = require_lerobot()
+    kwargs.setdefault("video_backend", VIDEO_BACKEND)
+    return dataset_cls(repo_id or f"local/{root.name}", root=root, **kwargs)
 
 
 def dataset_exists(root: Path) -> bool:

@@ -2,8 +2,18 @@
 
 A rig file (``--hardware-config F.toml``, read with :mod:`tomllib`)::
 
-    [mirror]                      # optional; see MirrorConfig
-    command_timeout_s = 0.25
+    [mirror]                      # optional; see MirrorConfig (defaults shown)
+    arm_divergence_rad = 0.3      # measured vs sent (rad), for longer than ...
+    hand_divergence_rad = 0.8
+    divergence_window_s = 0.5     # ... this (s): the device holds until released
+    device_lag_s = 0.25           # measured joints judged against targets sent this recently
+    command_timeout_s = 0.25      # no fresh command this long (s): hold, resume on the next
+    arm_catch_up_speed = 0.5      # rad/s after a hold, a release, a reset (guarded)
+    hand_catch_up_speed = 1.5
+    reconnect_s = 5.0             # a device that stops answering is retried this long (s)
+    arm_sync_tolerance_rad = 0.05 # in sync (an episode may start): measured vs twin (rad)
+    hand_sync_tolerance_rad = 0.2
+    sync_timeout_s = 30.0         # the longest a session waits for sync before an episode
 
     [[devices]]
     name = "right_arm"            # unique in the rig
@@ -96,20 +106,35 @@ _RESERVED = ("name", "kind", "effector")
 
 @dataclass(frozen=True)
 class MirrorConfig:
-    """How the hardware follows the twin (see :mod:`beavr_sim.hardware.mirror`)."""
+    """How the hardware follows the twin (see :mod:`beavr_sim.hardware.mirror`). Every field
+    is a positive number of the unit its comment names."""
 
-    #: Measured hardware joints may differ from the twin's by this much (rad) ...
+    #: A device's measured joints may differ from what it was sent (within its lag) by this
+    #: much (rad) ...
     arm_divergence_rad: float = 0.3
-    #: (fingers: the twin's fingers stop on objects the emulators do not have) ...
+    #: (fingers: they stop on what they grasp, where their targets go on) ...
     hand_divergence_rad: float = 0.8
     #: ... for at most this long (s) before the device holds.
     divergence_window_s: float = 0.5
-    #: A device holds when no fresh command came for this long (s).
+    #: How far behind its targets (s) a device may be: its measured joints are judged against
+    #: every target sent within this time.
+    device_lag_s: float = 0.25
+    #: A device holds when no fresh command came for this long (s); it resumes when they come.
     command_timeout_s: float = 0.25
     #: Speed (rad/s) at which a device catches up with the twin after a hold, a release or a
     #: reset (the twin jumps home, the hardware moves there slowly, guarded).
     arm_catch_up_speed: float = 0.5
     hand_catch_up_speed: float = 1.5
+    #: A device that stops answering is reconnected for up to this long (s); back within it
+    #: and where it was held, it resumes; otherwise it stays failed until re-armed.
+    reconnect_s: float = 5.0
+    #: In sync (an episode may start; a reconnected device is where it was held): every
+    #: measured joint within this much (rad) of the twin's ...
+    arm_sync_tolerance_rad: float = 0.05
+    hand_sync_tolerance_rad: float = 0.2
+    #: ... and the longest (s) a session waits for that before an episode (else a hardware
+    #: fault).
+    sync_timeout_s: float = 30.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -117,7 +142,22 @@ class MirrorConfig:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(f"mirror.{f.name} must be a number, got {value!r}")
             if not (value > 0 and math.isfinite(value)):
-                raise ValueError(f"mirror.{f.name} must be a positive number, got {value!r}")
+                raise ValueError(
+                    f"mirror.{f.name} must be a positive, finite number, got {value!r}"
+                )
+        for name in ("reconnect_s", "sync_timeout_s"):
+            if getattr(self, name) > 3600:
+                raise ValueError(
+                    f"mirror.{name} must be at most 3600 s, got {getattr(self, name)!r}"
+                )
+        for part in ("arm", "hand"):
+            tolerance = getattr(self, f"{part}_sync_tolerance_rad")
+            limit = getattr(self, f"{part}_divergence_rad")
+            if tolerance > limit:
+                raise ValueError(
+                    f"mirror.{part}_sync_tolerance_rad ({tolerance!r}) must not exceed "
+                    f"mirror.{part}_divergence_rad ({limit!r}): a device in sync is not diverged"
+                )
 
 
 @dataclass(frozen=True)

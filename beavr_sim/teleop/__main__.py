@@ -35,6 +35,22 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
 
+EPILOG = """exit codes:
+  0  the session ran (its summary says how each run went)
+  2  bad options or input (the error line names it and the valid choices)
+  3  the rig could not be started (a device did not connect: the line says which, what to check)
+  4  a mirrored device failed during the session and was not recovered or re-armed
+  5  the rig ended the session early: it did not reach an episode's start pose within
+     --sync-timeout, or spoilt 3 recorded episodes in a row
+  130 interrupted (Ctrl-C)
+Device errors are one line each; --debug adds Python tracebacks. See docs/hardware.md."""
+
+#: Exit codes of the hardware outcomes (documented in the epilog and docs/hardware.md).
+EXIT_BAD_INPUT = 2
+EXIT_RIG_START = 3
+EXIT_DEVICE_FAILED = 4
+EXIT_NOT_SYNCED = 5
+
 SOURCES = ("quest", "trace", "webxr")
 CLOCKS = ("real", "virtual", "paced")
 
@@ -43,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m beavr_sim.teleop",
         description=__doc__,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--task", required=True, help="task name, e.g. pour or PickupBox")
@@ -101,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument(
+        "--debug", action="store_true", help="log with Python tracebacks (default: one line each)"
+    )
+    p.add_argument(
         "--rerun",
         type=Path,
         default=None,
@@ -136,6 +156,21 @@ def build_parser() -> argparse.ArgumentParser:
     hw.add_argument(
         "--dry-run", action="store_true", help="mirror everything but the final device write"
     )
+    hw.add_argument(
+        "--sync-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds the devices may take to reach an episode's start pose (default: the rig "
+        "file's sync_timeout_s, 30); past it the session ends (exit 5)",
+    )
+    hw.add_argument(
+        "--emulate-faults",
+        default=None,
+        metavar="SPEC",
+        help="--hardware-config emulated: faults the emulators inject (freeze, drop, corrupt, "
+        "delay, disconnect; see docs/hardware.md), to rehearse a rig's faults",
+    )
     p.add_argument(
         "--leap-variant",
         choices=LEAP_HAND.variants,
@@ -161,8 +196,54 @@ def build_parser() -> argparse.ArgumentParser:
         help="start each episode on Enter, the Record button or a long left pinch "
         "(default for live sources)",
     )
+    rec.add_argument(
+        "--keep-faulty-episodes",
+        action="store_true",
+        help="mirrored: keep an episode the hardware spoilt (a device held, failed or "
+        "diverged), marked hardware_fault in meta/beavr_episodes.jsonl (default: discard it)",
+    )
     add_recording_args(rec)
     return p
+
+
+class OneLineFormatter(logging.Formatter):
+    """Log records as one line each: the exception's type and message, never its traceback
+    (``--debug`` logs with the standard formatter)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        exc = record.exc_info
+        if not exc or exc[1] is None:
+            return super().format(logging.makeLogRecord({**record.__dict__, "exc_info": None}))
+        plain = logging.makeLogRecord(
+            {**record.__dict__, "exc_info": None, "exc_text": None, "stack_info": None}
+        )
+        line = super().format(plain)
+        return f"{line} ({type(exc[1]).__name__}: {exc[1]})"
+
+
+def configure_logging(debug: bool) -> None:
+    handler = logging.StreamHandler()
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    handler.setFormatter(logging.Formatter(fmt) if debug else OneLineFormatter(fmt))
+    logging.basicConfig(level=logging.INFO if debug else logging.WARNING, handlers=[handler])
+
+
+def hardware_outcome(report: dict) -> tuple[int, str]:
+    """The exit code of a session's hardware outcome and its one line ("" when it ran)."""
+    failed = report.get("failed_devices") or []
+    if failed:
+        hardware = report.get("hardware", {})
+        why = "; ".join(
+            f"{name}: {hardware.get(name, {}).get('reason') or hardware.get(name, {}).get('last_error') or 'failed'}"
+            for name in failed
+        )
+        return EXIT_DEVICE_FAILED, (
+            f"error: {', '.join(failed)} failed and was not recovered ({why}); check its "
+            "power, cable and controller, then start the session again"
+        )
+    if report.get("stopped_early"):
+        return EXIT_NOT_SYNCED, f"error: the session ended early: {report['stopped_early']}"
+    return 0, ""
 
 
 def explain(report: dict) -> list[str]:
@@ -187,7 +268,7 @@ def explain(report: dict) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging(args.debug)
     from beavr_sim.hardware.device import MirrorError
     from beavr_sim.teleop.session import SessionOptions, run_session
 
@@ -195,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
         options = SessionOptions.from_args(args)
     except (UnknownNameError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     start = time.perf_counter()
     try:
         summary = run_session(options)
@@ -203,11 +284,15 @@ def main(argv: list[str] | None = None) -> int:
         print("\ninterrupted", file=sys.stderr)
         return 130
     except (UnknownNameError, ValueError, FileNotFoundError, FileExistsError, ImportError) as exc:
+        if args.debug:
+            logging.exception("session failed")
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     except MirrorError as exc:
+        if args.debug:
+            logging.exception("rig failed")
         print(f"error: {exc}", file=sys.stderr)
-        return 3
+        return EXIT_RIG_START
     report = summary.to_dict()
     report["wall_s"] = round(time.perf_counter() - start, 3)
     if not args.quiet:
@@ -218,7 +303,10 @@ def main(argv: list[str] | None = None) -> int:
         args.summary_json.parent.mkdir(parents=True, exist_ok=True)
         args.summary_json.write_text(line + "\n")
     print(line)
-    return 0
+    code, why = hardware_outcome(report)
+    if why:
+        print(why, file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -80,12 +80,18 @@ class MirrorListener:
 
 
 class BrowserEstop:
-    """Keeps the browser view's emergency-stop button and the mirror's e-stop in step: the
-    button latches and releases it; a latch or release from the keyboard shows on the button."""
+    """Keeps the browser view's emergency-stop button and the mirror in step: the button
+    latches the e-stop, and its release releases it and re-arms failed devices
+    (:meth:`~beavr_sim.hardware.mirror.HardwareMirror.release`); the button shows latched while
+    the e-stop is latched (from any input) or a device is failed, so a failed rig is re-armed
+    from the browser the way an e-stop is released."""
 
     def __init__(self, view, mirror):
         self.view, self.mirror = view, mirror
         self._shown = False
+
+    def _held(self) -> bool:
+        return bool(self.mirror.estopped or self.mirror.failed_devices)
 
     def __call__(self, tick: Tick) -> None:
         if self.view.estop_requested != self._shown:  # the button was clicked
@@ -93,7 +99,7 @@ class BrowserEstop:
             if self._shown:
                 self.mirror.estop("browser view")
             else:
-                self.mirror.release()
-        elif self.mirror.estopped != self._shown:  # the keyboard latched or released it
-            self._shown = self.mirror.estopped
+                self.mirror.release()  # (re-arms a failed device, without waiting)
+        elif self._held() != self._shown:  # latched, failed, released or re-armed elsewhere
+            self._shown = self._held()
             self.view.set_estop(self._shown)

@@ -131,6 +131,73 @@ class TickSchedule:
 _EMPTY = object()
 
 
+class LatencyLog:
+    """Per-command latencies (ms) in bounded memory, read like the list they replace.
+
+    ``append`` is O(1) and allocates nothing: the newest ``recent`` values sit in a ring
+    (``log[-200:]``, ``log[k:]`` with ``k`` an absolute count, as a list of the values still
+    held), and a uniform sample of all of them (reservoir sampling, at most ``sample``
+    values; every value while fewer came) gives the percentiles. ``len()`` counts every value
+    appended since the last :meth:`clear`. A whole-day session keeps the same few megabytes
+    as a minute's.
+    """
+
+    def __init__(self, recent: int = 1 << 16, sample: int = 1 << 16, seed: int = 0):
+        if recent < 1 or sample < 1:
+            raise ValueError(f"recent and sample must be >= 1, got {recent}, {sample}")
+        self._ring = np.zeros(int(recent))
+        self._sample = np.zeros(int(sample))
+        self._rng = np.random.default_rng(seed)
+        self._n = 0
+
+    def append(self, value: float) -> None:
+        n = self._n
+        self._ring[n % self._ring.size] = value
+        if n < self._sample.size:
+            self._sample[n] = value
+        else:
+            j = int(self._rng.integers(0, n + 1))
+            if j < self._sample.size:
+                self._sample[j] = value
+        self._n = n + 1
+
+    def clear(self) -> None:
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, index):
+        """A slice of the values appended (absolute positions; only those still in the ring
+        come back) as a list; an integer index likewise."""
+        n, size = self._n, self._ring.size
+        first = max(0, n - size)  # the oldest value still held
+        if isinstance(index, slice):
+            start, stop, step = index.indices(n)
+            if step != 1:
+                raise ValueError("LatencyLog slices take no step")
+            start = max(start, first)
+            return [float(self._ring[i % size]) for i in range(start, max(start, stop))]
+        i = index + n if index < 0 else index
+        if not first <= i < n:
+            raise IndexError(f"latency {index} is not held (held: {first}..{n - 1})")
+        return float(self._ring[i % size])
+
+    def __iter__(self):
+        return iter(self[:])
+
+    def percentiles(self) -> dict:
+        """p50, p99 of the sample and the count of every value (the summary's shape)."""
+        if not self._n:
+            return {"p50": None, "p99": None, "n": 0}
+        a = self._sample[: min(self._n, self._sample.size)]
+        return {
+            "p50": float(np.percentile(a, 50)),
+            "p99": float(np.percentile(a, 99)),
+            "n": self._n,
+        }
+
+
 class ThreadedListener[T]:
     """A tick listener run on its own thread, off the control tick: for pure viewers (the
     headset images), whose time must never add to the control period.
@@ -221,6 +288,31 @@ class ThreadedListener[T]:
             self._thread.join(timeout_s)
 
 
+@dataclass(frozen=True)
+class RunRecord:
+    """One run of a session (a play of a trace, a recorded episode): its line in the summary."""
+
+    run: int
+    success: bool
+    duration_s: float
+    #: What the hardware did wrong in this run ("" when nothing): the first fault's line.
+    hardware_fault: str = ""
+    #: Recording: whether the episode was written to the dataset (None: not recording).
+    saved: bool | None = None
+    #: Mirrored: wall seconds the rig took to reach the run's start pose (None: no rig).
+    sync_s: float | None = None
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out["duration_s"] = round(self.duration_s, 3)
+        for key in ("saved", "sync_s"):
+            if out[key] is None:
+                del out[key]
+        if self.sync_s is not None:
+            out["sync_s"] = round(self.sync_s, 2)
+        return out
+
+
 @dataclass
 class TeleopSummary:
     task: str
@@ -254,6 +346,26 @@ class TeleopSummary:
     #: Valid frames replaced by a newer one of the same hand before any command used them
     #: (counted in ``frames_received`` too).
     frames_superseded: int = 0
+    #: The session's runs (each play of a ``--repeat`` trace, each recorded episode), filled by
+    #: the session runner; the fields above describe the last run (its counters: the session).
+    runs: int = 0
+    #: Runs that reached task success (recorded: and were saved as true episodes).
+    successes: int = 0
+    #: Runs ended or spoilt by the hardware (a device held, failed, diverged or never synced).
+    hardware_faults: int = 0
+    #: One line per run, oldest first: :class:`RunRecord` as a dict.
+    per_run: list = field(default_factory=list)
+    #: Mirrored devices that failed and were not recovered (the CLI exits with code 4).
+    failed_devices: list = field(default_factory=list)
+    #: Why the session ended before all its runs were played ("" when it did not).
+    stopped_early: str = ""
+
+    def add_run(self, record: RunRecord) -> None:
+        """Count ``record`` (the run just ended) in the session's totals."""
+        self.per_run.append(record.to_dict())
+        self.runs = len(self.per_run)
+        self.successes += int(record.success and not record.hardware_fault)
+        self.hardware_faults += int(bool(record.hardware_fault))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -300,9 +412,9 @@ class TeleopLoop:
             twin.env.control_hz,
             hold_positions=lambda name: self.twin.action[self.twin.slices[name]].copy(),
         )
-        self.twin_stage = TwinStage(twin, hook_errors=self.listener_errors)
-        #: Per applied command (ms; see the module docstring).
-        self.latencies_ms: list[float] = self.twin_stage.latencies_ms
+        self.twin_stage = TwinStage(twin, hook_errors=self.listener_errors, latencies=LatencyLog())
+        #: Per applied command (ms; see the module docstring), bounded (:class:`LatencyLog`).
+        self.latencies_ms: LatencyLog = self.twin_stage.latencies_ms
         #: Ticks each effector held, by reason (see :attr:`TeleopSummary.holds`).
         self.holds: dict[str, dict[str, int]] = self.operator_stage.holds
         #: Exceptions raised by the operator (each one a tick of holds), per call.
@@ -535,7 +647,7 @@ class TeleopLoop:
             frames_rejected=self.validator.rejected,
             commands_applied=self.twin.commands_applied,
             duration_s=self.ticks * self.dt,
-            latency_ms=_percentiles(self.latencies_ms),
+            latency_ms=self.latencies_ms.percentiles(),
             rejected_by_reason=self.validator.rejected_by_reason,
             holds=holds,
             operator={name: asdict(op.stats) for name, op in self.operator.effectors.items()},

@@ -68,7 +68,13 @@ import numpy as np
 import zmq
 
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
-from beavr_sim.teleop.pipeline import TeleopSummary, ThreadedListener, TickSchedule, _percentiles
+from beavr_sim.teleop.pipeline import (
+    LatencyLog,
+    TeleopSummary,
+    ThreadedListener,
+    TickSchedule,
+    _percentiles,
+)
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
 from beavr_sim.twin.twin import CommandOutcome
 from beavr_sim.wire.messages import (
@@ -608,7 +614,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         kwargs["hand_variant"] = config.leap_variant
     env = gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
     twin = TwinInterface(env)
-    stage = TwinStage(twin)
+    stage = TwinStage(twin, latencies=LatencyLog())
     #: The seed of the episode (a reset from the supervisor or the browser replays it).
     episode_seed = config.seed
     positions = twin.reset(episode_seed)  # the twin's measured joints after its last step
@@ -617,6 +623,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     mirror_reset = None
     if config.mirror_hardware:
         from beavr_sim.hardware.device import MirrorError
+        from beavr_sim.hardware.mirror import Fixtures
         from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, connect_mirror
 
         try:
@@ -630,6 +637,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         positions = twin.reset(episode_seed, q_measured)  # the twin starts where the robot is
         sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)  # see teleop/mirroring.py
         mirror.start(twin.action)
+        mirror.begin_episode(twin.action.copy(), Fixtures.of(env.data))  # its guard: fixtures
         mirror_reset = follow_with_mirror(stage, mirror, positions)
     fixtures = fixtures_to_wire(env)
     subs = {
@@ -855,6 +863,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 positions = twin.reset(episode_seed)
                 epoch = max(epoch + 1, msg.epoch if reset else 0)
                 fixtures = fixtures_to_wire(env)
+                if mirror is not None:  # the devices catch up with the twin's start, guarded
+                    mirror.begin_episode(twin.action.copy(), Fixtures.of(env.data))
                 if mirror_reset is not None:
                     mirror_reset(positions)
                 if config.lockstep:
@@ -944,7 +954,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     "reset_epoch": epoch,
                     "overruns": schedule.overruns,
                     "missed_ticks": schedule.missed_ticks,
-                    "latency_ms": _percentiles(stage.latencies_ms),
+                    "latency_ms": stage.latencies_ms.percentiles(),
                     "hook_errors": dict(stage.hook_errors),
                     "duration_s": env.elapsed_seconds,
                     "ticks": tick if config.lockstep else int(round(env.elapsed_seconds / dt)),

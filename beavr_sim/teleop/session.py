@@ -2,6 +2,16 @@
 
 This is the single-process runner (the CLI's default). ``--multiprocess`` runs the same
 components in separate processes (``beavr_sim.teleop.processes``).
+
+On a mirrored rig every episode (a ``--repeat`` play, a recorded episode, a browser Reset)
+starts the same way (:class:`HardwareSync`): the twin is reset to the task's start pose, the
+mirror is told (``begin_episode``) and brings every device there by its guarded, speed-capped
+catch-up while the loop ticks with no hand frames taken (the operator holds; a trace is not
+consumed), and only once the mirror is in sync is the twin reset again (the same seeded start,
+so the episode is the one its simulation would be) and the episode started. A rig that does not
+come in sync within ``sync_timeout_s``, or a device that failed and was not re-armed, ends the
+session (:attr:`TeleopSummary.stopped_early`, :attr:`TeleopSummary.failed_devices`). The
+session's summary counts every run (:class:`~beavr_sim.teleop.pipeline.RunRecord`).
 """
 
 from __future__ import annotations
@@ -12,14 +22,23 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from beavr_sim.hardware.mirror import Fixtures
+from beavr_sim.headset.sources import HandSource
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
-from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary, ThreadedListener
+from beavr_sim.teleop.pipeline import RunRecord, TeleopLoop, TeleopSummary, ThreadedListener
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
 
 SOURCES = ("quest", "trace", "webxr")
+
+#: Recording: this many episodes in a row spoilt by the hardware end the session.
+MAX_FAULTS_IN_A_ROW = 3
+#: The longest ``--emulate-faults`` spec accepted (it is one line of the emulators' language).
+MAX_FAULT_SPEC_CHARS = 500
 
 
 @dataclass
@@ -79,6 +98,17 @@ class SessionOptions:
     #: then HTTPS, self-signed) and its port (default ``PortConfig.webxr``).
     webxr_host: str = "127.0.0.1"
     webxr_port: int | None = None
+    #: Recording on a mirrored rig: keep an episode the hardware spoilt (a device held, failed
+    #: or diverged) in the dataset, marked ``hardware_fault`` in ``meta/beavr_episodes.jsonl``
+    #: (default: discard it).
+    keep_faulty_episodes: bool = False
+    #: Mirrored rig: how long (wall s) the devices may take to reach an episode's start pose
+    #: before the episode is a hardware fault and the session ends; None: the rig file's
+    #: ``MirrorConfig.sync_timeout_s``.
+    sync_timeout_s: float | None = None
+    #: ``--hardware-config emulated``: faults the emulators inject, in their spec language
+    #: (``hardware.rig.parse_fault_specs``); None: none.
+    emulate_faults: str | None = None
 
     def __post_init__(self) -> None:
         if self.transport is None:
@@ -160,6 +190,27 @@ class SessionOptions:
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
         if not 0 <= self.rerun_twin_hz < float("inf"):
             raise ValueError(f"--rerun-twin-hz must be >= 0 (0: none), got {self.rerun_twin_hz}")
+        if self.keep_faulty_episodes and self.record is None:
+            raise ValueError("--keep-faulty-episodes needs --record")
+        if self.sync_timeout_s is not None and not 0 < self.sync_timeout_s < float("inf"):
+            raise ValueError(f"--sync-timeout must be positive, got {self.sync_timeout_s}")
+        if self.multiprocess and (self.sync_timeout_s is not None or self.emulate_faults):
+            raise ValueError(
+                "--sync-timeout and --emulate-faults run in one process; leave out --multiprocess"
+            )
+        if self.emulate_faults is not None:
+            spec = self.emulate_faults.strip()
+            if self.hardware_config != "emulated":
+                raise ValueError(
+                    "--emulate-faults needs --mirror-hardware --hardware-config emulated (it "
+                    "injects faults into the protocol emulators, never into a real rig)"
+                )
+            if not spec or len(spec) > MAX_FAULT_SPEC_CHARS or not spec.isprintable():
+                raise ValueError(
+                    "--emulate-faults takes one line of fault specs (printable, 1 to "
+                    f"{MAX_FAULT_SPEC_CHARS} characters), got {self.emulate_faults!r}"
+                )
+            self.emulate_faults = spec
 
     def webxr_config(self):
         """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
@@ -233,6 +284,9 @@ class SessionOptions:
             dry_run=getattr(args, "dry_run", False),
             webxr_host=getattr(args, "webxr_host", "127.0.0.1"),
             webxr_port=getattr(args, "webxr_port", None),
+            keep_faulty_episodes=getattr(args, "keep_faulty_episodes", False),
+            sync_timeout_s=getattr(args, "sync_timeout", None),
+            emulate_faults=getattr(args, "emulate_faults", None),
         )
 
 
@@ -246,6 +300,9 @@ class ProgressLine:
         self.success = False
         #: Shown first (e.g. the recorded episode and its state).
         self.label = ""
+        #: What the hardware is doing, shown after the label ("syncing hardware",
+        #: "HARDWARE FAULT: ..."); "" while it follows.
+        self.status = ""
 
     def __call__(self, tick: Tick) -> None:
         self.success = self.success or tick.state.success
@@ -255,14 +312,145 @@ class ProgressLine:
         self._last = now
         lat = self.loop.latencies_ms[-200:]
         lat_s = f"{sorted(lat)[len(lat) // 2]:.2f} ms" if lat else "-"
+        head = "  ".join(part for part in (self.label, self.status) if part)
         print(
-            f"\r{self.label + '  ' if self.label else ''}t={tick.state.t:6.1f} s  frames={self.loop.frames_received}"
+            f"\r{head + '  ' if head else ''}t={tick.state.t:6.1f} s"
+            f"  frames={self.loop.frames_received}"
             f"  rejected={self.loop.validator.rejected}  latency p50={lat_s}"
             f"  {'SUCCESS' if self.success else ''}   ",
             end="",
             file=sys.stderr,
             flush=True,
         )
+
+
+class _NoFrames(HandSource):
+    """Stands in for the session's source while the hardware syncs: no frames, and the real
+    source (a trace) is not consumed meanwhile."""
+
+    def __init__(self, real_time: bool):
+        self.real_time = real_time
+
+    def poll(self, now: float) -> list:
+        return []
+
+    def wait(self, timeout_s: float, clock=time.monotonic) -> list:
+        time.sleep(max(0.0, timeout_s))
+        return []
+
+
+class HardwareSync:
+    """Brings a mirrored rig to an episode's start pose before the episode starts (see the
+    module docstring); a tick listener of the loop, so a browser Reset (:meth:`start` from
+    the view) syncs the same way as the session's own episode starts (:meth:`run`).
+
+    ``interactive``: someone can re-arm a failed device meanwhile (keyboard, browser), so a
+    failed device waits for the timeout instead of ending the sync at once."""
+
+    def __init__(
+        self,
+        loop: TeleopLoop,
+        mirror,
+        progress: ProgressLine,
+        timeout_s: float,
+        interactive: bool = False,
+        clock=time.monotonic,
+    ):
+        self.loop = loop
+        self.mirror = mirror
+        self.progress = progress
+        self.timeout_s = float(timeout_s)
+        self.interactive = interactive
+        self.clock = clock
+        self.syncing = False
+        #: Why the last sync did not complete ("" when it did, or none ran).
+        self.fault = ""
+        #: Completed syncs, and how long (wall s) the last one took (or ran until its fault).
+        self.synced = 0
+        self.last_sync_s = 0.0
+        self._source: HandSource | None = None
+        self._started = 0.0
+        self._deadline = 0.0
+
+    def start(self) -> None:
+        """The twin was just reset to the episode's start: tell the mirror, and hold the
+        operator (no frames: it holds) until the devices are there. (Not by pausing it: a
+        resume re-anchors the operator, and the episode after the sync would not be the one
+        its simulation is.)"""
+        self.mirror.begin_episode(
+            self.loop.twin.action.copy(), fixtures=Fixtures.of(self.loop.twin.env.data)
+        )
+        if not isinstance(self.loop.source, _NoFrames):  # (a new one since a start: kept)
+            self._source = self.loop.source
+            self.loop.source = _NoFrames(self._source.real_time)
+        self.syncing = True
+        self.fault = ""
+        self.progress.status = "syncing hardware"
+        self._started = self.clock()
+        self._deadline = self._started + self.timeout_s
+
+    def __call__(self, tick: Tick) -> None:
+        if not self.syncing:
+            return
+        if self.mirror.in_sync():
+            self._finish("")
+            self.loop.reset(self.loop.seed)  # the seeded start again: the simulated episode
+            self.synced += 1
+            return
+        failed = failed_for_good(self.mirror)
+        if failed and not self.interactive:
+            self._finish(f"{', '.join(failed)} failed and was not re-armed: {self._why()}")
+        elif self.clock() > self._deadline:
+            self._finish(
+                f"the hardware did not reach the episode's start pose within "
+                f"{self.timeout_s:g} s: {self._why()}"
+            )
+
+    def run(self) -> str:
+        """:meth:`start`, then tick until in sync; returns the fault ("" when in sync)."""
+        self.start()
+        while self.syncing:
+            tick = self.loop.tick()
+            self.progress(tick)
+        return self.fault
+
+    def _why(self) -> str:
+        """Which devices are not there and why, and the episode's last fault line."""
+        health = self.mirror.health()
+        parts = [
+            f"{d.name} {d.state.name.lower()}" + (f" ({d.detail})" if d.detail else "")
+            for d in health.devices
+            if d.state.name != "FOLLOWING"
+        ] or ["every device follows, but not yet within the sync tolerance of the twin"]
+        faults = tuple(health.episode_faults)
+        if faults:
+            parts.append(f"last fault: {faults[-1]}")
+        return "; ".join(parts)
+
+    def _finish(self, fault: str) -> None:
+        self.syncing = False
+        self.last_sync_s = self.clock() - self._started
+        self.fault = fault
+        if self._source is not None:
+            self.loop.source = self._source
+            self._source = None
+        self.progress.status = f"HARDWARE FAULT: {fault}" if fault else ""
+
+
+def episode_fault(mirror) -> str:
+    """The mirror's first fault of the episode ("" when none): what a run's line reports."""
+    health = mirror.health()
+    faults = tuple(health.episode_faults)
+    if faults:
+        return faults[0]
+    failed = list(mirror.failed_devices)
+    return f"{', '.join(failed)} failed" if failed else ""
+
+
+def failed_for_good(mirror) -> list[str]:
+    """Devices that failed and stay out until re-armed (``FAILED``; a device in an outage
+    is still being reconnected and may come back by itself)."""
+    return [d.name for d in mirror.health().devices if d.state.name == "FAILED"]
 
 
 def build_loop(options: SessionOptions, context=None):
@@ -342,14 +530,19 @@ def run_session(
         from beavr_sim.teleop.episodes import EpisodeControl
 
         control = EpisodeControl()
+    sync = None
     try:
+        interactive = sys.stdin is not None and sys.stdin.isatty()
         if options.mirror_hardware:
             mirror = start_mirror(options, loop, closers)
             keys = {
                 "e": ("emergency stop (every device holds)", lambda: mirror.estop("keyboard")),
                 "r": ("release the emergency stop", mirror.release),
+                "a": ("re-arm failed devices", lambda: rearm(mirror)),
             }
-        interactive = sys.stdin is not None and sys.stdin.isatty()
+            timeout_s = options.sync_timeout_s or mirror.rig.mirror.sync_timeout_s
+            sync = HardwareSync(loop, mirror, progress, timeout_s, interactive)
+            loop.listeners.append(sync)
         if interactive and ((control is not None and not options.auto_start) or keys):
             from beavr_sim.teleop.episodes import KeyboardControl
 
@@ -380,6 +573,7 @@ def run_session(
                 mirroring=mirror is not None,
                 rate_hz=options.viser_rate_hz,
                 show_collision=options.show_collision,
+                on_reset=sync.start if sync is not None else None,
             )
             if mirror is not None:
                 from beavr_sim.teleop.mirroring import BrowserEstop
@@ -417,38 +611,15 @@ def run_session(
                 progress,
                 control,
                 state_source=mirror.latest_measured if mirror is not None else None,
+                mirror=mirror,
+                sync=sync,
             )
-            if mirror is not None:
-                summary.hardware = mirror.summary()
-            return summary
-        run, played = 0, 0.0
-        while True:
-            remaining = None if options.max_seconds is None else options.max_seconds - played
-            summary = loop.run(
-                max_seconds=remaining,
-                stop_on_success=options.source == "trace",
-                progress=progress,
-            )
-            run += 1
-            played += summary.duration_s
-            if options.repeat and run >= options.repeat:
-                break
-            if remaining is not None and played >= options.max_seconds - 1e-9:
-                break
-            # Play the trace again from the start on a fresh episode.
-            if options.progress:
-                print(
-                    f"\nrun {run}: {'success' if summary.success else 'no success'}; again",
-                    file=sys.stderr,
-                )
-            from beavr_sim.headset.sources import TraceSource
-
-            loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
-            loop.reset(loop.seed)
-            progress.success = False
+        else:
+            summary = _play_runs(options, loop, progress, mirror, sync)
         if options.progress:
             print(file=sys.stderr)
         if mirror is not None:
+            summary.failed_devices = list(mirror.failed_devices)
             mirror.close()
             summary.hardware = mirror.summary()
         return summary
@@ -457,6 +628,83 @@ def run_session(
             close()
         if context is not None:
             context.term()
+
+
+def rearm(mirror) -> None:
+    """The operator's re-arm (keyboard): failed devices reconnect and catch up; says which
+    are still failed."""
+    still = mirror.rearm()
+    print(
+        f"\nre-armed; still failed: {', '.join(still)}" if still else "\nre-armed every device",
+        file=sys.stderr,
+    )
+
+
+def _hardware_stop(mirror, interactive: bool):
+    """``stop_when`` for a mirrored run: a device failed and nobody can re-arm it (a
+    non-interactive session) ends the run at once; None without a mirror."""
+    if mirror is None or interactive:
+        return None
+    return lambda: bool(failed_for_good(mirror))
+
+
+def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync) -> TeleopSummary:
+    """The runs of a session without recording: the source once, or a trace ``--repeat``
+    times (0: until Ctrl-C or ``--max-seconds``), each from a fresh reset and, mirrored, from a
+    synced rig. Returns the last run's summary with every run counted."""
+    from beavr_sim.headset.sources import TraceSource
+
+    records: list[RunRecord] = []
+    stopped = ""
+    run, played = 0, 0.0
+    summary = None
+    stop_when = _hardware_stop(mirror, sync is not None and sync.interactive)
+    while True:
+        if run > 0:  # play the trace again from the start on a fresh episode
+            loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
+        if sync is not None or run > 0:
+            loop.reset(loop.seed)
+        progress.success = False
+        sync_s = None
+        if sync is not None:
+            fault = sync.run()
+            sync_s = sync.last_sync_s
+            if fault:
+                records.append(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
+                stopped = f"run {run + 1}: {fault}"
+                break
+        remaining = None if options.max_seconds is None else options.max_seconds - played
+        summary = loop.run(
+            max_seconds=remaining,
+            stop_on_success=options.source == "trace",
+            progress=progress,
+            stop_when=stop_when,
+        )
+        run += 1
+        played += summary.duration_s
+        fault = episode_fault(mirror) if mirror is not None else ""
+        records.append(
+            RunRecord(run, bool(summary.success), summary.duration_s, fault, sync_s=sync_s)
+        )
+        if options.progress:
+            print(
+                f"\nrun {run}: {'success' if summary.success else 'no success'}, "
+                f"{summary.duration_s:.1f} s" + (f"; HARDWARE FAULT: {fault}" if fault else ""),
+                file=sys.stderr,
+            )
+        if mirror is not None and failed_for_good(mirror) and stop_when is not None:
+            stopped = f"run {run}: {fault}"
+            break
+        if options.repeat and run >= options.repeat:
+            break
+        if remaining is not None and played >= options.max_seconds - 1e-9:
+            break
+    if summary is None:
+        summary = loop.summary(False)
+    for record in records:
+        summary.add_run(record)
+    summary.stopped_early = stopped
+    return summary
 
 
 class _EpisodeRequests:
@@ -484,9 +732,17 @@ def record_episodes(
     progress: ProgressLine,
     control=None,
     state_source=None,
+    mirror=None,
+    sync: HardwareSync | None = None,
 ) -> TeleopSummary:
     """``--record``: episodes saved to the dataset each as soon as it ends. ``state_source``:
     where ``observation.state`` comes from (the mirrored hardware's measured joints).
+
+    Mirrored (``mirror``, ``sync``): each episode starts from a synced rig, and every frame is
+    checked (:class:`~beavr_sim.datasets.recorder.HardwareWatch`); an episode the hardware
+    spoilt ends at the fault and is discarded, or kept and marked ``hardware_fault`` with
+    ``options.keep_faulty_episodes``; it never counts as a saved episode. A rig that does not
+    sync (a failed device) ends the session.
 
     An episode starts at once (``options.auto_start``: the default for traces) or on a start
     request (keyboard, browser button, headset gesture; live sources), always from a fresh
@@ -497,7 +753,7 @@ def record_episodes(
     Ctrl-C drops only the episode in progress.
     """
     from beavr_sim.datasets.features import lerobot_features
-    from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
+    from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch, run_recorded_episode
     from beavr_sim.datasets.writer import EpisodeWriter
     from beavr_sim.headset.sources import TraceSource
     from beavr_sim.teleop.episodes import EpisodeControl
@@ -523,18 +779,31 @@ def record_episodes(
         robot_type=env.embodiment.name,
         use_videos=config.use_videos,
     )
-    recorder = EpisodeRecorder(writer, env, config, state_source=state_source)
+    watch = None
+    if mirror is not None:
+        watch = HardwareWatch(mirror.health, follow_limits(mirror, env), config.fps)
+    recorder = EpisodeRecorder(writer, env, config, state_source=state_source, watch=watch)
     summary = None
     attempts = saved = 0
+    records: list[RunRecord] = []
+    stopped = ""
+    # A trace's episode the hardware spoilt is played again (it does not count towards
+    # --episodes), but a rig that spoils MAX_FAULTS_IN_A_ROW in a row ends the session.
+    faulty = in_a_row = 0
 
-    def fresh_episode() -> None:
+    def fresh_episode() -> str:
+        """Reset (and, mirrored, sync) for the next episode; the sync's fault or ""."""
         if trace and attempts > 0:
             loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
         loop.reset(seed_of(attempts))
         progress.success = False
+        return sync.run() if sync is not None else ""
+
+    def sync_s() -> float | None:
+        return sync.last_sync_s if sync is not None else None
 
     try:
-        while saved < options.episodes and not (trace and attempts >= options.episodes):
+        while saved < options.episodes and not (trace and attempts - faulty >= options.episodes):
             name = f"episode {saved + 1}/{options.episodes}"
             if not options.auto_start:
                 progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
@@ -549,8 +818,19 @@ def record_episodes(
                     loop.reset(loop.seed)  # the scene failed or timed out while idle
                 if "quit" in requests.last or not requests.last:
                     break
-            if attempts > 0 or not options.auto_start:
-                fresh_episode()
+            if attempts > 0 or not options.auto_start or sync is not None:
+                progress.label = f"{name}: sync"
+                fault = fresh_episode()
+                if fault:
+                    records.append(
+                        RunRecord(attempts + 1, False, 0.0, fault, saved=False, sync_s=sync_s())
+                    )
+                    stopped = f"{name}: {fault}"
+                    if options.progress:
+                        print(
+                            f"\n{name}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr
+                        )
+                    break
             progress.label = f"{name}: REC"
             summary = run_recorded_episode(
                 loop,
@@ -560,31 +840,81 @@ def record_episodes(
                 stop_when=requests.taker("toggle", "stop", "discard", "quit"),
             )
             asked = requests.last
+            fault = recorder.fault
             written = recorder.end(
-                keep="discard" not in asked,
-                success=bool(summary.success),
+                keep="discard" not in asked and (not fault or options.keep_faulty_episodes),
+                success=bool(summary.success) and not fault,
+                task_success=bool(summary.success),
                 seed=loop.seed,
                 source=options.source,
-                ended_by=asked[0] if asked else "auto",
+                ended_by="hardware_fault" if fault else asked[0] if asked else "auto",
             )
             attempts += 1
-            saved += int(written)
+            saved += int(written and not fault)
+            faulty += int(bool(fault))
+            in_a_row = in_a_row + 1 if fault else 0
+            records.append(
+                RunRecord(
+                    attempts,
+                    bool(summary.success),
+                    summary.duration_s,
+                    fault,
+                    written,
+                    sync_s=sync_s(),
+                )
+            )
             if options.progress:
+                outcome = (
+                    ("kept, marked hardware_fault" if written else "discarded")
+                    if fault
+                    else "saved"
+                    if written
+                    else "discarded"
+                    if asked
+                    else "empty, not saved"
+                )
                 print(
                     f"\n{name}: {'success' if summary.success else 'no success'}, "
                     f"{summary.duration_s:.1f} s, "
-                    f"{'saved' if written else 'discarded' if asked else 'empty, not saved'} "
-                    f"({writer.num_episodes} in {options.record})",
+                    + (f"HARDWARE FAULT: {fault}, " if fault else "")
+                    + f"{outcome} ({writer.num_episodes} in {options.record})",
                     file=sys.stderr,
                 )
+            progress.status = f"last episode: HARDWARE FAULT ({fault})" if fault else ""
             if "quit" in asked:
+                break
+            if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
+                stopped = f"{name}: {fault or episode_fault(mirror)}"
+                break
+            if in_a_row >= MAX_FAULTS_IN_A_ROW:
+                stopped = f"{in_a_row} episodes in a row spoilt by the hardware; the last: {fault}"
                 break
     finally:
         recorder.close()
         writer.close()
     if summary is None:
         summary = loop.summary(False)
+    for record in records:
+        summary.add_run(record)
+    summary.successes = sum(1 for r in records if r.success and not r.hardware_fault and r.saved)
+    summary.stopped_early = stopped
     return summary
+
+
+def follow_limits(mirror, env):
+    """The rig's divergence limits per joint of the action (``inf`` where no device measures
+    a joint) and its window: what the recorder holds the measured state to."""
+    from beavr_sim.datasets.recorder import FollowLimits
+
+    limit = np.full(env.joints.size, np.inf)
+    for link in mirror.links:
+        limit[link.index] = link.divergence_limit
+    return FollowLimits(
+        limit_rad=limit,
+        window_s=float(mirror.rig.mirror.divergence_window_s),
+        joint_names=tuple(env.joints.names),
+        lag_s=float(mirror.rig.mirror.device_lag_s),
+    )
 
 
 def headset_listener(
@@ -617,6 +947,15 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
         connect_mirror,
     )
 
+    if options.emulate_faults is not None:
+        # LEAD: the one call site of --emulate-faults. Connect it when EmulatedRig takes
+        # faults: parse here with hardware.rig.parse_fault_specs(options.emulate_faults) and
+        # hand the specs to EmulatedRig(..., faults=...) (built in teleop/mirroring.py's
+        # connect_mirror), then drop this error.
+        raise ValueError(
+            f"--emulate-faults {options.emulate_faults!r}: the emulators' fault injection is "
+            "not in this build yet (EmulatedRig takes no faults)"
+        )
     mirror, q_measured = connect_mirror(options, loop.twin.env, closers)
     loop.reset(loop.seed, robot_qpos=q_measured)
     mirror.start(loop.twin.action)

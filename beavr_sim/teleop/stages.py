@@ -30,6 +30,7 @@ import logging
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -47,6 +48,14 @@ MIN_COMMAND_DT_S = 0.002
 CommandHook = Callable[[CommandOutcome, Mapping[str, JointCommand]], None]
 #: ``after_step`` hooks: called with the state after the step.
 StepHook = Callable[[TwinState], None]
+
+
+class LatencySink(Protocol):
+    """Where a stage's latencies (ms) go: a list, or the runners' bounded log."""
+
+    def append(self, value: float, /) -> None: ...
+
+    def __len__(self) -> int: ...
 
 
 class StopTeleop(Exception):
@@ -234,13 +243,20 @@ class TwinStage:
     (``t_receive``, monotonic; on the virtual clock the tick's poll, ``entered_perf`` of
     :meth:`apply`) to the moment the guarded command was written to the actuators."""
 
-    def __init__(self, twin: TwinInterface, *, hook_errors: dict[str, int] | None = None):
+    def __init__(
+        self,
+        twin: TwinInterface,
+        *,
+        hook_errors: dict[str, int] | None = None,
+        latencies: LatencySink | None = None,
+    ):
         self.twin = twin
         #: ``after_command(outcome, commands)``: after each command written between steps.
         self.after_command: list[CommandHook] = []
         #: ``after_step(state)``: after each physics step.
         self.after_step: list[StepHook] = []
-        self.latencies_ms: list[float] = []
+        #: Where the latencies go (given: e.g. the runners' bounded ``LatencyLog``).
+        self.latencies_ms: LatencySink = [] if latencies is None else latencies
         #: Exceptions raised by hooks, per hook name (the stage went on; given: counted there).
         self.hook_errors: dict[str, int] = {} if hook_errors is None else hook_errors
 

@@ -34,11 +34,13 @@ def episode_line(label: str) -> str:
 class ViewListener:
     """Browser view of a running loop: see the module docstring."""
 
-    def __init__(self, view, loop: TeleopLoop, progress=None, control=None):
+    def __init__(self, view, loop: TeleopLoop, progress=None, control=None, on_reset=None):
         self.view = view
         self.loop = loop
         self.progress = progress
         self.control = control  # recording: a reset drops the episode in progress
+        #: Called after a Reset reset the loop (a mirrored rig syncs to the new start).
+        self.on_reset = on_reset
         self.success = False
         self.rate = RateMeter(1.0)
         self._blocked: set[str] = set()
@@ -65,6 +67,8 @@ class ViewListener:
                 rewind()
                 self.loop.replace_source(self.loop.source)  # its clock starts over
             self.loop.reset(self.loop.seed)
+            if self.on_reset is not None:
+                self.on_reset()
             self.success = False
             self._t = -float("inf")
             self.resets += 1
@@ -103,11 +107,13 @@ def attach_view(
     mirroring: bool = False,
     rate_hz: float = DEFAULT_RATE_HZ,
     show_collision: bool = False,
+    on_reset=None,
 ) -> TwinView:
     """A :class:`TwinView` of ``loop``'s twin, driven by a :class:`ViewListener` appended to
     the loop's listeners. ``mirroring``: the session drives hardware; the view gets an
     emergency-stop button whose state (``view.estop_requested``) the session follows.
-    ``show_collision``: the robots' collision geometry drawn too (a panel checkbox toggles it)."""
+    ``show_collision``: the robots' collision geometry drawn too (a panel checkbox toggles it).
+    ``on_reset``: called after the Reset button reset the loop (the mirrored rig's sync)."""
     env = loop.twin.env
     joints = env.joints
     by_effector = {name: joints.names[sl] for name, sl in joints.slices.items()}
@@ -126,5 +132,5 @@ def attach_view(
         rate_hz=rate_hz,
         show_collision=show_collision,
     )
-    loop.listeners.append(ViewListener(view, loop, progress, control))
+    loop.listeners.append(ViewListener(view, loop, progress, control, on_reset))
     return view

@@ -1,0 +1,200 @@
+"""``python -m beavr_sim.bench soak --minutes N``: does a long mirrored session stay flat?
+
+Plays a bundled trace in a loop (``teleop --repeat 0``) mirrored to the emulated rig (the
+protocol emulators in a child process, driven through the vendors' SDKs), every run from a
+synced rig as a recording day's episodes are, for ``--minutes`` of session time, and samples
+the resident memory (``VmRSS`` of ``/proc/<pid>/status``) of this process and of the emulator
+process every ``--sample-s`` seconds. Reports the slope of a least-squares line through the
+samples after the warm-up (MB per hour; its standard error), target <= 1 MB per hour for this
+process: every per-write and per-frame statistic is kept in bounded form, so a day's session
+holds what a minute's does. JSON on the last stdout line. Figures: docs/hardware.md ("A recording day").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: The target slope of this process's resident memory after warm-up (MB per hour).
+TARGET_MB_PER_HOUR = 1.0
+
+
+def rss_mb(pid: int | str = "self") -> float | None:
+    """Resident memory (MB) of a process from ``/proc/<pid>/status``; None if it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def child_pids(pid: int | str = "self") -> list[int]:
+    """The direct children of a process (every thread's ``children`` file)."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(p) for p in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return sorted(set(out))
+
+
+@dataclass(frozen=True)
+class Slope:
+    """A least-squares line through (t, MB) samples: MB per hour and its standard error."""
+
+    mb_per_hour: float | None
+    stderr_mb_per_hour: float | None
+    samples: int
+
+    @classmethod
+    def fit(cls, t_s: np.ndarray, mb: np.ndarray) -> Slope:
+        t_s, mb = np.asarray(t_s, dtype=float), np.asarray(mb, dtype=float)
+        if t_s.size < 3 or np.ptp(t_s) <= 0:
+            return cls(None, None, int(t_s.size))
+        hours = (t_s - t_s[0]) / 3600.0
+        slope, intercept = np.polyfit(hours, mb, 1)
+        dof = t_s.size - 2
+        resid = mb - (slope * hours + intercept)
+        sxx = float(np.sum((hours - hours.mean()) ** 2))
+        err = float(np.sqrt(np.sum(resid**2) / dof / sxx)) if dof > 0 and sxx > 0 else None
+        return cls(round(float(slope), 3), None if err is None else round(err, 3), int(t_s.size))
+
+
+class RssSampler:
+    """Samples this process's and its children's resident memory on a thread of its own."""
+
+    def __init__(self, period_s: float):
+        if not period_s > 0:
+            raise ValueError(f"sample period must be positive, got {period_s}")
+        self.period_s = float(period_s)
+        self.t: list[float] = []
+        self.own: list[float] = []
+        self.children: list[float] = []
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            own = rss_mb()
+            kids = [rss_mb(pid) for pid in child_pids()]
+            if own is not None:
+                self.t.append(time.monotonic() - self._t0)
+                self.own.append(own)
+                self.children.append(sum(k for k in kids if k is not None))
+            self._stop.wait(self.period_s)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+
+
+def run(
+    minutes: float,
+    task: str = "pour",
+    embodiment: str | None = None,
+    warmup_minutes: float | None = None,
+    sample_s: float = 5.0,
+) -> dict:
+    """The soak (see the module docstring); warm-up default: a fifth of the run, at least a
+    minute where the run is over two."""
+    import logging
+
+    from beavr_sim.teleop.session import SessionOptions, run_session
+
+    if not minutes > 0:
+        raise ValueError(f"--minutes must be positive, got {minutes}")
+    if warmup_minutes is None:
+        warmup_minutes = max(0.2 * minutes, 1.0) if minutes > 2 else 0.2 * minutes
+    if not 0 <= warmup_minutes < minutes:
+        raise ValueError(f"warm-up ({warmup_minutes} min) must be shorter than the run")
+    logging.basicConfig(level=logging.ERROR)
+    options = SessionOptions(
+        task=task,
+        embodiment=embodiment,
+        source="trace",
+        viser=False,
+        headless=True,
+        progress=False,
+        repeat=0,
+        max_seconds=minutes * 60.0,
+        mirror_hardware=True,
+        hardware_config="emulated",
+    )
+    sampler = RssSampler(sample_s)
+    sampler.start()
+    t0 = time.monotonic()
+    try:
+        summary = run_session(options)
+    finally:
+        sampler.stop()
+    wall_s = time.monotonic() - t0
+    t = np.asarray(sampler.t)
+    warm = t >= warmup_minutes * 60.0
+    own = Slope.fit(t[warm], np.asarray(sampler.own)[warm])
+    emulators = Slope.fit(t[warm], np.asarray(sampler.children)[warm])
+    return {
+        "benchmark": "soak",
+        "task": summary.task,
+        "embodiment": summary.embodiment,
+        "minutes": minutes,
+        "wall_s": round(wall_s, 1),
+        "warmup_minutes": round(warmup_minutes, 2),
+        "runs": summary.runs,
+        "successes": summary.successes,
+        "hardware_faults": summary.hardware_faults,
+        "failed_devices": summary.failed_devices,
+        "ticks_late": summary.overruns,
+        "rss_mb": {
+            "start": round(sampler.own[0], 1) if sampler.own else None,
+            "after_warmup": round(float(np.asarray(sampler.own)[warm][0]), 1)
+            if warm.any()
+            else None,
+            "end": round(sampler.own[-1], 1) if sampler.own else None,
+        },
+        "rss_slope_mb_per_hour": own.mb_per_hour,
+        "rss_slope_stderr_mb_per_hour": own.stderr_mb_per_hour,
+        "samples_after_warmup": own.samples,
+        "emulator_rss_slope_mb_per_hour": emulators.mb_per_hour,
+        "target_mb_per_hour": TARGET_MB_PER_HOUR,
+        "within_target": own.mb_per_hour is not None and own.mb_per_hour <= TARGET_MB_PER_HOUR,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m beavr_sim.bench soak", description=__doc__)
+    p.add_argument("--minutes", type=float, default=10.0, help="session time (default 10)")
+    p.add_argument("--task", default="pour", help="bundled trace's task (default pour)")
+    p.add_argument("--embodiment", default=None, help="robot (default the trace's)")
+    p.add_argument(
+        "--warmup-minutes",
+        type=float,
+        default=None,
+        help="left out of the fit (default a fifth of the run, at least 1 min over 2 min)",
+    )
+    p.add_argument("--sample-s", type=float, default=5.0, help="seconds between samples")
+    args = p.parse_args(argv)
+    try:
+        report = run(args.minutes, args.task, args.embodiment, args.warmup_minutes, args.sample_s)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

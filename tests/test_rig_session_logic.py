@@ -1,0 +1,223 @@
+"""The session's rig logic against a small fake mirror: the per-frame check of recorded state
+(:class:`~beavr_sim.datasets.recorder.HardwareWatch`), the sync before an episode
+(:class:`~beavr_sim.teleop.session.HardwareSync`), the bounded latency log and the CLI's
+hardware outcome. The whole sessions on the emulated rig are in ``test_rig_session.py``."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
+from beavr_sim.teleop.__main__ import hardware_outcome
+from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, TeleopSummary
+from beavr_sim.teleop.session import HardwareSync, ProgressLine, SessionOptions, build_loop
+
+
+class State(enum.Enum):
+    FOLLOWING = "following"
+    HOLDING = "holding"
+    OUTAGE = "outage"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
+class Device:
+    name: str
+    state: State
+    reason: str = ""
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class Health:
+    live: bool
+    devices: tuple
+    episode_faults: tuple = ()
+
+
+@dataclass
+class FakeMirror:
+    """What the session uses of ``HardwareMirror``: in sync after ``sync_after`` polls."""
+
+    sync_after: int = 3
+    failed: list = field(default_factory=list)
+    health_now: Health = field(
+        default_factory=lambda: Health(True, (Device("arm", State.FOLLOWING),))
+    )
+    begun: list = field(default_factory=list)
+    polls: int = 0
+    estopped: bool = False
+
+    def begin_episode(self, q_start, fixtures=None) -> None:
+        self.begun.append(np.array(q_start))
+        self.polls = 0
+
+    def in_sync(self) -> bool:
+        self.polls += 1
+        return self.polls > self.sync_after
+
+    @property
+    def failed_devices(self) -> list:
+        return list(self.failed)
+
+    def health(self) -> Health:
+        return self.health_now
+
+
+LIMITS = FollowLimits(np.array([0.3, 0.3, 0.8, np.inf]), 0.5, ("j1", "j2", "leap_0", "body"))
+
+
+def test_watch_passes_a_state_that_follows():
+    watch = HardwareWatch(lambda: Health(True, ()), LIMITS, fps=30)
+    watch.begin()
+    for k in range(60):
+        action = np.array([0.05 * k, -0.05 * k, 0.02 * k, 9.0])
+        state = action - np.array([0.05, -0.05, 0.02, 0.0])  # one period behind
+        assert watch.check(state, action) == ""
+    assert watch.fault == "" and 0 < watch.max_gap_rad < 0.3
+
+
+def test_watch_finds_a_frozen_state_after_the_window():
+    """The bug of issue 38 item 1: the measured arm holds while the action moves on."""
+    watch = HardwareWatch(lambda: Health(True, ()), LIMITS, fps=30)
+    watch.begin()
+    frozen = np.zeros(4)
+    faults = [watch.check(frozen, np.array([0.1 * k, 0.0, 0.0, 0.0])) for k in range(40)]
+    first = next(i for i, f in enumerate(faults) if f)
+    # 0.3 rad is passed at k = 4; the fault comes after more than 0.5 s (15 frames) beyond.
+    assert 4 + 15 <= first <= 4 + 17, first
+    assert "j1" in watch.fault and "limit 0.3" in watch.fault
+    watch.begin()
+    assert watch.fault == ""
+
+
+def test_watch_reports_a_device_that_is_not_live():
+    health = Health(False, (Device("right_hand", State.HOLDING, detail="no fresh command"),))
+    watch = HardwareWatch(lambda: health, LIMITS, fps=30)
+    watch.begin()
+    fault = watch.check(np.zeros(4), np.zeros(4))
+    assert fault == "right_hand holding (no fresh command)" == watch.fault
+    faulted = Health(True, (), episode_faults=("right_arm diverged 0.4 rad", "later"))
+    watch = HardwareWatch(lambda: faulted, LIMITS, fps=30)
+    watch.begin()
+    assert watch.check(np.zeros(4), np.zeros(4)) == "right_arm diverged 0.4 rad"
+
+
+def test_follow_limits_are_checked():
+    with pytest.raises(ValueError, match="one per joint"):
+        FollowLimits(np.array([0.3]), 0.5, ("a", "b"))
+    with pytest.raises(ValueError, match="positive"):
+        FollowLimits(np.array([0.0]), 0.5, ("a",))
+
+
+@pytest.fixture
+def loop():
+    options = SessionOptions(
+        task="pickup_box", source="trace", viser=False, headless=True, progress=False
+    )
+    loop = build_loop(options)
+    yield loop
+    loop.twin.env.close()
+
+
+def test_sync_ticks_without_consuming_the_trace_then_resets(loop):
+    mirror = FakeMirror(sync_after=5)
+    sync = HardwareSync(loop, mirror, ProgressLine(loop, enabled=False), timeout_s=60)
+    loop.listeners.append(sync)
+    source = loop.source
+    home = loop.twin.action.copy()
+    resets = loop.resets
+    assert sync.run() == ""
+    assert len(mirror.begun) == 1 and np.array_equal(mirror.begun[0], home)
+    assert loop.source is source and source._next == 0  # no frame taken meanwhile
+    assert loop.frames_received == 0
+    assert loop.resets == resets + 1 and loop.ticks == 0  # the seeded start again
+    assert not loop.operator.paused and sync.synced == 1
+    summary = loop.run(max_seconds=1.0, stop_on_success=False)
+    assert summary.frames_received > 0  # the trace plays from its start
+
+
+def test_sync_times_out_or_ends_on_a_failed_device(loop):
+    clock = [0.0]
+
+    def tick_clock() -> float:
+        clock[0] += 0.5
+        return clock[0]
+
+    stuck = FakeMirror(sync_after=10**9)
+    stuck.health_now = Health(False, (Device("right_arm", State.HOLDING, detail="e-stop"),))
+    sync = HardwareSync(loop, stuck, ProgressLine(loop, enabled=False), 3.0, clock=tick_clock)
+    loop.listeners.append(sync)
+    fault = sync.run()
+    assert "within 3 s" in fault and "right_arm holding (e-stop)" in fault
+    assert sync.progress.status.startswith("HARDWARE FAULT")
+    loop.listeners.remove(sync)
+    # A device in an outage may come back: the sync waits for it (here: until the timeout).
+    out = FakeMirror(sync_after=10**9, failed=["right_hand"])
+    out.health_now = Health(False, (Device("right_hand", State.OUTAGE, detail="reconnecting"),))
+    sync = HardwareSync(loop, out, ProgressLine(loop, enabled=False), 3.0, clock=tick_clock)
+    loop.listeners.append(sync)
+    assert "within 3 s" in sync.run()
+    loop.listeners.remove(sync)
+    # A failed one (not re-armed, nobody at the keyboard) ends the sync at once.
+    dead = FakeMirror(sync_after=10**9, failed=["right_hand"])
+    dead.health_now = Health(False, (Device("right_hand", State.FAILED, detail="no answer"),))
+    sync = HardwareSync(loop, dead, ProgressLine(loop, enabled=False), 30.0)
+    loop.listeners.append(sync)
+    assert sync.run().startswith("right_hand failed and was not re-armed")
+
+
+def test_latency_log_is_bounded_and_reads_like_a_list():
+    log = LatencyLog(recent=8, sample=16)
+    for v in range(100):
+        log.append(float(v))
+    assert len(log) == 100
+    assert log[-3:] == [97.0, 98.0, 99.0] and log[95:] == [95.0, 96.0, 97.0, 98.0, 99.0]
+    assert log[0:] == [float(v) for v in range(92, 100)]  # only what the ring holds
+    p = log.percentiles()
+    assert p["n"] == 100 and 0 <= p["p50"] <= 99
+    small = LatencyLog(recent=8, sample=16)
+    for v in (1.0, 2.0, 3.0):
+        small.append(v)
+    assert small.percentiles() == {"p50": 2.0, "p99": pytest.approx(2.98), "n": 3}
+    small.clear()
+    assert len(small) == 0 and small[-5:] == []
+
+
+def test_summary_counts_runs_and_the_cli_outcome():
+    summary = TeleopSummary("T", "E", False, 0, 0, 0, 1.0, {})
+    summary.add_run(RunRecord(1, True, 9.0))
+    summary.add_run(RunRecord(2, True, 9.0, hardware_fault="right_arm failed"))
+    summary.add_run(RunRecord(3, False, 2.5))
+    report = summary.to_dict()
+    assert report["runs"] == 3 and report["successes"] == 1 and report["hardware_faults"] == 1
+    assert report["per_run"][1] == {
+        "run": 2,
+        "success": True,
+        "duration_s": 9.0,
+        "hardware_fault": "right_arm failed",
+    }
+    assert hardware_outcome(report) == (0, "")
+    report["failed_devices"] = ["right_arm"]
+    report["hardware"] = {"right_arm": {"reason": "no answer within 5 s"}}
+    code, line = hardware_outcome(report)
+    assert code == 4 and "right_arm" in line and "no answer within 5 s" in line
+    code, line = hardware_outcome({"stopped_early": "episode 2/3: not in sync"})
+    assert code == 5 and "not in sync" in line
+
+
+def test_watch_allows_the_devices_lag_but_not_a_frozen_state():
+    """Within ``lag_s`` a device may trail its commands (judged against the commands of that
+    stretch, as the mirror judges what it sent); a frozen one still fails."""
+    limits = FollowLimits(np.array([0.3]), 0.5, ("j1",), lag_s=0.25)
+    lagging = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
+    lagging.begin()
+    ramp = [np.array([0.1 * k]) for k in range(60)]
+    assert not any(lagging.check(ramp[max(0, k - 5)], ramp[k]) for k in range(60))
+    frozen = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
+    frozen.begin()
+    assert any(frozen.check(np.zeros(1), ramp[k]) for k in range(60))
