@@ -342,10 +342,16 @@ def pinching_trace(path, t_pinch: float = 1.0):
     return path
 
 
-@pytest.mark.parametrize("multiprocess", [False, True], ids=["one_process", "multiprocess"])
-def test_both_hands_pinching_latches_the_estop_on_every_mirrored_device(multiprocess, tmp_path):
-    """The headset's e-stop gesture reaches the mirror in both layouts (main's --multiprocess
-    never forwarded it: the devices went on moving)."""
+@pytest.mark.parametrize(
+    ("multiprocess", "clock"),
+    [(False, None), (True, None), (True, "paced")],
+    ids=["one_process", "multiprocess", "multiprocess_paced"],
+)
+def test_both_hands_pinching_latches_the_estop_on_every_mirrored_device(
+    multiprocess, clock, tmp_path
+):
+    """The headset's e-stop gesture reaches the mirror in both layouts, on the real clock
+    and in lockstep (main's --multiprocess never forwarded it: the devices went on moving)."""
     from beavr_sim.teleop.session import run_session
     from beavr_sim.wire.ports import PortConfig, TransportConfig
 
@@ -358,6 +364,7 @@ def test_both_hands_pinching_latches_the_estop_on_every_mirrored_device(multipro
         headless=True,
         progress=False,
         multiprocess=multiprocess,
+        clock=clock,
         mirror_hardware=True,
         hardware_config="emulated",
         max_seconds=3.0,
