@@ -103,6 +103,7 @@ def test_cli_writes_the_summary_json(tmp_path, capsys):
 
 
 def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
+    from beavr_sim.assets import bundled_trace
     from beavr_sim.teleop.__main__ import main
 
     assert main(["--task", "poor", "--source", "trace", "--no-viser"]) == 2
@@ -115,6 +116,11 @@ def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
         )
         == 2
     )
+    err = capsys.readouterr().err
+    assert "no bundled trace of pour on xarm7_leap_left" in err and "traces synth" in err
+    trace = str(bundled_trace("pour"))
+    args = ["--task", "pour", "--source", "trace", "--trace", trace, "--no-viser"]
+    assert main([*args, "--embodiment", "xarm7_leap_left"]) == 2
     assert "drives xarm7_leap_right" in capsys.readouterr().err
 
 
