@@ -319,9 +319,37 @@ def test_session_options_check_the_new_rig_options():
         source="trace",
         mirror_hardware=True,
         hardware_config="emulated",
-        emulate_faults="  freeze right_arm 2s ",
+        emulate_faults="  right_arm:freeze=2@5 ",
     )
-    assert ok.emulate_faults == "freeze right_arm 2s"
+    assert ok.emulate_faults == "right_arm:freeze=2@5"
+
+
+def test_emulated_faults_are_rehearsed_through_the_cli(capsys):
+    """``--emulate-faults``: the hand's bus stops answering for 2 s, 3 s into the session; the
+    rig holds, the hand comes back within ``reconnect_s`` and the session goes on. The run is
+    reported as one with a hardware fault, the device's outage as recovered; nothing failed."""
+    code = teleop_main(
+        ["--task", "pour", "--source", "trace", *MIRRORED, "--quiet",
+         "--emulate-faults", "right_hand:freeze=2@3"]
+    )  # fmt: skip
+    summary = _summary(capsys)
+    assert code == 0, summary
+    hand = summary["hardware"]["right_hand"]
+    assert hand["outages"] >= 1 and hand["recovered"] >= 1, hand
+    assert summary["failed_devices"] == []
+    assert any(r["hardware_fault"] for r in summary["per_run"]), summary["per_run"]
+    assert hand["state"] == "following" and hand["connected"], hand
+
+
+def test_a_bad_fault_spec_is_one_line_naming_the_choices(capsys):
+    code = teleop_main(
+        ["--task", "pour", "--source", "trace", *MIRRORED, "--quiet",
+         "--emulate-faults", "right_hand:melt=2"]
+    )  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2
+    line = [ln for ln in err.splitlines() if "melt" in ln]
+    assert len(line) == 1 and "freeze" in line[0] and "Traceback" not in err, err
 
 
 def test_help_documents_the_exit_codes(capsys):

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from beavr_sim.datasets.quiet import quiet_dataset_writes
+
 log = logging.getLogger("beavr_sim.datasets")
 
 #: Video decoding backend for reading back: PyAV works everywhere (torchcodec needs the
@@ -70,6 +72,7 @@ class EpisodeWriter:
         use_videos: bool = True,
         overwrite: bool = False,
     ):
+        quiet_dataset_writes()  # before LeRobot loads ``datasets``: no encoder banners, bars
         self.root = Path(root)
         self.repo_id = repo_id
         self.fps = int(fps)

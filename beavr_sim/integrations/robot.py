@@ -112,10 +112,10 @@ class BeavrSimRobot(Robot):
             twin = TwinInterface(env, use_guard=cfg.use_guard)
             q_measured = None
             if cfg.mirrors_hardware:
-                from beavr_sim.teleop.mirroring import connect_mirror
+                from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
 
-                options = {"hardware_config": cfg.hardware, "dry_run": cfg.dry_run}
-                self.mirror, q_measured = connect_mirror(options, env, self._closers)
+                choice = RigChoice(cfg.hardware, cfg.dry_run)
+                self.mirror, q_measured = connect_mirror(choice, env, self._closers)
             twin.reset(cfg.seed, robot_qpos=q_measured)
             if self.mirror is not None:
                 self.mirror.start(twin.action)

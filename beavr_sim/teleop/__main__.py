@@ -34,6 +34,7 @@ from beavr_sim.datasets.cli import add_recording_args
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
+from beavr_sim.scaling.executors import LOG_FORMAT
 
 EPILOG = """exit codes:
   0  the session ran (its summary says how each run went)
@@ -223,8 +224,7 @@ class OneLineFormatter(logging.Formatter):
 
 def configure_logging(debug: bool) -> None:
     handler = logging.StreamHandler()
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    handler.setFormatter(logging.Formatter(fmt) if debug else OneLineFormatter(fmt))
+    handler.setFormatter(logging.Formatter(LOG_FORMAT) if debug else OneLineFormatter(LOG_FORMAT))
     logging.basicConfig(level=logging.INFO if debug else logging.WARNING, handlers=[handler])
 
 

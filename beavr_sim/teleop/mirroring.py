@@ -6,6 +6,7 @@ gesture) that latch it. Used by the single-process session and the multiprocess 
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
 from beavr_sim.wire.records import Tick
 
@@ -15,21 +16,57 @@ from beavr_sim.wire.records import Tick
 MIRROR_SWITCH_INTERVAL_S = 0.0005
 
 
-def connect_mirror(options, env, closers: list):
-    """The rig of ``options`` (a :class:`SessionOptions` or its dict) connected to the env's
-    embodiment; returns the mirror and the measured joints (the twin starts there). Adds what
-    must be closed to ``closers``. Raises :class:`~beavr_sim.hardware.device.MirrorError` (or
-    ValueError, FileNotFoundError for the rig file) naming what to check."""
-    from beavr_sim.hardware.mirror import HardwareMirror
-    from beavr_sim.hardware.rig import EmulatedRig, RigConfig
+@dataclass(frozen=True)
+class RigChoice:
+    """Which rig a session mirrors to: a rig file (TOML) or ``"emulated"``, whether to write
+    to it (``dry_run``: everything but the final write), and for the emulated rig the faults
+    to rehearse (``--emulate-faults`` text, :mod:`beavr_sim.hardware.faults`)."""
 
-    get = options.get if isinstance(options, dict) else lambda k: getattr(options, k)
-    if get("hardware_config") == "emulated":
-        rig = EmulatedRig(env.embodiment, env.joints, env.joints.home, env.hand_variant)
+    hardware_config: str
+    dry_run: bool = False
+    emulate_faults: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.emulate_faults and self.hardware_config != "emulated":
+            raise ValueError(
+                "--emulate-faults needs --hardware-config emulated (faults are rehearsed on "
+                f"the protocol emulators, not on {self.hardware_config})"
+            )
+
+    @classmethod
+    def of(cls, options) -> RigChoice:
+        """The choice of any options object with ``hardware_config`` and ``dry_run`` (and
+        optionally ``emulate_faults``): :class:`SessionOptions`, a twin process's config."""
+        return cls(
+            str(options.hardware_config),
+            bool(options.dry_run),
+            getattr(options, "emulate_faults", None),
+        )
+
+
+def connect_mirror(choice: RigChoice, env, closers: list):
+    """The rig of ``choice`` connected to the env's embodiment; returns the mirror and the
+    measured joints (the twin starts there). Adds what must be closed to ``closers``. Raises
+    :class:`~beavr_sim.hardware.device.MirrorError` (or ValueError, FileNotFoundError for the
+    rig file or a bad fault spec) naming what to check."""
+    from beavr_sim.hardware.faults import parse_fault_specs
+    from beavr_sim.hardware.mirror import HardwareMirror
+    from beavr_sim.hardware.rig import EmulatedRig, RigConfig, emulated_device_names
+
+    if choice.hardware_config == "emulated":
+        # Checked before any emulator starts: a bad spec names its part and the choices.
+        faults = parse_fault_specs(
+            choice.emulate_faults or "", emulated_device_names(env.embodiment)
+        )
+        rig = EmulatedRig(
+            env.embodiment, env.joints, env.joints.home, env.hand_variant, faults=faults
+        )
         closers.append(rig.close)
         config = rig.config
+        if faults:
+            print(f"emulated faults: {', '.join(str(f) for f in faults)}", file=sys.stderr)
     else:
-        config = RigConfig.from_toml(get("hardware_config"))
+        config = RigConfig.from_toml(choice.hardware_config)
     variant = config.leap_variant()
     if variant is not None and variant != env.hand_variant:
         raise ValueError(
@@ -37,13 +74,13 @@ def connect_mirror(options, env, closers: list):
             "the twin must simulate the rig's hands (--leap-variant follows the rig)"
         )
     mirror = HardwareMirror(
-        config, env.embodiment, env.joints, env.model, env.control_hz, dry_run=get("dry_run")
+        config, env.embodiment, env.joints, env.model, env.control_hz, dry_run=choice.dry_run
     )
     q_measured = mirror.connect()
     closers.append(mirror.close)
     print(
         f"mirroring {', '.join(link.name for link in mirror.links)}"
-        f"{' (dry run: nothing is written)' if get('dry_run') else ''}",
+        f"{' (dry run: nothing is written)' if choice.dry_run else ''}",
         file=sys.stderr,
     )
     return mirror, q_measured

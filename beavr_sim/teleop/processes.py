@@ -624,10 +624,10 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     if config.mirror_hardware:
         from beavr_sim.hardware.device import MirrorError
         from beavr_sim.hardware.mirror import Fixtures
-        from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, connect_mirror
+        from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, RigChoice, connect_mirror
 
         try:
-            mirror, q_measured = connect_mirror(config, env, closers)
+            mirror, q_measured = connect_mirror(RigChoice.of(config), env, closers)
         except (MirrorError, ValueError, FileNotFoundError) as exc:
             for close in reversed(closers):
                 close()

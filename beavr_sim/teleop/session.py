@@ -118,12 +118,12 @@ class SessionOptions:
         self.task = canonical_task_name(self.task)
         check_name("source", self.source, SOURCES)
         if self.source == "trace":
-            from beavr_sim.assets import bundled_trace
+            from beavr_sim.traces.bundled import find_bundled_trace
 
             self.trace = (
                 Path(self.trace)
                 if self.trace is not None
-                else bundled_trace(self.task, self.embodiment)
+                else find_bundled_trace(self.task, self.embodiment)
             )
             if not self.trace.is_file():
                 raise FileNotFoundError(f"trace file not found: {self.trace}")
@@ -944,19 +944,11 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     from beavr_sim.teleop.mirroring import (
         MIRROR_SWITCH_INTERVAL_S,
         MirrorListener,
+        RigChoice,
         connect_mirror,
     )
 
-    if options.emulate_faults is not None:
-        # LEAD: the one call site of --emulate-faults. Connect it when EmulatedRig takes
-        # faults: parse here with hardware.rig.parse_fault_specs(options.emulate_faults) and
-        # hand the specs to EmulatedRig(..., faults=...) (built in teleop/mirroring.py's
-        # connect_mirror), then drop this error.
-        raise ValueError(
-            f"--emulate-faults {options.emulate_faults!r}: the emulators' fault injection is "
-            "not in this build yet (EmulatedRig takes no faults)"
-        )
-    mirror, q_measured = connect_mirror(options, loop.twin.env, closers)
+    mirror, q_measured = connect_mirror(RigChoice.of(options), loop.twin.env, closers)
     loop.reset(loop.seed, robot_qpos=q_measured)
     mirror.start(loop.twin.action)
     previous = sys.getswitchinterval()
