@@ -318,3 +318,16 @@ def test_emulated_rig_takes_faults_at_start_and_at_run_time():
     assert rig.fault_counts["right_arm"]["lost"] >= 1  # the request that met the disconnect
     assert rig.fault_counts["right_hand"]["lost"] >= 3  # the read and its retries, frozen
     assert emulated_device_names(env.embodiment) == rig.device_names
+
+
+def test_the_emulator_process_keeps_only_recent_logs():
+    """The ``--hardware-config emulated`` child bounds what it keeps of each emulator's logs
+    (a rehearsal of hours must not grow without end): at least the limit, at most twice it."""
+    from beavr_sim.hardware.emulators import RecentLog
+
+    log = RecentLog(10)
+    for k in range(95):
+        log.append(k)
+        assert len(log) < 20
+    assert log[-1] == 94 and len(log) >= 10 and log.dropped == 95 - len(log)
+    assert list(log) == list(range(95 - len(log), 95))

@@ -200,11 +200,11 @@ def test_session_takes_the_variant_from_the_rig_or_the_flag(tmp_path):
 
 
 def test_mirror_refuses_a_twin_of_another_variant(tmp_path):
-    from beavr_sim.teleop.mirroring import connect_mirror
+    from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
 
     env = BeavrEnv(task="Playground")  # full
     try:
         with pytest.raises(ValueError, match="'lite' but the twin's are 'full'"):
-            connect_mirror({"hardware_config": _rig(tmp_path, "lite"), "dry_run": False}, env, [])
+            connect_mirror(RigChoice(str(_rig(tmp_path, "lite"))), env, [])
     finally:
         env.close()

@@ -117,7 +117,7 @@ def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
         == 2
     )
     err = capsys.readouterr().err
-    assert "no bundled trace of pour on xarm7_leap_left" in err and "traces synth" in err
+    assert "Pour does not run on xarm7_leap_left (runs on xarm7_leap_right" in err
     trace = str(bundled_trace("pour"))
     args = ["--task", "pour", "--source", "trace", "--trace", trace, "--no-viser"]
     assert main([*args, "--embodiment", "xarm7_leap_left"]) == 2
