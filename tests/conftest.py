@@ -100,3 +100,48 @@ def quest_options():
         return SessionOptions(**{**kwargs, **overrides})
 
     return make
+
+
+@pytest.fixture(scope="session")
+def save_tiny_act_policy():
+    """The function below, for tests that need a policy on disk."""
+    return _save_tiny_act_policy
+
+
+def _save_tiny_act_policy(out: Path) -> Path:
+    """An untrained, tiny ACT policy on the front camera (24x32) with unit statistics, saved
+    to ``out`` with its processors (LeRobot's layout): runs on every task's default robot."""
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    config = ACTConfig(
+        input_features={
+            "observation.state": PolicyFeature(FeatureType.STATE, (23,)),
+            "observation.images.front": PolicyFeature(FeatureType.VISUAL, (3, 24, 32)),
+        },
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (23,))},
+        chunk_size=5,
+        n_action_steps=5,
+        dim_model=16,
+        n_heads=2,
+        dim_feedforward=32,
+        n_encoder_layers=1,
+        n_decoder_layers=1,
+        use_vae=False,
+        pretrained_backbone_weights=None,
+        device="cpu",
+        push_to_hub=False,
+    )
+    torch.manual_seed(0)
+    ACTPolicy(config).save_pretrained(out)
+    stats = {
+        key: {name: torch.zeros(ft.shape) for name in ("mean", "min")}
+        | {name: torch.ones(ft.shape) for name in ("std", "max")}
+        for key, ft in {**config.input_features, **config.output_features}.items()
+    }
+    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
+        pipeline.save_pretrained(out)
+    return out

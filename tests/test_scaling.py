@@ -237,48 +237,9 @@ def test_a_restarted_run_resumes_only_finished_shards_of_the_same_job(tmp_path):
 
 # ---------------------------------------------------------------------------- evaluation
 @pytest.fixture(scope="module")
-def tiny_policy(tmp_path_factory) -> Path:
+def tiny_policy(tmp_path_factory, save_tiny_act_policy) -> Path:
     """An untrained, tiny ACT policy on the front camera (24x32): runs on every task."""
-    import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.policies.act.configuration_act import ACTConfig
-    from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
-
-    out = tmp_path_factory.mktemp("policy") / "act"
-    config = ACTConfig(
-        input_features={
-            "observation.state": PolicyFeature(FeatureType.STATE, (23,)),
-            "observation.images.front": PolicyFeature(FeatureType.VISUAL, (3, 24, 32)),
-        },
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (23,))},
-        chunk_size=5,
-        n_action_steps=5,
-        dim_model=16,
-        n_heads=2,
-        dim_feedforward=32,
-        n_encoder_layers=1,
-        n_decoder_layers=1,
-        use_vae=False,
-        pretrained_backbone_weights=None,
-        device="cpu",
-        push_to_hub=False,
-    )
-    torch.manual_seed(0)
-    ACTPolicy(config).save_pretrained(out)
-    features = {**config.input_features, **config.output_features}
-    stats = {
-        key: {
-            "mean": torch.zeros(ft.shape),
-            "std": torch.ones(ft.shape),
-            "min": torch.zeros(ft.shape),
-            "max": torch.ones(ft.shape),
-        }
-        for key, ft in features.items()
-    }
-    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
-        pipeline.save_pretrained(out)
-    return out
+    return save_tiny_act_policy(tmp_path_factory.mktemp("policy") / "act")
 
 
 def test_eval_sweep_on_two_workers_gives_one_table(tiny_policy, tmp_path, capsys):

@@ -49,47 +49,10 @@ def test_the_xarm_sdk_prints_and_logs_on_stderr_not_stdout():
     assert "SDK_VERSION" in done.stderr and "motion_enable" in done.stderr  # moved, not lost
 
 
-def _tiny_act_policy(out: Path) -> None:
-    """An untrained, tiny ACT policy on the front camera (24x32)."""
-    import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.policies.act.configuration_act import ACTConfig
-    from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
-
-    config = ACTConfig(
-        input_features={
-            "observation.state": PolicyFeature(FeatureType.STATE, (23,)),
-            "observation.images.front": PolicyFeature(FeatureType.VISUAL, (3, 24, 32)),
-        },
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (23,))},
-        chunk_size=5,
-        n_action_steps=5,
-        dim_model=16,
-        n_heads=2,
-        dim_feedforward=32,
-        n_encoder_layers=1,
-        n_decoder_layers=1,
-        use_vae=False,
-        pretrained_backbone_weights=None,
-        device="cpu",
-        push_to_hub=False,
-    )
-    torch.manual_seed(0)
-    ACTPolicy(config).save_pretrained(out)
-    stats = {
-        key: {name: torch.zeros(ft.shape) for name in ("mean", "min")}
-        | {name: torch.ones(ft.shape) for name in ("std", "max")}
-        for key, ft in {**config.input_features, **config.output_features}.items()
-    }
-    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
-        pipeline.save_pretrained(out)
-
-
-def test_eval_prints_only_its_json_summary_on_stdout(tmp_path):
+def test_eval_prints_only_its_json_summary_on_stdout(tmp_path, save_tiny_act_policy):
     pytest.importorskip("lerobot", reason="lerobot (>= 0.5) is not installed")
     policy = tmp_path / "act"
-    _tiny_act_policy(policy)
+    save_tiny_act_policy(policy)
     done = _python(
         "-m", "beavr_sim.eval", "--policy", str(policy), "--task", "pickup_box",
         "--episodes", "1", "--max-seconds", "0.3", "--workers", "1", "--quiet",
