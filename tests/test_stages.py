@@ -101,7 +101,9 @@ EXPECTED = {
 }
 
 
-def replay_digest(task: str, embodiment: str | None, clock: str | None = None) -> dict:
+def replay(task: str, embodiment: str | None, clock: str | None = None):
+    """One process on a trace: the digest of every tick's commands (:func:`command_digest`),
+    the summary and the final qpos."""
     options = SessionOptions(
         task=task,
         embodiment=embodiment,
@@ -113,22 +115,19 @@ def replay_digest(task: str, embodiment: str | None, clock: str | None = None) -
     )
     loop = build_loop(options)
     digest = hashlib.sha256()
-
-    def listen(tick) -> None:
-        for name in sorted(tick.commands):
-            c = tick.commands[name]
-            digest.update(name.encode())
-            digest.update(np.asarray(c.positions, dtype=np.float64).tobytes())
-            digest.update(bytes([c.hold]))
-            digest.update(c.reason.encode())
-
-    loop.listeners.append(listen)
-    summary = loop.run().to_dict()
+    loop.listeners.append(lambda tick: digest.update(command_digest(tick.commands)))
+    summary = loop.run()
     q = loop.twin.env.data.qpos.copy()
     loop.twin.env.close()
+    return digest.hexdigest(), summary, q
+
+
+def replay_digest(task: str, embodiment: str | None, clock: str | None = None) -> dict:
+    commands, summary, q = replay(task, embodiment, clock)
+    summary = summary.to_dict()
     summary.pop("loop_rate_hz")
     summary["latency_ms"] = {"n": summary["latency_ms"]["n"]}
-    summary["commands_sha256"] = digest.hexdigest()
+    summary["commands_sha256"] = commands
     summary["qpos_sha256"] = hashlib.sha256(q.tobytes()).hexdigest()
     return summary
 
@@ -172,21 +171,8 @@ def digest_commands(process, path: str):
 
 
 def one_process_digest(task: str, embodiment: str | None, clock: str):
-    options = SessionOptions(
-        task=task,
-        embodiment=embodiment,
-        source="trace",
-        clock=clock,
-        viser=False,
-        headless=True,
-        progress=False,
-    )
-    loop = build_loop(options)
-    digest = hashlib.sha256()
-    loop.listeners.append(lambda tick: digest.update(command_digest(tick.commands)))
-    summary = loop.run()
-    loop.twin.env.close()
-    return digest.hexdigest(), summary
+    commands, summary, _ = replay(task, embodiment, clock)
+    return commands, summary
 
 
 def multiprocess_digest(task: str, embodiment: str | None, clock: str, tmp_path):
