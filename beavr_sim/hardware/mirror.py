@@ -65,6 +65,7 @@ from beavr_sim.hardware.device import Device, DeviceError, MirrorError
 from beavr_sim.hardware.rig import BODY, RigConfig, build_device, joint_names_of
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
 from beavr_sim.twin.guard import CollisionGuard, GuardConfig
+from beavr_sim.twin.rate_limit import JointRateLimit
 
 log = logging.getLogger(__name__)
 
@@ -771,12 +772,19 @@ class HardwareMirror:
         for link in self.links:  # no faster than a device's own cap
             if link.device.max_velocity:
                 vmax[link.index] = np.minimum(vmax[link.index], link.device.max_velocity)
-        self._vmax = vmax
-        self._step_cap = vmax * self._period
+        #: The speed caps, each joint on its own: a step beyond one period's reach is caught up.
+        self._speed_limit = JointRateLimit.of(vmax)
+        #: The rate limit: a device's joints move together (its step shortened along its
+        #: direction); joints no device drives are not limited.
+        driven = np.zeros(joints.size, dtype=bool)
+        for link in self.links:
+            driven[link.index] = True
+        self._rate_limit = JointRateLimit.of(
+            np.where(driven, vmax, math.inf), groups=[link.index for link in self.links]
+        )
         hand = self.guard.hand_joints
-        self._catch_up_cap = (
+        self._catch_up_limit = JointRateLimit.of(
             np.where(hand, rig.mirror.hand_catch_up_speed, rig.mirror.arm_catch_up_speed)
-            * self._period
         )
         self._cond = threading.Condition()
         self._stopping = threading.Event()
@@ -924,16 +932,15 @@ class HardwareMirror:
                     previous[link.index] = link.anchor
                     owed[link.index] = 0.0
         step = action - previous
-        target = action
         rate_limited: list[int] = []
         caught, catch_up_refused = False, False
-        if (np.abs(step - owed) > self._step_cap * (1 + 1e-9)).any():
+        interval = max(dt, MIN_INTERVAL_S)
+        if self._speed_limit.exceeds(step - owed, self._period).any():
             # The twin is further than one period of motion away (not counting what the rate
             # limit still owes): catch up slowly, at the same speed whatever the submit rate,
             # guarded.
             caught = True
-            cap = self._catch_up_cap * (max(dt, MIN_INTERVAL_S) / self._period)
-            target = previous + np.clip(step, -cap, cap)
+            target = self._catch_up_limit.clamp(previous, action, interval).target
             verdict = self.guard.check(target, self._qpos, previous)
             if not verdict.ok:
                 for name in verdict.blocked:
@@ -945,15 +952,11 @@ class HardwareMirror:
             # Within a period's motion, but no faster than the speed cap over the time since
             # the last submit: a device's step is shortened along its direction (its target
             # stays on the line to the guarded action); the rest is owed, not a jump.
-            limit = self._vmax * max(dt, MIN_INTERVAL_S)
-            for k, link in enumerate(self.links):
-                i = link.index
-                ratio = float(np.max(np.abs(step[i]) / limit[i], initial=0.0))
-                if ratio > 1 + 1e-9:
-                    if target is action:
-                        target = action.copy()
-                    target[i] = previous[i] + step[i] / ratio
-                    rate_limited.append(k)
+            limited = self._rate_limit.clamp(previous, action, interval)
+            target = limited.target
+            rate_limited = [
+                k for k, link in enumerate(self.links) if limited.limited[link.index].any()
+            ]
             owed_next = action - target
         catching = tuple(
             bool(caught and (target[link.index] != action[link.index]).any()) for link in self.links

@@ -8,9 +8,11 @@ Rules, per effector, cheapest first (a command fails on the first rule it breaks
 2. ``joint limit``: a target outside the model's range shrunk by ``limit_margin``.
 3. ``velocity`` / ``acceleration``: against the last accepted command, one control period
    ago (only when the guard knows it: streaming, not a configuration checked alone). The
-   twin limits every joint's step to the speed cap before its guard checks, so there the
-   velocity rule is a second line; other callers (the mirror's catch-up, the hardware guard
-   CLI) meet it first.
+   velocity rule refuses a joint that the speed caps' rate limit
+   (:class:`~beavr_sim.twin.rate_limit.JointRateLimit`, :attr:`CollisionGuard.rate_limit`)
+   would shorten over that period. The twin clamps every joint's step with the same limit
+   before its guard checks, so there the velocity rule is a second line; other callers (the
+   mirror's catch-up, the hardware guard CLI) meet it first.
 4. ``workspace``: a moving robot geom leaves its effector's box (default: the volume over the
    table). The table top is the box's floor, checked on each geom's exact world bounding box:
    unlike a contact depth, it does not depend on how far a link has passed into a thin table.
@@ -47,6 +49,7 @@ from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
 from beavr_sim.twin import kernels
 from beavr_sim.twin.extents import GeomExtents
+from beavr_sim.twin.rate_limit import JointRateLimit
 from beavr_sim.workcell import TABLE_WORKSPACE_BOX
 
 _ROBOT, _STATIC = 1, 2  # contype / conaffinity bits of the guard's private model
@@ -146,8 +149,9 @@ def hand_joints(embodiment: Embodiment, joints: JointIndex) -> np.ndarray:
 
 
 def max_velocity(embodiment: Embodiment, joints: JointIndex, config: GuardConfig) -> np.ndarray:
-    """Per action index: the joint's speed cap (rad/s), the hand's or the arm's. The guard's
-    velocity rule uses it and the twin's per-tick step limit too (with the guard off as well)."""
+    """Per action index: the joint's speed cap (rad/s), the hand's or the arm's: the
+    :class:`~beavr_sim.twin.rate_limit.JointRateLimit` of the guard's velocity rule and of the
+    twin's per-tick step limit (with the guard off as well)."""
     hand = hand_joints(embodiment, joints)
     return np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
 
@@ -204,6 +208,8 @@ class CollisionGuard:
         self._upper = joints.upper - config.limit_margin
         #: Per action index: the speed (rad/s) and acceleration (rad/s^2) caps.
         self.max_velocity = max_velocity(embodiment, joints, config)
+        #: The velocity rule refuses a joint this limit would shorten in one period.
+        self.rate_limit = JointRateLimit.of(self.max_velocity)
         self.max_acceleration = np.where(
             hand, config.hand_max_acceleration, config.arm_max_acceleration
         )
@@ -263,6 +269,7 @@ class CollisionGuard:
         self._moving_owner = np.array(owners, dtype=object)
         self._outside = np.zeros(len(moving), dtype=np.bool_)
         self._codes = np.zeros(joints.size, dtype=np.int64)
+        self._not_fast = np.zeros(joints.size, dtype=np.bool_)
         self.joint_names = joints.names
         kernels.warm_up()
         # A private copy of the model in which only robot-static and robot-robot pairs can
@@ -320,14 +327,18 @@ class CollisionGuard:
     ) -> None:
         codes = self._codes
         has_previous = previous is not None and self.dt is not None
+        if has_previous:
+            fast = self.rate_limit.exceeds(action - previous, self.dt)
+        else:
+            previous, fast = action, self._not_fast
         if not kernels.joint_rules(
             action,
-            previous if has_previous else action,
+            previous,
             has_previous,
+            fast,
             self._velocity,
             self._lower,
             self._upper,
-            self.max_velocity,
             self.max_acceleration,
             self.dt or 0.0,
             codes,

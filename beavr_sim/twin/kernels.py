@@ -68,10 +68,12 @@ def outside(centre, half, lower, upper, flags):
 
 
 @_jit
-def joint_rules(action, previous, has_previous, velocity, lower, upper, vmax, amax, dt, codes):
+def joint_rules(action, previous, has_previous, fast, velocity, lower, upper, amax, dt, codes):
     """Per joint the first rule ``action`` breaks (``codes``: 0 or a rule code); returns how many
-    joints break one. Speed and acceleration need ``has_previous`` and ``dt > 0``; ``velocity``
-    is that of the last accepted command."""
+    joints break one. Speed and acceleration need ``has_previous`` and ``dt > 0``; ``fast``:
+    the joints whose step from ``previous`` the rate limit marks as beyond reach
+    (:meth:`~beavr_sim.twin.rate_limit.JointRateLimit.exceeds`); ``velocity`` is that of the
+    last accepted command."""
     count = 0
     tol = 1.0 + 1e-9
     for i in range(action.shape[0]):
@@ -83,7 +85,7 @@ def joint_rules(action, previous, has_previous, velocity, lower, upper, vmax, am
             code = LIMIT
         elif has_previous and dt > 0.0:
             v = (q - previous[i]) / dt
-            if abs(v) > vmax[i] * tol:
+            if fast[i]:
                 code = VELOCITY
             elif abs(v - velocity[i]) > amax[i] * dt * tol:
                 code = ACCELERATION
@@ -142,7 +144,9 @@ def warm_up() -> None:
     )  # fmt: skip
     outside(x, x, x, x + 1.0, np.zeros(1, np.bool_))
     v = np.zeros(1)
-    joint_rules(v, v, True, v, v - 1, v + 1, v + 1, v + 1, 0.1, np.zeros(1, np.int64))
+    joint_rules(
+        v, v, True, np.zeros(1, np.bool_), v, v - 1, v + 1, v + 1, 0.1, np.zeros(1, np.int64)
+    )
     adr = np.zeros(1, np.int64)
     set_robot_qpos(v.copy(), v, adr, v)
     gather_rows(x, adr, x.copy())

@@ -29,6 +29,7 @@ from beavr_sim.twin.guard import (
     hand_joints,
     max_velocity,
 )
+from beavr_sim.twin.rate_limit import JointRateLimit
 from beavr_sim.wire.records import JointCommand, TwinState
 
 log = logging.getLogger(__name__)
@@ -47,7 +48,8 @@ class TwinInterface:
         #: and whether it is a hand joint.
         self.max_velocity = max_velocity(self.env.embodiment, self.env.joints, config)
         self.hand_joints = hand_joints(self.env.embodiment, self.env.joints)
-        self._step_cap = self.max_velocity * self.dt
+        #: The step limit: every joint at its speed cap, each on its own.
+        self.rate_limit = JointRateLimit.of(self.max_velocity)
         self._joint_lower, self._joint_upper = self.env.joints.lower, self.env.joints.upper
         #: Ticks on which the step limit shortened an effector's command, per effector name.
         self.step_limited: dict[str, int] = {}
@@ -96,23 +98,24 @@ class TwinInterface:
         return False
 
     def _limit_steps(self, previous: np.ndarray, names) -> None:
-        """Clamp each joint target to ``previous`` (the last applied action) +- one period at
-        its speed cap; count and log (rate-limited) the effectors of ``names`` it shortened.
+        """Clamp each joint target to what :attr:`rate_limit` reaches from ``previous`` (the
+        last applied action) in one period; count and log (rate-limited) the effectors of
+        ``names`` it shortened.
 
         With the guard on, a non-finite target or one outside the joint's range passes
         unchanged: that is a corrupt command, not a fast one, and the guard refuses it whole
         (``non-finite``, ``joint limit``) rather than the robot moving towards it. With the
         guard off a non-finite target holds that joint."""
         action = self.action
+        limited = self.rate_limit.clamp(previous, action, self.dt)
+        over = limited.limited
         if self.guard is None:  # nothing else would stop a NaN: that joint holds
-            np.copyto(action, previous, where=~np.isfinite(action))
-        low, high = previous - self._step_cap, previous + self._step_cap
-        over = (action < low) | (action > high)
-        if self.guard is not None:
-            over &= (action >= self._joint_lower) & (action <= self._joint_upper)
+            np.copyto(action, previous, where=limited.non_finite)
+        else:
+            over = over & (action >= self._joint_lower) & (action <= self._joint_upper)
         if not over.any():
             return
-        np.copyto(action, np.clip(action, low, high), where=over)
+        np.copyto(action, limited.target, where=over)
         for name in names:
             sl = self.slices[name]
             if not over[sl].any():

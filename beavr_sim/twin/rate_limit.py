@@ -1,0 +1,143 @@
+"""One joint rate limit: how far each joint may move in a time, and a target clamped to it.
+
+:class:`JointRateLimit` holds a speed cap per joint (rad/s, action order). ``clamp(previous,
+target, dt)`` returns the target each joint can reach from ``previous`` within ``dt`` at its
+cap, and which joints that shortened (:class:`RateLimited`). Every speed cap of the pipeline is
+this one object: the twin's per-tick step limit, the guard's velocity rule (it refuses what
+:meth:`JointRateLimit.exceeds` marks), the hardware mirror's rate limit and its catch-up. The
+counters stay with those callers; the arithmetic lives here.
+
+Contract:
+
+- no joint of the result is further than ``reach(dt) * (1 + tolerance)`` from ``previous``
+  (up to the rounding of adding the step to ``previous``); a joint within that is returned
+  unchanged (``tolerance``: a step already at the cap, rounded, is not a limited one);
+- a non-finite target (NaN, inf) holds ``previous`` for that joint (``non_finite``), never
+  raises; ``previous`` itself is trusted (the caller's last applied target);
+- joints of one group (``groups``, e.g. the joints of one device) move together: when any of
+  them is beyond reach the whole group's step is shortened along its direction, so the target
+  stays on the line to the commanded one; other joints are clamped each on its own;
+- a cap of ``math.inf`` never limits its joint; a ``dt`` of zero or less lets nothing move.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Relative slack before a step counts as beyond reach: a step clamped to the cap and then
+#: re-measured (after a subtraction, or over a slightly different interval) is not limited
+#: again.
+ROUNDING_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class RateLimited:
+    """The result of :meth:`JointRateLimit.clamp` (arrays in the limit's joint order)."""
+
+    #: The reachable target (a new array; ``previous`` where the target was non-finite).
+    target: np.ndarray
+    #: Joints whose finite target was beyond reach and was shortened.
+    limited: np.ndarray
+    #: Joints whose target was NaN or inf (held at ``previous``).
+    non_finite: np.ndarray
+
+
+@dataclass(frozen=True)
+class JointRateLimit:
+    """A speed cap per joint (rad/s; ``math.inf``: not limited), the joint groups that move
+    together (indices; each joint in at most one group) and the rounding ``tolerance``."""
+
+    max_velocity: tuple[float, ...]
+    groups: tuple[tuple[int, ...], ...] = ()
+    tolerance: float = ROUNDING_TOLERANCE
+    _vmax: np.ndarray = field(init=False, repr=False, compare=False)
+    _groups: tuple[np.ndarray, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        vmax = np.array(self.max_velocity, dtype=np.float64).reshape(-1)
+        bad = [v for v in self.max_velocity if not v > 0]
+        if bad:
+            raise ValueError(f"max_velocity must be > 0 rad/s (or math.inf) per joint, got {bad}")
+        if not (self.tolerance >= 0 and math.isfinite(self.tolerance)):
+            raise ValueError(f"tolerance must be a finite number >= 0, got {self.tolerance!r}")
+        seen: set[int] = set()
+        for group in self.groups:
+            for i in group:
+                if not (isinstance(i, (int, np.integer)) and 0 <= i < vmax.size):
+                    raise ValueError(
+                        f"group index {i!r} is not a joint: valid are 0 .. {vmax.size - 1}"
+                    )
+                if i in seen:
+                    raise ValueError(f"joint {i} is in more than one group: {self.groups}")
+                seen.add(int(i))
+        vmax.setflags(write=False)
+        object.__setattr__(self, "_vmax", vmax)
+        object.__setattr__(
+            self, "_groups", tuple(np.array(g, dtype=np.int64) for g in self.groups if len(g))
+        )
+
+    @classmethod
+    def of(
+        cls,
+        max_velocity: Iterable[float],
+        groups: Iterable[Sequence[int]] = (),
+        tolerance: float = ROUNDING_TOLERANCE,
+    ) -> JointRateLimit:
+        """From any sequence of caps (a numpy array) and groups of indices."""
+        return cls(
+            tuple(float(v) for v in np.asarray(max_velocity, dtype=np.float64).reshape(-1)),
+            tuple(tuple(int(i) for i in g) for g in groups),
+            tolerance,
+        )
+
+    @property
+    def size(self) -> int:
+        return self._vmax.size
+
+    def reach(self, dt: float) -> np.ndarray:
+        """How far (rad) each joint may move in ``dt`` seconds (for ``dt`` <= 0: zero, or
+        ``inf`` where the cap is)."""
+        if dt > 0:
+            return self._vmax * dt
+        return np.where(self._vmax == math.inf, math.inf, 0.0)
+
+    def exceeds(self, step: np.ndarray, dt: float) -> np.ndarray:
+        """Per joint: ``step`` (target - previous) is beyond reach in ``dt``, past the
+        tolerance (each joint on its own; False for a non-finite step)."""
+        return self._beyond(step, self.reach(dt))
+
+    def _beyond(self, step: np.ndarray, reach: np.ndarray) -> np.ndarray:
+        return np.abs(step) > reach * (1.0 + self.tolerance)
+
+    def clamp(self, previous: np.ndarray, target: np.ndarray, dt: float) -> RateLimited:
+        """``target`` limited to what each joint reaches from ``previous`` in ``dt`` (see the
+        module's contract); never raises on a non-finite target."""
+        previous = np.asarray(previous, dtype=np.float64)
+        out = np.array(target, dtype=np.float64)  # a copy
+        non_finite = ~np.isfinite(out)
+        if non_finite.any():
+            out[non_finite] = previous[non_finite]
+        reach = self.reach(dt)
+        step = out - previous
+        limited = self._beyond(step, reach)
+        if self._groups:
+            alone = np.ones(self.size, dtype=bool)
+            for g in self._groups:
+                alone[g] = False
+                if not limited[g].any():
+                    continue
+                s = step[g]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ratio = float(np.max(np.where(s == 0.0, 0.0, np.abs(s) / reach[g])))
+                out[g] = previous[g] + s / ratio  # the largest step at its reach
+                limited[g] = s != 0.0
+            clip = limited & alone
+        else:
+            clip = limited
+        if clip.any():
+            np.copyto(out, np.clip(out, previous - reach, previous + reach), where=clip)
+        return RateLimited(out, limited, non_finite)
