@@ -521,8 +521,11 @@ def test_every_accepted_command_keeps_every_rule(twin, stream):
         previous = state["previous"]
         q = np.clip(previous + 0.5 * vmax * dt * fraction, lower, upper)
         away = 1.0 if upper[joint] - previous[joint] > previous[joint] - lower[joint] else -1.0
-        if kind == "fast":  # one joint past its cap (away from its nearer limit)
-            q[joint] = previous[joint] + away * excess * vmax[joint] * dt
+        if kind == "fast":  # one joint past its cap (away from its nearer limit, in range)
+            room = abs((upper if away > 0 else lower)[joint] - previous[joint])
+            if room < 1.3 * vmax[joint] * dt:
+                continue
+            q[joint] = previous[joint] + away * min(excess * vmax[joint] * dt, room)
         elif kind == "jerk":  # one arm joint at 0.9 x its cap, then reversing: 1.8 x in a tick
             joint %= 7
             q = previous.copy()
