@@ -26,12 +26,57 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 #: Relative slack before a step counts as beyond reach: a step clamped to the cap and then
 #: re-measured (after a subtraction, or over a slightly different interval) is not limited
 #: again.
 ROUNDING_TOLERANCE = 1e-9
+
+_jit = numba.njit(cache=True, nogil=True)
+
+
+@_jit
+def _over(step, reach, slack):
+    """A step beyond reach, past the rounding slack (False for a non-finite step)."""
+    return abs(step) > reach * slack
+
+
+@_jit
+def _clamp_joints(previous, target, reach, slack, out, limited, non_finite):
+    """Each joint on its own: ``out`` the target clamped to ``previous`` +- ``reach`` where
+    it is beyond reach (``limited``), ``previous`` where it is not finite (``non_finite``)."""
+    for i in range(out.shape[0]):
+        p, q, r = previous[i], target[i], reach[i]
+        bad = not math.isfinite(q)
+        over = not bad and _over(q - p, r, slack)
+        non_finite[i], limited[i] = bad, over
+        if bad:
+            out[i] = p
+        elif over:
+            out[i] = min(max(q, p - r), p + r)
+        else:
+            out[i] = q
+
+
+@_jit
+def _beyond(step, reach, slack, out):
+    for i in range(out.shape[0]):
+        out[i] = _over(step[i], reach[i], slack)
+
+
+_warm: list[bool] = []
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's disk cache) the kernels once per process, so that no
+    command pays for it."""
+    if not _warm:
+        x, flags = np.zeros(1), np.zeros(1, dtype=np.bool_)
+        _clamp_joints(x, x, x, 1.0, x.copy(), flags, flags.copy())
+        _beyond(x, x, 1.0, flags)
+        _warm.append(True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,6 +101,7 @@ class JointRateLimit:
     tolerance: float = ROUNDING_TOLERANCE
     _vmax: np.ndarray = field(init=False, repr=False, compare=False)
     _groups: tuple[np.ndarray, ...] = field(init=False, repr=False, compare=False)
+    _reach: list = field(init=False, repr=False, compare=False)  # [dt, reach] of the last call
 
     def __post_init__(self) -> None:
         vmax = np.array(self.max_velocity, dtype=np.float64).reshape(-1)
@@ -79,6 +125,8 @@ class JointRateLimit:
         object.__setattr__(
             self, "_groups", tuple(np.array(g, dtype=np.int64) for g in self.groups if len(g))
         )
+        object.__setattr__(self, "_reach", [None, None])
+        _warm_up()
 
     @classmethod
     def of(
@@ -100,44 +148,42 @@ class JointRateLimit:
 
     def reach(self, dt: float) -> np.ndarray:
         """How far (rad) each joint may move in ``dt`` seconds (for ``dt`` <= 0: zero, or
-        ``inf`` where the cap is)."""
-        if dt > 0:
-            return self._vmax * dt
-        return np.where(self._vmax == math.inf, math.inf, 0.0)
+        ``inf`` where the cap is); read-only."""
+        last_dt, reach = self._reach
+        if dt != last_dt:
+            if dt > 0:
+                reach = self._vmax * dt
+            else:
+                reach = np.where(self._vmax == math.inf, math.inf, 0.0)
+            reach.setflags(write=False)
+            self._reach[:] = dt, reach
+        return reach
 
     def exceeds(self, step: np.ndarray, dt: float) -> np.ndarray:
         """Per joint: ``step`` (target - previous) is beyond reach in ``dt``, past the
         tolerance (each joint on its own; False for a non-finite step)."""
-        return self._beyond(step, self.reach(dt))
-
-    def _beyond(self, step: np.ndarray, reach: np.ndarray) -> np.ndarray:
-        return np.abs(step) > reach * (1.0 + self.tolerance)
+        out = np.empty(self.size, dtype=np.bool_)
+        step = np.ascontiguousarray(step, dtype=np.float64)
+        _beyond(step, self.reach(dt), 1.0 + self.tolerance, out)
+        return out
 
     def clamp(self, previous: np.ndarray, target: np.ndarray, dt: float) -> RateLimited:
         """``target`` limited to what each joint reaches from ``previous`` in ``dt`` (see the
         module's contract); never raises on a non-finite target."""
-        previous = np.asarray(previous, dtype=np.float64)
-        out = np.array(target, dtype=np.float64)  # a copy
-        non_finite = ~np.isfinite(out)
-        if non_finite.any():
-            out[non_finite] = previous[non_finite]
+        previous = np.ascontiguousarray(previous, dtype=np.float64)
+        target = np.ascontiguousarray(target, dtype=np.float64)
+        n = self.size
+        out = np.empty(n)
+        limited = np.empty(n, dtype=np.bool_)
+        non_finite = np.empty(n, dtype=np.bool_)
         reach = self.reach(dt)
-        step = out - previous
-        limited = self._beyond(step, reach)
-        if self._groups:
-            alone = np.ones(self.size, dtype=bool)
-            for g in self._groups:
-                alone[g] = False
-                if not limited[g].any():
-                    continue
-                s = step[g]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    ratio = float(np.max(np.where(s == 0.0, 0.0, np.abs(s) / reach[g])))
-                out[g] = previous[g] + s / ratio  # the largest step at its reach
-                limited[g] = s != 0.0
-            clip = limited & alone
-        else:
-            clip = limited
-        if clip.any():
-            np.copyto(out, np.clip(out, previous - reach, previous + reach), where=clip)
+        _clamp_joints(previous, target, reach, 1.0 + self.tolerance, out, limited, non_finite)
+        for g in self._groups:  # a group's joints move together
+            if not limited[g].any():
+                continue
+            s = np.where(non_finite[g], 0.0, target[g] - previous[g])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = float(np.max(np.where(s == 0.0, 0.0, np.abs(s) / reach[g])))
+            out[g] = previous[g] + s / ratio  # the largest step at its reach
+            limited[g] = s != 0.0
         return RateLimited(out, limited, non_finite)
