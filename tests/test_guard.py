@@ -551,3 +551,23 @@ def test_every_accepted_command_keeps_every_rule(twin, stream):
             q[joint] = np.nan
         send(q, kind)
     guard.reset()
+
+
+@pytest.mark.parametrize("joint", [0, 10])  # an arm joint, a finger joint
+def test_the_velocity_rule_refuses_exactly_what_the_twins_step_limit_would_shorten(twin, joint):
+    """One speed cap: near the cap (just under, at it, within the rounding tolerance, just
+    over), the guard's velocity rule fires on a step exactly when the twin's rate limit would
+    clamp it over one control period."""
+    env, guard = twin.env, twin.guard
+    home, qpos = env.joints.home.astype(np.float64), env.data.qpos
+    i = twin.slices["right"].start + joint
+    reach = twin.rate_limit.reach(twin.dt)[i]
+    away = 1.0 if env.joints.upper[i] - home[i] > home[i] - env.joints.lower[i] else -1.0
+    for factor in (0.5, 1 - 1e-6, 1.0, 1 + 1e-10, 1 + 1e-6, 1.2):
+        q = home.copy()
+        q[i] += away * factor * reach
+        guard.reset()
+        verdict = guard.check(q, qpos, previous=home)
+        fast = verdict.reasons.get("right", "").startswith("velocity")
+        assert fast == bool(twin.rate_limit.clamp(home, q, twin.dt).limited.any()), factor
+        assert fast == (factor > 1 + 1e-9), (factor, verdict.reason())
