@@ -130,3 +130,13 @@ def test_an_infinite_cap_never_limits_and_no_time_lets_nothing_move():
 def test_a_bad_limit_is_refused_with_what_is_valid(kwargs, match):
     with pytest.raises(ValueError, match=match):
         JointRateLimit(**kwargs)
+
+
+def test_arrays_of_the_wrong_length_are_refused_not_read_past():
+    limit = JointRateLimit.of([1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match=r"target has shape \(2,\), not \(3,\)"):
+        limit.clamp(np.zeros(3), np.zeros(2), 0.1)
+    with pytest.raises(ValueError, match=r"previous has shape \(4,\)"):
+        limit.clamp(np.zeros(4), np.zeros(3), 0.1)
+    with pytest.raises(ValueError, match="step has shape"):
+        limit.exceeds(np.zeros((3, 1)), 0.1)

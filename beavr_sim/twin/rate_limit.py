@@ -101,7 +101,8 @@ class JointRateLimit:
     tolerance: float = ROUNDING_TOLERANCE
     _vmax: np.ndarray = field(init=False, repr=False, compare=False)
     _groups: tuple[np.ndarray, ...] = field(init=False, repr=False, compare=False)
-    _reach: list = field(init=False, repr=False, compare=False)  # [dt, reach] of the last call
+    #: ``[(dt, reach)]`` of the last call (one tuple, swapped whole).
+    _reach: list = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         vmax = np.array(self.max_velocity, dtype=np.float64).reshape(-1)
@@ -125,7 +126,7 @@ class JointRateLimit:
         object.__setattr__(
             self, "_groups", tuple(np.array(g, dtype=np.int64) for g in self.groups if len(g))
         )
-        object.__setattr__(self, "_reach", [None, None])
+        object.__setattr__(self, "_reach", [(None, None)])
         _warm_up()
 
     @classmethod
@@ -146,32 +147,40 @@ class JointRateLimit:
     def size(self) -> int:
         return self._vmax.size
 
+    def _joints(self, what: str, values: np.ndarray) -> np.ndarray:
+        """``values`` as contiguous float64, one per joint; a wrong shape is the caller's bug
+        (the kernels index without bounds checks): ValueError."""
+        values = np.ascontiguousarray(values, dtype=np.float64)
+        if values.shape != self._vmax.shape:
+            raise ValueError(f"{what} has shape {values.shape}, not ({self.size},) (one per joint)")
+        return values
+
     def reach(self, dt: float) -> np.ndarray:
         """How far (rad) each joint may move in ``dt`` seconds (for ``dt`` <= 0: zero, or
         ``inf`` where the cap is); read-only."""
-        last_dt, reach = self._reach
+        last_dt, reach = self._reach[0]
         if dt != last_dt:
             if dt > 0:
                 reach = self._vmax * dt
             else:
                 reach = np.where(self._vmax == math.inf, math.inf, 0.0)
             reach.setflags(write=False)
-            self._reach[:] = dt, reach
+            self._reach[0] = (dt, reach)
         return reach
 
     def exceeds(self, step: np.ndarray, dt: float) -> np.ndarray:
         """Per joint: ``step`` (target - previous) is beyond reach in ``dt``, past the
         tolerance (each joint on its own; False for a non-finite step)."""
         out = np.empty(self.size, dtype=np.bool_)
-        step = np.ascontiguousarray(step, dtype=np.float64)
+        step = self._joints("step", step)
         _beyond(step, self.reach(dt), 1.0 + self.tolerance, out)
         return out
 
     def clamp(self, previous: np.ndarray, target: np.ndarray, dt: float) -> RateLimited:
         """``target`` limited to what each joint reaches from ``previous`` in ``dt`` (see the
         module's contract); never raises on a non-finite target."""
-        previous = np.ascontiguousarray(previous, dtype=np.float64)
-        target = np.ascontiguousarray(target, dtype=np.float64)
+        previous = self._joints("previous", previous)
+        target = self._joints("target", target)
         n = self.size
         out = np.empty(n)
         limited = np.empty(n, dtype=np.bool_)
