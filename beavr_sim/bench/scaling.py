@@ -27,6 +27,9 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+from beavr_sim.scaling.executors import ScaleConfig, connect_ray
+from beavr_sim.tasks.registry import canonical_task_name
+
 #: Stages timed in a replay tick: (label, attribute path from the loop, method).
 STAGES = (
     ("source.poll", "source", "poll"),
@@ -113,7 +116,6 @@ def generate_scaling(
     task: str, episodes: int, workers: list[int], ray: bool, image_size: tuple[int, int]
 ) -> dict:
     from beavr_sim.datasets.features import RecordingConfig
-    from beavr_sim.scaling.executors import ScaleConfig
 
     height, width = image_size
     config = RecordingConfig(cameras=("front",), image_height=height, image_width=width)
@@ -126,8 +128,6 @@ def generate_scaling(
             shutil.rmtree(out, ignore_errors=True)
         if ray:
             import ray as ray_module
-
-            from beavr_sim.scaling.executors import connect_ray
 
             n = max(workers)
             # The cluster is up before the job, as on a real one (`ray start --head`): its
@@ -177,7 +177,6 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--no-replay", action="store_true")
     args = p.parse_args(argv)
     from beavr_sim.datasets.cli import parse_size
-    from beavr_sim.tasks.registry import canonical_task_name
 
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:

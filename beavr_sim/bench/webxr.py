@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from beavr_sim.wire.ports import free_tcp_ports
+
 IWER_VERSION = "^2.5"
 CHROMIUM_ARGS = [
     "--no-sandbox",
@@ -221,7 +223,6 @@ def measure(task: str = "pour", seconds: float = 10.0, screenshot: Path | None =
     from playwright import sync_api
 
     from beavr_sim.teleop.session import SessionOptions
-    from beavr_sim.wire.ports import free_tcp_ports
 
     chromium = find_chromium()
     if chromium is None:

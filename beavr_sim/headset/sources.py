@@ -18,8 +18,10 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 
+from beavr_sim.traces.format import TraceReader
 from beavr_sim.wire.hand import HandFrame
 
 #: Tolerance when comparing frame times with the clock (float trace times).
@@ -149,9 +151,6 @@ class TraceSource(FrameListSource):
     """A recorded VR trace (MCAP file written by ``python -m beavr_sim.traces``)."""
 
     def __init__(self, path: str | Path, real_time: bool = False):
-        from dataclasses import asdict
-
-        from beavr_sim.traces.format import TraceReader
 
         self.reader = TraceReader(path)
         self.metadata = asdict(self.reader.metadata)

@@ -26,9 +26,12 @@ import numpy as np
 from lerobot.robots.robot import Robot
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
+from beavr_sim.envs.beavr_env import BeavrEnv
 from beavr_sim.integrations.config_robot import ROBOT_TYPE, BeavrSimRobotConfig
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
 from beavr_sim.integrations.options import check_embodiment
+from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
+from beavr_sim.wire.records import JointCommand
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +96,6 @@ class BeavrSimRobot(Robot):
         pose (nothing moves at connect)."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        from beavr_sim.envs.beavr_env import BeavrEnv
         from beavr_sim.twin.twin import TwinInterface
 
         cfg = self.config
@@ -112,8 +114,6 @@ class BeavrSimRobot(Robot):
             twin = TwinInterface(env, use_guard=cfg.use_guard)
             q_measured = None
             if cfg.mirrors_hardware:
-                from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
-
                 choice = RigChoice(cfg.hardware, cfg.dry_run)
                 self.mirror, q_measured = connect_mirror(choice, env, self._closers)
             twin.reset(cfg.seed, robot_qpos=q_measured)
@@ -185,8 +185,6 @@ class BeavrSimRobot(Robot):
     def send_action(self, action: dict[str, Any]) -> dict[str, float]:
         """Guard ``action`` (joint name -> target, rad), send it (twin, and hardware), step
         the twin one period; returns the targets actually sent."""
-        from beavr_sim.wire.records import JointCommand
-
         twin = self._require()
         target = action_vector(action, self.joint_names)
         nan = math.nan

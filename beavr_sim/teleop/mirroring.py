@@ -8,6 +8,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
+from beavr_sim.hardware.faults import parse_fault_specs
 from beavr_sim.wire.records import Tick
 
 #: Python's thread switch interval (s) in a process that mirrors: the mirror's writer threads
@@ -49,7 +50,6 @@ def connect_mirror(choice: RigChoice, env, closers: list):
     measured joints (the twin starts there). Adds what must be closed to ``closers``. Raises
     :class:`~beavr_sim.hardware.device.MirrorError` (or ValueError, FileNotFoundError for the
     rig file or a bad fault spec) naming what to check."""
-    from beavr_sim.hardware.faults import parse_fault_specs
     from beavr_sim.hardware.mirror import HardwareMirror
     from beavr_sim.hardware.rig import EmulatedRig, RigConfig, emulated_device_names
 
