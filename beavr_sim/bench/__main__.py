@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.benchmark == "contact":
-        from beavr_sim.bench import contact
+        from beavr_sim.bench import contact  # local: heavy (subcommand, loaded on use)
 
         try:
             settings = contact.parse_settings(args.contact) if args.contact else None
@@ -162,12 +162,14 @@ def main(argv: list[str] | None = None) -> int:
         args.seconds = 5.0 if args.benchmark == "teleop" else 2.0
     samples: dict = {}
     if args.benchmark == "sim":
-        from beavr_sim.bench.sim import run
+        from beavr_sim.bench.sim import run  # local: heavy (subcommand, loaded on use)
 
         print(f"benchmarking simulation ({args.seconds:g} s per measurement)...", file=sys.stderr)
         result = run(seconds=args.seconds, render_frames=args.frames or 20, samples=samples)
     elif args.benchmark == "retarget":
-        from beavr_sim.bench.retarget import run as run_retarget
+        from beavr_sim.bench.retarget import (
+            run as run_retarget,  # local: heavy (subcommand, loaded on use)
+        )
 
         print("benchmarking LEAP retargeting on the human hand trace...", file=sys.stderr)
         result = run_retarget(frames=args.frames, samples=samples)
@@ -197,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _latency(args) -> int:
-    from beavr_sim.bench import latency
+    from beavr_sim.bench import latency  # local: heavy (subcommand, loaded on use)
 
     seconds = 10.0 if args.seconds is None else args.seconds
     samples: dict = {}

@@ -483,7 +483,7 @@ def prepare(
     embodiment: str, task: str, rate_hz: float, mirror: bool, layout: str = "processes"
 ) -> LiveSession:
     """The stream for ``embodiment`` (payloads cached per embodiment and task)."""
-    from beavr_sim.robots import make_embodiment
+    from beavr_sim.robots import make_embodiment  # local: heavy (mujoco)
 
     effectors = {e.name: e.side for e in make_embodiment(embodiment).effectors}
     streams = sorted(set(effectors.values()))
@@ -504,8 +504,11 @@ def _max_payload(lives) -> bytes:
 
 def start_session(live: LiveSession) -> None:
     """Start ``live``'s ``--multiprocess`` pipeline on its own free ports, with a timing log."""
-    from beavr_sim.teleop.processes import Attachment, MultiprocessSession
-    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.teleop.processes import (  # local: heavy (the pipeline: mink, scipy)
+        Attachment,
+        MultiprocessSession,
+    )
+    from beavr_sim.teleop.session import SessionOptions  # local: heavy (the pipeline: mink, scipy)
 
     live.transport = TransportConfig(ports=PortConfig.free())
     options = SessionOptions(
@@ -620,7 +623,10 @@ def single_process_main(options, log_path: str, conn) -> None:
     the mirror, ``links``; runs until the pipe says stop, then sends its counters."""
     import zmq
 
-    from beavr_sim.teleop.session import build_loop, start_mirror
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        build_loop,
+        start_mirror,
+    )
 
     context = zmq.Context()
     closers: list = []
@@ -677,7 +683,7 @@ class SingleProcessSession:
     harness uses (``start``, ``dead``, ``stop``, ``results``, ``options``, ``exits``)."""
 
     def __init__(self, options, log_path: str):
-        from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+        from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ  # local: heavy (mujoco)
 
         self.control_hz = DEFAULT_CONTROL_HZ
         self.results: dict = {}

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     add_scale_args(g)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format=LOG_FORMAT)
-    from beavr_sim.synthetic.generate import generate
+    from beavr_sim.synthetic.generate import generate  # local: heavy (mujoco)
 
     try:
         summary = generate(

@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     add_scale_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT)
-    from beavr_sim.eval.sweep import sweep, write_table
+    from beavr_sim.eval.sweep import sweep, write_table  # local: heavy (mujoco)
 
     try:
         tasks = list(dict.fromkeys(canonical_task_name(t) for t in args.task))

@@ -165,7 +165,7 @@ class QuestSource(HandSource):
 
     def __init__(self, context, config, validator=None, latest_only: bool = True):
         self.validates = validator is not None
-        from beavr_sim.headset.quest_io import QuestReceiver
+        from beavr_sim.headset.quest_io import QuestReceiver  # local: heavy (zmq)
 
         self.receiver = QuestReceiver(context, config, validator=validator, latest_only=latest_only)
 
@@ -190,7 +190,7 @@ class WebXRSource(HandSource):
     real_time = True
 
     def __init__(self, config=None, validator=None):
-        from beavr_sim.headset.webxr_server import WebXRServer
+        from beavr_sim.headset.webxr_server import WebXRServer  # local: heavy (websockets, asyncio)
 
         self.validates = validator is not None
         self.server = WebXRServer(config, validator=validator)
@@ -208,7 +208,7 @@ class WebXRSource(HandSource):
 
     def twin_feed(self, model, data, operator=None, info: dict | None = None):
         """A tick listener that shows the twin on the page (``webxr_scene.TwinFeed``)."""
-        from beavr_sim.headset.webxr_scene import TwinFeed
+        from beavr_sim.headset.webxr_scene import TwinFeed  # local: heavy (mujoco)
 
         rate = self.server.config.twin_rate_hz
         return TwinFeed(self.server, model, data, rate, operator=operator, info=info)

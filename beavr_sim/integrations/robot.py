@@ -96,7 +96,7 @@ class BeavrSimRobot(Robot):
         pose (nothing moves at connect)."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        from beavr_sim.twin.twin import TwinInterface
+        from beavr_sim.twin.twin import TwinInterface  # local: heavy (the pipeline: mink, scipy)
 
         cfg = self.config
         env = BeavrEnv(
@@ -130,7 +130,7 @@ class BeavrSimRobot(Robot):
     def _hand_variant(self) -> str:
         cfg = self.config
         if cfg.mirrors_hardware and cfg.hardware != "emulated":
-            from beavr_sim.hardware.rig import RigConfig
+            from beavr_sim.hardware.rig import RigConfig  # local: heavy (mujoco)
 
             rig = RigConfig.from_toml(cfg.hardware).leap_variant()
             if rig is not None and cfg.hand_variant not in (None, rig):

@@ -108,8 +108,10 @@ class BeavrQuestTeleop(Teleoperator):
         """Build the operator (home pose, the task's fixtures) and open the source."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        from beavr_sim.operator.operator import Operator
-        from beavr_sim.teleop.stages import OperatorStage
+        from beavr_sim.operator.operator import Operator  # local: heavy (the pipeline: mink, scipy)
+        from beavr_sim.teleop.stages import (
+            OperatorStage,  # local: heavy (the pipeline: mink, scipy)
+        )
 
         cfg = self.config
         # The task's scene at the seed's layout: the joints' order and home, and the fixtures.

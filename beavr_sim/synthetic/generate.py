@@ -134,8 +134,11 @@ def run_episode(
 ) -> EpisodeOutcome:
     """One seed: synthesize its trace, and if kept replay it into ``writer`` (or into
     ``make_writer()``, called only when there is something to write)."""
-    from beavr_sim.synthetic.trace import quantize, synthesize, write_trace
-    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.synthetic.trace import quantize, synthesize, write_trace  # local: heavy (mujoco)
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     result = synthesize(task, seed, embodiment, quantize=quantize)
     ok = bool(result.summary.success)

@@ -204,7 +204,10 @@ def write_trace(path: Path, result: SynthResult) -> Path:
 
 def replay(path: Path, **kwargs) -> TeleopSummary:
     """Replay a trace through the in-process pipeline on the virtual clock."""
-    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     options = SessionOptions(
         task=TraceReader(path).metadata.task,
