@@ -16,6 +16,7 @@ import numpy as np
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.robots import EMBODIMENTS
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.viz.twin_view import TwinView
 
 
 def scripted_targets(env, t: float) -> np.ndarray:
@@ -54,8 +55,6 @@ def main(argv: list[str] | None = None) -> int:
     u = env.unwrapped
     view = None
     if not args.no_viser:
-        from beavr_sim.viz.twin_view import TwinView
-
         view = TwinView(
             u.render_model,
             host=args.viser_host,

@@ -8,6 +8,7 @@ and the reference can be compared joint for joint.
 from __future__ import annotations
 
 import os
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import mujoco
@@ -152,8 +153,6 @@ def build_rx1_reference_model(reference_dir: Path, base_pos) -> mujoco.MjModel:
     Every fixed link stays a body (``fusestatic`` off) so that URDF frames can be looked up;
     names carry the prefix ``urdf/``.
     """
-    import xml.etree.ElementTree as ET
-
     root = ET.parse(reference_dir / "rx1_description" / "urdf" / "leap_rx1.urdf").getroot()
     for link in root.findall("link"):
         for tag in ("visual", "collision"):

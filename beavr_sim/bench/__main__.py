@@ -35,6 +35,15 @@ import sys
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.bench.hardware import run as run_hardware
+from beavr_sim.bench.mutations import main as mutations_main
+from beavr_sim.bench.plots import write as write_plots
+from beavr_sim.bench.plots import write_latency
+from beavr_sim.bench.scaling import main as scaling_main
+from beavr_sim.bench.soak import main as soak_main
+from beavr_sim.bench.teleop import run as run_teleop
+from beavr_sim.bench.tracking import run as run_tracking
+from beavr_sim.bench.view import run as run_view
 
 BENCHMARKS = (
     "sim",
@@ -54,16 +63,10 @@ BENCHMARKS = (
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["scaling"]:  # options of its own
-        from beavr_sim.bench.scaling import main as scaling_main
-
         return scaling_main(argv[1:])
     if argv[:1] == ["mutations"]:  # options of its own
-        from beavr_sim.bench.mutations import main as mutations_main
-
         return mutations_main(argv[1:])
     if argv[:1] == ["soak"]:  # options of its own
-        from beavr_sim.bench.soak import main as soak_main
-
         return soak_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
@@ -134,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.benchmark == "contact":
-        from beavr_sim.bench import contact
+        from beavr_sim.bench import contact  # local: heavy (subcommand, loaded on use)
 
         try:
             settings = contact.parse_settings(args.contact) if args.contact else None
@@ -152,8 +155,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.benchmark == "latency":
         return _latency(args)
     if args.benchmark == "tracking":
-        from beavr_sim.bench.tracking import run as run_tracking
-
         print("benchmarking motion-to-motion lag and tracking error...", file=sys.stderr)
         print(json.dumps(run_tracking(max_ticks=args.frames), indent=2))
         return 0
@@ -161,31 +162,27 @@ def main(argv: list[str] | None = None) -> int:
         args.seconds = 5.0 if args.benchmark == "teleop" else 2.0
     samples: dict = {}
     if args.benchmark == "sim":
-        from beavr_sim.bench.sim import run
+        from beavr_sim.bench.sim import run  # local: heavy (subcommand, loaded on use)
 
         print(f"benchmarking simulation ({args.seconds:g} s per measurement)...", file=sys.stderr)
         result = run(seconds=args.seconds, render_frames=args.frames or 20, samples=samples)
     elif args.benchmark == "retarget":
-        from beavr_sim.bench.retarget import run as run_retarget
+        from beavr_sim.bench.retarget import (
+            run as run_retarget,  # local: heavy (subcommand, loaded on use)
+        )
 
         print("benchmarking LEAP retargeting on the human hand trace...", file=sys.stderr)
         result = run_retarget(frames=args.frames, samples=samples)
     elif args.benchmark == "teleop":
-        from beavr_sim.bench.teleop import run as run_teleop
-
         print("benchmarking the teleop pipeline on bundled VR traces...", file=sys.stderr)
         result = run_teleop(real_time_seconds=args.seconds, max_ticks=args.frames, samples=samples)
     elif args.benchmark == "view":
-        from beavr_sim.bench.view import run as run_view
-
         print(
             f"benchmarking the browser view's cost to the loop ({args.seconds:g} s per run)...",
             file=sys.stderr,
         )
         result = run_view(seconds=args.seconds)
     elif args.benchmark == "hardware":
-        from beavr_sim.bench.hardware import run as run_hardware
-
         print(
             "benchmarking hardware mirroring on emulated devices (pour trace, real time)...",
             file=sys.stderr,
@@ -195,8 +192,6 @@ def main(argv: list[str] | None = None) -> int:
         "view",
         "hardware",
     ):  # view: no samples to plot
-        from beavr_sim.bench.plots import write as write_plots
-
         result["plots"] = write_plots(args.benchmark, samples, args.plot, result)
         print(f"plots: {len(result['plots'])} PNG files in {args.plot}", file=sys.stderr)
     print(json.dumps(result, indent=2))
@@ -204,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _latency(args) -> int:
-    from beavr_sim.bench import latency
+    from beavr_sim.bench import latency  # local: heavy (subcommand, loaded on use)
 
     seconds = 10.0 if args.seconds is None else args.seconds
     samples: dict = {}
@@ -232,8 +227,6 @@ def _latency(args) -> int:
         )
         report = latency.table
     if args.plot is not None:
-        from beavr_sim.bench.plots import write_latency
-
         result["plots"] = [str(p) for p in write_latency(samples, args.plot, result)]
     if not args.json:
         print(report(result), file=sys.stderr)

@@ -38,9 +38,12 @@ def _stats(values) -> dict:
 
 
 def run(task: str = DEFAULT_TASK, samples: dict | None = None) -> dict:
-    from beavr_sim.hardware.mirror import HardwareMirror
-    from beavr_sim.hardware.rig import EmulatedRig
-    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.hardware.mirror import HardwareMirror  # local: heavy (the pipeline: mink, scipy)
+    from beavr_sim.hardware.rig import EmulatedRig  # local: heavy (mujoco)
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     options = SessionOptions(
         task=task, source="trace", viser=False, headless=True, progress=False, clock="paced"

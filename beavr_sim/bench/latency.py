@@ -77,6 +77,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from beavr_sim.assets import bundled_trace
+from beavr_sim.bench.machine import cold_factor
+from beavr_sim.headset.quest_protocol import format_keypoints
+from beavr_sim.traces.format import TraceReader
+from beavr_sim.wire.ports import PortConfig, TransportConfig, free_tcp_ports
+
 #: config -> (embodiment, headset stream rate Hz, task) as in the paper's Table V (4: RX-1).
 CONFIGS = {
     1: ("xarm7_leap_right", 30.0, "PickPlace"),
@@ -117,10 +123,6 @@ def _hand_payloads(embodiment: str, task: str, sides: list[str]) -> tuple[dict, 
     """Keypoint strings per side of the bundled trace at 1 ms resolution: ({side: (times,
     payloads)}, duration). Traces of one hand feed the right hand of a one-armed embodiment;
     two-handed ones come from the RX-1 recordings (a human's two hands)."""
-    from beavr_sim.assets import bundled_trace
-    from beavr_sim.headset.quest_protocol import format_keypoints
-    from beavr_sim.traces.format import TraceReader
-
     path = bundled_trace(task, "rx1" if len(sides) > 1 else embodiment)
     by_side: dict[str, tuple[list, list]] = {s: ([], []) for s in sides}
     for t, kind, frame in TraceReader(path).events():
@@ -229,8 +231,6 @@ def floor_sender_main(endpoint: str, payload: bytes, rate_hz: float, n: int, con
 def transport_floor(payload: bytes, rate_hz: float, seconds: float) -> dict:
     """A bare PUSH -> PULL hop on loopback: send -> receive latency (ms) by order."""
     import zmq
-
-    from beavr_sim.wire.ports import free_tcp_ports
 
     endpoint = f"tcp://127.0.0.1:{free_tcp_ports(1)[0]}"
     context = zmq.Context()
@@ -483,7 +483,7 @@ def prepare(
     embodiment: str, task: str, rate_hz: float, mirror: bool, layout: str = "processes"
 ) -> LiveSession:
     """The stream for ``embodiment`` (payloads cached per embodiment and task)."""
-    from beavr_sim.robots import make_embodiment
+    from beavr_sim.robots import make_embodiment  # local: heavy (mujoco)
 
     effectors = {e.name: e.side for e in make_embodiment(embodiment).effectors}
     streams = sorted(set(effectors.values()))
@@ -504,9 +504,11 @@ def _max_payload(lives) -> bytes:
 
 def start_session(live: LiveSession) -> None:
     """Start ``live``'s ``--multiprocess`` pipeline on its own free ports, with a timing log."""
-    from beavr_sim.teleop.processes import Attachment, MultiprocessSession
-    from beavr_sim.teleop.session import SessionOptions
-    from beavr_sim.wire.ports import PortConfig, TransportConfig
+    from beavr_sim.teleop.processes import (  # local: heavy (the pipeline: mink, scipy)
+        Attachment,
+        MultiprocessSession,
+    )
+    from beavr_sim.teleop.session import SessionOptions  # local: heavy (the pipeline: mink, scipy)
 
     live.transport = TransportConfig(ports=PortConfig.free())
     options = SessionOptions(
@@ -621,7 +623,10 @@ def single_process_main(options, log_path: str, conn) -> None:
     the mirror, ``links``; runs until the pipe says stop, then sends its counters."""
     import zmq
 
-    from beavr_sim.teleop.session import build_loop, start_mirror
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        build_loop,
+        start_mirror,
+    )
 
     context = zmq.Context()
     closers: list = []
@@ -678,7 +683,7 @@ class SingleProcessSession:
     harness uses (``start``, ``dead``, ``stop``, ``results``, ``options``, ``exits``)."""
 
     def __init__(self, options, log_path: str):
-        from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+        from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ  # local: heavy (mujoco)
 
         self.control_hz = DEFAULT_CONTROL_HZ
         self.results: dict = {}
@@ -800,8 +805,6 @@ def machine_cold_factor(rate_hz: float, seconds: float) -> dict:
     """:func:`beavr_sim.bench.machine.cold_factor` at the headset's frame period: how much
     slower per-frame code runs on this machine once per frame than back to back (about 1 s
     of a 10 s run; fewer repeats for short runs)."""
-    from beavr_sim.bench.machine import cold_factor
-
     gap_ms = 1000.0 / rate_hz
     repeats = int(max(20, min(100, seconds * 1000.0 / gap_ms / 10)))
     return cold_factor(gap_ms, repeats)

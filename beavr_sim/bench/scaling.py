@@ -27,6 +27,9 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+from beavr_sim.scaling.executors import ScaleConfig, connect_ray
+from beavr_sim.tasks.registry import canonical_task_name
+
 #: Stages timed in a replay tick: (label, attribute path from the loop, method).
 STAGES = (
     ("source.poll", "source", "poll"),
@@ -48,7 +51,10 @@ def replay_breakdown(task: str = "Pour") -> dict:
     """The bundled trace of ``task`` replayed headless, no cameras, virtual clock."""
     import mujoco
 
-    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     loop = build_loop(
         SessionOptions(task=task, source="trace", viser=False, headless=True, progress=False)
@@ -95,7 +101,7 @@ def replay_breakdown(task: str = "Pour") -> dict:
 
 
 def _generate_once(task, episodes, out, config, scale) -> dict:
-    from beavr_sim.synthetic.generate import generate
+    from beavr_sim.synthetic.generate import generate  # local: heavy (mujoco)
 
     t0 = time.perf_counter()
     summary = generate(task, episodes, 0, out, config=config, progress=False, scale=scale)
@@ -112,8 +118,7 @@ def _generate_once(task, episodes, out, config, scale) -> dict:
 def generate_scaling(
     task: str, episodes: int, workers: list[int], ray: bool, image_size: tuple[int, int]
 ) -> dict:
-    from beavr_sim.datasets.features import RecordingConfig
-    from beavr_sim.scaling.executors import ScaleConfig
+    from beavr_sim.datasets.features import RecordingConfig  # local: heavy (mujoco)
 
     height, width = image_size
     config = RecordingConfig(cameras=("front",), image_height=height, image_width=width)
@@ -126,8 +131,6 @@ def generate_scaling(
             shutil.rmtree(out, ignore_errors=True)
         if ray:
             import ray as ray_module
-
-            from beavr_sim.scaling.executors import connect_ray
 
             n = max(workers)
             # The cluster is up before the job, as on a real one (`ray start --head`): its
@@ -176,8 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--replay-only", action="store_true")
     group.add_argument("--no-replay", action="store_true")
     args = p.parse_args(argv)
-    from beavr_sim.datasets.cli import parse_size
-    from beavr_sim.tasks.registry import canonical_task_name
+    from beavr_sim.datasets.cli import parse_size  # local: heavy (mujoco)
 
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:

@@ -31,6 +31,7 @@ import numpy as np
 
 from beavr_sim.assets import bundled_trace
 from beavr_sim.bench.tracking import StageRecorder, analyse, build_trace_loop
+from beavr_sim.headset.sources import TraceSource
 
 DEFAULT_TASKS = ("PickupBox", "Pour")
 #: Ticks at the start of each run left out of the stats (first QPs, caches).
@@ -77,8 +78,6 @@ def _stats(ms) -> dict:
 def run_real_time(path: Path, seconds: float) -> tuple[dict, dict]:
     """Replay ``path`` in real time at the control rate for ``seconds`` (the trace again
     from its start on a fresh episode if it ends first). Returns (stats, samples in ms)."""
-    from beavr_sim.headset.sources import TraceSource
-
     if not seconds > 0:
         raise ValueError(f"seconds must be positive, got {seconds}")
     _, loop = build_trace_loop(path, "real")

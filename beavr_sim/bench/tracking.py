@@ -28,9 +28,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 
 from beavr_sim.assets import bundled_trace
+from beavr_sim.traces.format import TraceReader
+from beavr_sim.wire.hand import JOINT_INDEX
 from beavr_sim.wire.records import JointCommand
 
 #: (task, embodiment or None) of the traces the benchmark replays by default.
@@ -91,8 +94,7 @@ def _peak_offset(c0: float, c1: float, c2: float) -> float:
 
 def _newest_palm(frames, side: str) -> np.ndarray | None:
     """The raw palm pose of the newest frame of ``side`` whose palm joints are tracked."""
-    from beavr_sim.operator.palm import T_world_palm
-    from beavr_sim.wire.hand import JOINT_INDEX
+    from beavr_sim.operator.palm import T_world_palm  # local: heavy (the pipeline: mink, scipy)
 
     palm = [JOINT_INDEX[j] for j in ("wrist", "middle_proximal", "index_proximal")]
     palm.append(JOINT_INDEX["little_proximal"])
@@ -211,8 +213,10 @@ def analyse(a: np.ndarray, dt: float) -> dict:
 def build_trace_loop(path: Path, clock: str):
     """(task name, the in-process teleop loop replaying the trace at ``path`` headless on
     ``clock``), as the benchmarks replay bundled traces."""
-    from beavr_sim.teleop.session import SessionOptions, build_loop
-    from beavr_sim.traces.format import TraceReader
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     task = TraceReader(path).metadata.task
     options = SessionOptions(
@@ -293,10 +297,7 @@ def ramp(
 ) -> dict:
     """Ramp tests on the twin of ``embodiment``: its first arm joint at ``arm_rate`` and the
     index finger's flexion (``leap_1``) at ``finger_rate``, each for ``seconds``."""
-    import gymnasium as gym
-
-    import beavr_sim  # noqa: F401  (registers the envs)
-    from beavr_sim.twin.twin import TwinInterface
+    from beavr_sim.twin.twin import TwinInterface  # local: heavy (the pipeline: mink, scipy)
 
     env = gym.make("beavr_sim/PickupBox-v0", embodiment=embodiment)
     try:

@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from beavr_sim.assets import bundled_trace
+from beavr_sim.headset.sources import TraceSource
 
 TASK = "Pour"
 
@@ -30,9 +31,11 @@ def _free_port() -> int:
 
 
 def _measure(seconds: float, view_rate_hz: float | None) -> dict:
-    from beavr_sim.headset.sources import TraceSource
-    from beavr_sim.teleop.session import SessionOptions, build_loop
-    from beavr_sim.teleop.view import attach_view
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
+    from beavr_sim.teleop.view import attach_view  # local: heavy (the pipeline: mink, scipy)
 
     trace = bundled_trace(TASK)
     options = SessionOptions(

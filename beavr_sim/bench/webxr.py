@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from beavr_sim.wire.ports import free_tcp_ports
+
 IWER_VERSION = "^2.5"
 CHROMIUM_ARGS = [
     "--no-sandbox",
@@ -130,8 +132,8 @@ class SessionThread:
     The loop is reached through ``run_session``'s ``on_loop`` (a stop listener added)."""
 
     def __init__(self, options, start_timeout_s: float = 120.0):
-        from beavr_sim.teleop import session
-        from beavr_sim.teleop.pipeline import StopTeleop
+        from beavr_sim.teleop import session  # local: heavy (the pipeline: mink, scipy)
+        from beavr_sim.teleop.pipeline import StopTeleop  # local: heavy (the pipeline: mink, scipy)
 
         self.loop = None
         self.error: BaseException | None = None
@@ -220,8 +222,7 @@ def _percentiles(values) -> dict:
 def measure(task: str = "pour", seconds: float = 10.0, screenshot: Path | None = None) -> dict:
     from playwright import sync_api
 
-    from beavr_sim.teleop.session import SessionOptions
-    from beavr_sim.wire.ports import free_tcp_ports
+    from beavr_sim.teleop.session import SessionOptions  # local: heavy (the pipeline: mink, scipy)
 
     chromium = find_chromium()
     if chromium is None:

@@ -21,7 +21,7 @@ import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.datasets.cli import add_recording_args, recording_config
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
-from beavr_sim.scaling.executors import LOG_FORMAT
+from beavr_sim.scaling.executors import LOG_FORMAT, JobFailed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,8 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     add_scale_args(g)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format=LOG_FORMAT)
-    from beavr_sim.scaling.executors import JobFailed
-    from beavr_sim.synthetic.generate import generate
+    from beavr_sim.synthetic.generate import generate  # local: heavy (mujoco)
 
     try:
         summary = generate(

@@ -21,6 +21,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from beavr_sim.datasets.writer import dataset_exists, require_lerobot
 
 log = logging.getLogger("beavr_sim.datasets")
@@ -76,7 +78,6 @@ def _bookkeeping_stats(root: Path) -> None:
     of the renumbered columns (episode and frame index) describe the sources' numbering; the
     per-episode stats it writes are renumbered. Recompute those columns' dataset stats from
     them (LeRobot's own ``aggregate_stats``), as a serial run's incremental stats are."""
-    import numpy as np
     import pandas as pd
     from lerobot.datasets.compute_stats import aggregate_stats
     from lerobot.datasets.io_utils import load_stats, write_stats

@@ -25,7 +25,8 @@ from pathlib import Path
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
-from beavr_sim.scaling.executors import LOG_FORMAT
+from beavr_sim.scaling.executors import LOG_FORMAT, JobFailed
+from beavr_sim.tasks.registry import canonical_task_name
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -56,9 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     add_scale_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT)
-    from beavr_sim.eval.sweep import sweep, write_table
-    from beavr_sim.scaling.executors import JobFailed
-    from beavr_sim.tasks.registry import canonical_task_name
+    from beavr_sim.eval.sweep import sweep, write_table  # local: heavy (mujoco)
 
     try:
         tasks = list(dict.fromkeys(canonical_task_name(t) for t in args.task))

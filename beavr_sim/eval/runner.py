@@ -19,9 +19,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 
 from beavr_sim.datasets.recorder import CameraSet
+from beavr_sim.scaling.stats import wilson_interval
 
 
 @dataclass
@@ -186,7 +188,6 @@ def evaluate(
     progress: bool = True,
 ) -> dict:
     """Run ``episodes`` episodes (seeds ``seed``, ``seed+1``, ...); the summary dict."""
-    import gymnasium as gym
     from tqdm import tqdm
 
     env = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
@@ -234,8 +235,6 @@ def summarize(
 ) -> dict:
     """The summary of one (policy, task): success rate with its Wilson 95 % interval, mean
     episode time; with ``asynchronous`` the control loop's jitter and starved ticks."""
-    from beavr_sim.scaling.stats import wilson_interval
-
     successes = sum(r.success for r in results)
     low, high = wilson_interval(successes, len(results))
     summary = {

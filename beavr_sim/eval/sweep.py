@@ -16,7 +16,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from beavr_sim.eval.runner import EpisodeResult, summarize
+import gymnasium as gym
+
+from beavr_sim.datasets.recorder import CameraSet
+from beavr_sim.eval.policy import LoadedPolicy
+from beavr_sim.eval.runner import EpisodeResult, ThinkAct, _VideoWriter, run_sync, summarize
 from beavr_sim.scaling.executors import ScaleConfig, make_executor
 
 #: Columns of the table files, in order.
@@ -77,8 +81,6 @@ def policy_spec(path: str | Path) -> tuple[str, int, dict[str, tuple[int, int]]]
 
 def check_sweep(policies: Sequence[Path], tasks: Sequence[str], embodiment: str) -> None:
     """Every policy runs on every task's env: action sizes and camera sizes agree."""
-    import gymnasium as gym
-
     specs = {str(p): policy_spec(p) for p in policies}
     for task in tasks:
         env = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
@@ -103,13 +105,6 @@ _ENVS: dict[tuple, tuple[object, object]] = {}
 
 def run_eval_job(job: EvalJob) -> EvalEpisode:
     """Worker entry: one episode (the policy and env are loaded once per worker)."""
-    import gymnasium as gym
-
-    import beavr_sim  # noqa: F401  (registers the envs in a fresh worker)
-    from beavr_sim.datasets.recorder import CameraSet
-    from beavr_sim.eval.policy import LoadedPolicy
-    from beavr_sim.eval.runner import ThinkAct, _VideoWriter, run_sync
-
     policy = _POLICIES.get((job.policy, job.device))
     if policy is None:
         policy = _POLICIES[(job.policy, job.device)] = LoadedPolicy(job.policy, job.device)

@@ -12,8 +12,10 @@ import sys
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.experts.run import run_expert
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.tasks.registry import canonical_task_name
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,9 +37,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--verbose", action="store_true", help="print each episode's result")
     args = parser.parse_args(argv)
-
-    from beavr_sim.experts.run import run_expert
-    from beavr_sim.tasks.registry import canonical_task_name
 
     try:
         task = canonical_task_name(args.task)

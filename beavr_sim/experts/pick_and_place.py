@@ -20,6 +20,7 @@ from beavr_sim.experts.base import Move, ScriptedExpert
 from beavr_sim.tasks.pick_place import AREA_HALF as ITEM_AREA_HALF
 from beavr_sim.tasks.pickup_box import AREA_HALF as BOX_AREA_HALF
 from beavr_sim.tasks.stack_blocks import AREA_HALF as STACK_AREA_HALF
+from beavr_sim.tasks.stack_blocks import LARGE_HALF, SMALL_HALF
 
 #: The carry to the goal is tried at this many steps.
 CARRY_CHECKS = 3
@@ -219,7 +220,6 @@ class PickPlaceExpert(PickAndPlaceExpert):
 
 class StackBlocksExpert(PickAndPlaceExpert):
     def script(self) -> Iterator[Move]:
-        from beavr_sim.tasks.stack_blocks import LARGE_HALF, SMALL_HALF
 
         data = self.env.data
         target = self.task.fixtures["target"].pos(data)

@@ -18,8 +18,10 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 
+from beavr_sim.traces.format import TraceReader
 from beavr_sim.wire.hand import HandFrame
 
 #: Tolerance when comparing frame times with the clock (float trace times).
@@ -149,9 +151,6 @@ class TraceSource(FrameListSource):
     """A recorded VR trace (MCAP file written by ``python -m beavr_sim.traces``)."""
 
     def __init__(self, path: str | Path, real_time: bool = False):
-        from dataclasses import asdict
-
-        from beavr_sim.traces.format import TraceReader
 
         self.reader = TraceReader(path)
         self.metadata = asdict(self.reader.metadata)
@@ -166,7 +165,7 @@ class QuestSource(HandSource):
 
     def __init__(self, context, config, validator=None, latest_only: bool = True):
         self.validates = validator is not None
-        from beavr_sim.headset.quest_io import QuestReceiver
+        from beavr_sim.headset.quest_io import QuestReceiver  # local: heavy (zmq)
 
         self.receiver = QuestReceiver(context, config, validator=validator, latest_only=latest_only)
 
@@ -191,7 +190,7 @@ class WebXRSource(HandSource):
     real_time = True
 
     def __init__(self, config=None, validator=None):
-        from beavr_sim.headset.webxr_server import WebXRServer
+        from beavr_sim.headset.webxr_server import WebXRServer  # local: heavy (websockets, asyncio)
 
         self.validates = validator is not None
         self.server = WebXRServer(config, validator=validator)
@@ -209,7 +208,7 @@ class WebXRSource(HandSource):
 
     def twin_feed(self, model, data, operator=None, info: dict | None = None):
         """A tick listener that shows the twin on the page (``webxr_scene.TwinFeed``)."""
-        from beavr_sim.headset.webxr_scene import TwinFeed
+        from beavr_sim.headset.webxr_scene import TwinFeed  # local: heavy (mujoco)
 
         rate = self.server.config.twin_rate_hz
         return TwinFeed(self.server, model, data, rate, operator=operator, info=info)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from lerobot.robots.config import RobotConfig
 
+from beavr_sim.envs.scene import check_hand_variant
 from beavr_sim.integrations.options import (
     DEFAULT_EMBODIMENT,
     check_cameras,
@@ -72,8 +73,6 @@ class BeavrSimRobotConfig(RobotConfig):
         elif self.dry_run and self.hardware == "sim":
             raise ValueError("dry_run needs hardware (emulated or a rig file), not sim")
         if self.hand_variant is not None:
-            from beavr_sim.envs.scene import check_hand_variant
-
             check_hand_variant(embodiment, self.hand_variant)
 
     @property

@@ -9,13 +9,16 @@ or the bundled one of ``task``), by default on the ``tick`` clock: each ``get_ac
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from lerobot.teleoperators.config import TeleoperatorConfig
 
+from beavr_sim.assets import bundled_trace
+from beavr_sim.headset.webxr_server import WebXRConfig
 from beavr_sim.integrations.options import check_embodiment, check_positive_int, check_task
 from beavr_sim.naming import check_name
+from beavr_sim.wire.ports import PortConfig, TransportConfig
 
 #: The teleoperator type on LeRobot's command line (``--teleop.type=beavr_quest``).
 TELEOP_TYPE = "beavr_quest"
@@ -61,18 +64,12 @@ class BeavrQuestTeleopConfig(TeleoperatorConfig):
 
     def webxr_config(self):
         """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
-        from beavr_sim.headset.webxr_server import WebXRConfig
-
         if self.webxr_port is None:
             return WebXRConfig(host=self.webxr_host)
         return WebXRConfig(host=self.webxr_host, port=self.webxr_port)
 
     def transport(self):
         """The headset sockets' :class:`~beavr_sim.wire.ports.TransportConfig`."""
-        from dataclasses import replace
-
-        from beavr_sim.wire.ports import PortConfig, TransportConfig
-
         ports = PortConfig()
         if self.quest_ports is not None:
             if len(self.quest_ports) != len(QUEST_PORTS):
@@ -97,7 +94,6 @@ class BeavrQuestTeleopConfig(TeleoperatorConfig):
                         "source=trace needs a trace file (--teleop.trace=F.mcap) or a task whose "
                         "bundled trace to play (--teleop.task=PickupBox)"
                     )
-                from beavr_sim.assets import bundled_trace
 
                 self.trace = str(bundled_trace(self.task, self.embodiment))
             if not Path(self.trace).is_file():

@@ -31,6 +31,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from beavr_sim.envs.registration import ENV_NAMESPACE, env_id
+from beavr_sim.envs.scene import check_hand_variant
 from beavr_sim.integrations.options import (
     DEFAULT_EMBODIMENT,
     check_cameras,
@@ -40,6 +41,7 @@ from beavr_sim.integrations.options import (
     check_task,
     episode_steps,
 )
+from beavr_sim.tasks.registry import task_class
 
 #: The env type on LeRobot's command line (``--env.type=beavr_sim``).
 ENV_TYPE = "beavr_sim"
@@ -123,8 +125,6 @@ def make_lerobot_env(
     gym_id: str, gym_kwargs: dict, environment_state: bool, disable_env_checker: bool, fps: int
 ) -> gym.Env:
     """One sub-env (module level, so ``AsyncVectorEnv`` can pickle it)."""
-    import beavr_sim  # noqa: F401  (registers beavr_sim/<Task>-v0)
-
     env = gym.make(gym_id, disable_env_checker=disable_env_checker, **gym_kwargs)
     return LeRobotView(env, environment_state, fps)
 
@@ -156,8 +156,6 @@ class BeavrSimEnvConfig(EnvConfig):
         self.cameras = list(check_cameras(self.cameras, embodiment))
         check_positive_int("fps", self.fps)
         check_image_size(self.image_height, self.image_width)
-        from beavr_sim.envs.scene import check_hand_variant
-        from beavr_sim.tasks.registry import task_class
 
         check_hand_variant(embodiment, self.hand_variant)
         self.episode_length = episode_steps(self.task, self.fps, self.episode_length)

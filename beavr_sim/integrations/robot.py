@@ -26,9 +26,12 @@ import numpy as np
 from lerobot.robots.robot import Robot
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
+from beavr_sim.envs.beavr_env import BeavrEnv
 from beavr_sim.integrations.config_robot import ROBOT_TYPE, BeavrSimRobotConfig
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
 from beavr_sim.integrations.options import check_embodiment
+from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
+from beavr_sim.wire.records import JointCommand
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +96,7 @@ class BeavrSimRobot(Robot):
         pose (nothing moves at connect)."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        from beavr_sim.envs.beavr_env import BeavrEnv
-        from beavr_sim.twin.twin import TwinInterface
+        from beavr_sim.twin.twin import TwinInterface  # local: heavy (the pipeline: mink, scipy)
 
         cfg = self.config
         env = BeavrEnv(
@@ -112,8 +114,6 @@ class BeavrSimRobot(Robot):
             twin = TwinInterface(env, use_guard=cfg.use_guard)
             q_measured = None
             if cfg.mirrors_hardware:
-                from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
-
                 choice = RigChoice(cfg.hardware, cfg.dry_run)
                 self.mirror, q_measured = connect_mirror(choice, env, self._closers)
             twin.reset(cfg.seed, robot_qpos=q_measured)
@@ -130,7 +130,7 @@ class BeavrSimRobot(Robot):
     def _hand_variant(self) -> str:
         cfg = self.config
         if cfg.mirrors_hardware and cfg.hardware != "emulated":
-            from beavr_sim.hardware.rig import RigConfig
+            from beavr_sim.hardware.rig import RigConfig  # local: heavy (mujoco)
 
             rig = RigConfig.from_toml(cfg.hardware).leap_variant()
             if rig is not None and cfg.hand_variant not in (None, rig):
@@ -185,8 +185,6 @@ class BeavrSimRobot(Robot):
     def send_action(self, action: dict[str, Any]) -> dict[str, float]:
         """Guard ``action`` (joint name -> target, rad), send it (twin, and hardware), step
         the twin one period; returns the targets actually sent."""
-        from beavr_sim.wire.records import JointCommand
-
         twin = self._require()
         target = action_vector(action, self.joint_names)
         nan = math.nan

@@ -26,9 +26,14 @@ import numpy as np
 from lerobot.teleoperators.teleoperator import Teleoperator
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
+from beavr_sim.envs.beavr_env import BeavrEnv
+from beavr_sim.headset.sources import QuestSource, TraceSource, WebXRSource
+from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.integrations.config_teleoperator import TELEOP_TYPE, BeavrQuestTeleopConfig
 from beavr_sim.integrations.joints import action_dict, joint_features
 from beavr_sim.integrations.options import DEFAULT_EMBODIMENT, check_embodiment, check_task
+from beavr_sim.operator.obstacles import fixture_obstacles
+from beavr_sim.traces.format import TraceReader
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +47,6 @@ class BeavrQuestTeleop(Teleoperator):
         self.config = config
         task, embodiment, seed = config.task, config.embodiment, config.seed
         if config.source == "trace":
-            from beavr_sim.traces.format import TraceReader
-
             meta = TraceReader(config.trace).metadata
             if meta.task and task is not None and meta.task != task:
                 raise ValueError(
@@ -105,11 +108,10 @@ class BeavrQuestTeleop(Teleoperator):
         """Build the operator (home pose, the task's fixtures) and open the source."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        from beavr_sim.envs.beavr_env import BeavrEnv
-        from beavr_sim.headset.validation import StreamValidator
-        from beavr_sim.operator.obstacles import fixture_obstacles
-        from beavr_sim.operator.operator import Operator
-        from beavr_sim.teleop.stages import OperatorStage
+        from beavr_sim.operator.operator import Operator  # local: heavy (the pipeline: mink, scipy)
+        from beavr_sim.teleop.stages import (
+            OperatorStage,  # local: heavy (the pipeline: mink, scipy)
+        )
 
         cfg = self.config
         # The task's scene at the seed's layout: the joints' order and home, and the fixtures.
@@ -126,18 +128,12 @@ class BeavrQuestTeleop(Teleoperator):
         operator.set_obstacles(obstacles)
         self._validator = StreamValidator()
         if cfg.source == "trace":
-            from beavr_sim.headset.sources import TraceSource
-
             self.source = TraceSource(cfg.trace, real_time=cfg.clock == "real")
         elif cfg.source == "webxr":
-            from beavr_sim.headset.sources import WebXRSource
-
             self.source = WebXRSource(cfg.webxr_config(), self._validator)
             log.info("%s: open %s in the headset's browser and press Start", self, self.source.url)
         else:
             import zmq
-
-            from beavr_sim.headset.sources import QuestSource
 
             self._context = zmq.Context()
             try:

@@ -41,6 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import gymnasium as gym
 from tqdm import tqdm
 
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
@@ -50,6 +51,7 @@ from beavr_sim.datasets.resume import plan_output
 from beavr_sim.datasets.shards import TRACES, Shard, merge_shards
 from beavr_sim.datasets.writer import EpisodeWriter, dataset_exists
 from beavr_sim.scaling.executors import ScaleConfig, make_executor
+from beavr_sim.tasks.registry import canonical_task_name
 
 #: Test hook: ``SEED:MARKER`` makes the worker recording ``SEED`` exit abruptly (``os._exit``)
 #: a few ticks into the recording, once: the first attempt creates the file ``MARKER``.
@@ -132,8 +134,11 @@ def run_episode(
 ) -> EpisodeOutcome:
     """One seed: synthesize its trace, and if kept replay it into ``writer`` (or into
     ``make_writer()``, called only when there is something to write)."""
-    from beavr_sim.synthetic.trace import quantize, synthesize, write_trace
-    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.synthetic.trace import quantize, synthesize, write_trace  # local: heavy (mujoco)
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     result = synthesize(task, seed, embodiment, quantize=quantize)
     ok = bool(result.summary.success)
@@ -165,7 +170,6 @@ def run_episode(
 
 
 def _features(task: str, embodiment: str, config: RecordingConfig) -> dict[str, dict]:
-    import gymnasium as gym
 
     probe = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
     try:
@@ -179,8 +183,6 @@ def _features(task: str, embodiment: str, config: RecordingConfig) -> dict[str, 
 def run_episode_job(job: EpisodeJob) -> EpisodeOutcome:
     """Worker entry: the seed's shard from scratch (a retry wipes the previous attempt);
     ``outcome.json`` is written last, so a shard without it is unfinished."""
-    import beavr_sim  # noqa: F401  (registers the envs in a fresh worker)
-
     quiet_dataset_writes()
     shard = Path(job.shard)
     if shard.exists():
@@ -295,8 +297,6 @@ def generate(
     one: seeds already there are skipped; replaced with ``overwrite``). ``scale``: None or one
     local worker writes in this process, episode by episode; otherwise see the module
     docstring."""
-    from beavr_sim.tasks.registry import canonical_task_name
-
     task = canonical_task_name(task)
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")

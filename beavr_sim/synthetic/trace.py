@@ -31,12 +31,16 @@ import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 
+from beavr_sim.experts.registry import expert_class
 from beavr_sim.headset.sources import FrameListSource
+from beavr_sim.naming import UnknownNameError
 from beavr_sim.operator.filters import slerp
 from beavr_sim.operator.operator import Operator, OperatorConfig
 from beavr_sim.operator.retarget import human_keypoints_for
+from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.pipeline import TeleopLoop, TeleopSummary
 from beavr_sim.traces.format import (
     TraceMetadata,
@@ -107,10 +111,6 @@ def synthesize(
     ``quantize(frame) -> frame`` rounds a frame as the trace file stores it, so the pipeline
     sees exactly what a replay will see.
     """
-    import gymnasium as gym
-
-    from beavr_sim.experts.registry import expert_class
-
     config = config or SynthConfig()
     env = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
     expert = expert_class(task)(env)
@@ -204,7 +204,10 @@ def write_trace(path: Path, result: SynthResult) -> Path:
 
 def replay(path: Path, **kwargs) -> TeleopSummary:
     """Replay a trace through the in-process pipeline on the virtual clock."""
-    from beavr_sim.teleop.session import SessionOptions, build_loop
+    from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
+        SessionOptions,
+        build_loop,
+    )
 
     options = SessionOptions(
         task=TraceReader(path).metadata.task,
@@ -223,9 +226,6 @@ def replay(path: Path, **kwargs) -> TeleopSummary:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import beavr_sim  # noqa: F401
-    from beavr_sim.naming import UnknownNameError
-    from beavr_sim.tasks.registry import canonical_task_name
 
     parser = argparse.ArgumentParser(
         prog="python -m beavr_sim.traces synth",

@@ -37,7 +37,7 @@ class HeadsetRenderer:
     def __init__(self, publisher, model, camera: str, size: tuple[int, int]):
         import mujoco
 
-        from beavr_sim.envs.cameras import OffscreenCameras
+        from beavr_sim.envs.cameras import OffscreenCameras  # local: heavy (mujoco)
 
         self.publisher = publisher
         self.model = model

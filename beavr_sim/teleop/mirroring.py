@@ -8,6 +8,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
+from beavr_sim.hardware.faults import parse_fault_specs
 from beavr_sim.wire.records import Tick
 
 #: Python's thread switch interval (s) in a process that mirrors: the mirror's writer threads
@@ -49,9 +50,12 @@ def connect_mirror(choice: RigChoice, env, closers: list):
     measured joints (the twin starts there). Adds what must be closed to ``closers``. Raises
     :class:`~beavr_sim.hardware.device.MirrorError` (or ValueError, FileNotFoundError for the
     rig file or a bad fault spec) naming what to check."""
-    from beavr_sim.hardware.faults import parse_fault_specs
-    from beavr_sim.hardware.mirror import HardwareMirror
-    from beavr_sim.hardware.rig import EmulatedRig, RigConfig, emulated_device_names
+    from beavr_sim.hardware.mirror import HardwareMirror  # local: heavy (the pipeline: mink, scipy)
+    from beavr_sim.hardware.rig import (  # local: heavy (mujoco)
+        EmulatedRig,
+        RigConfig,
+        emulated_device_names,
+    )
 
     if choice.hardware_config == "emulated":
         # Checked before any emulator starts: a bad spec names its part and the choices.

@@ -15,7 +15,7 @@ import re
 import time
 
 from beavr_sim.teleop.pipeline import TeleopLoop
-from beavr_sim.viz.twin_view import DEFAULT_RATE_HZ, RateMeter, TwinView, recent_p50
+from beavr_sim.viz.twin_view import DEFAULT_RATE_HZ, RateMeter, TwinView, recent_p50, subtree_bodies
 from beavr_sim.wire.records import Tick
 
 _EPISODE = re.compile(r"episode (\d+)/(\d+): (REC|idle)")
@@ -117,7 +117,6 @@ def attach_view(
     env = loop.twin.env
     joints = env.joints
     by_effector = {name: joints.names[sl] for name, sl in joints.slices.items()}
-    from beavr_sim.viz.twin_view import subtree_bodies
 
     view = TwinView(
         env.render_model,

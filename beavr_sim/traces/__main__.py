@@ -71,7 +71,7 @@ def record_trace(
     """
     import zmq
 
-    from beavr_sim.headset.quest_io import QuestReceiver
+    from beavr_sim.headset.quest_io import QuestReceiver  # local: heavy (zmq)
 
     metadata = metadata or TraceMetadata(source="record")
     context = zmq.Context()
@@ -137,7 +137,7 @@ def recover(path: Path, out: Path, task: str | None, embodiment: str | None) -> 
 
 def _synth(argv: list[str]) -> int:
     """``synth ...``: the synthetic operator lives above the pipeline it drives."""
-    from beavr_sim.synthetic.trace import main as synth_main
+    from beavr_sim.synthetic.trace import main as synth_main  # local: heavy (mujoco)
 
     return int(synth_main(argv) or 0)
 

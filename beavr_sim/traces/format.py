@@ -24,7 +24,7 @@ import json
 import math
 import os
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -295,8 +295,6 @@ class TraceWriter:
         try:
             metadata = self.metadata
             if metadata.frame_rate_hz is None:
-                from dataclasses import replace
-
                 metadata = replace(metadata, frame_rate_hz=self._measured_rate())
             self.metadata = metadata
             self._writer.add_metadata(METADATA_NAME, metadata.to_record())
@@ -590,8 +588,6 @@ def recover_trace(
     """Write the readable messages of ``path`` to ``out`` as a complete trace, with the file's
     metadata if it is readable (else ``source="record"``); ``task`` / ``embodiment`` replace
     its fields."""
-    from dataclasses import replace
-
     if Path(out).resolve() == Path(path).resolve():
         raise ValueError(f"the recovered trace must go to another file than {path}")
     salvage = salvage_trace(path)

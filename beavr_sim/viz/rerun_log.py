@@ -33,7 +33,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import rerun as rr
+from PIL import Image
 
+from beavr_sim.envs.cameras import OffscreenCameras
+from beavr_sim.envs.scene import camera_names
+from beavr_sim.naming import check_name
 from beavr_sim.robots.visuals import COLLISION_GROUP, RENDER_GEOM_GROUPS
 from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES, SIDES
 
@@ -270,10 +274,6 @@ class RerunLogger:
         self.jpeg_quality = int(jpeg_quality)
         self._cameras = None
         if self.cameras_names:
-            from beavr_sim.envs.cameras import OffscreenCameras
-            from beavr_sim.envs.scene import camera_names
-            from beavr_sim.naming import check_name
-
             for c in self.cameras_names:
                 check_name("camera", c, camera_names(env.embodiment))
             self._cameras = OffscreenCameras(env.render_model, *image_size)
@@ -529,7 +529,6 @@ class RerunLogger:
                 pass
 
     def _log_images(self) -> None:
-        from PIL import Image
 
         for name in self.cameras_names:
             try:
