@@ -75,13 +75,17 @@ class _OutOfBudget(Exception):
 
 def joint_groups(guard: CollisionGuard) -> list[np.ndarray]:
     """Action indices per group: each effector's arm joints, then its hand joints (a group
-    left out when empty)."""
+    left out when empty), then the joints of no effector."""
     groups = []
-    for name, sl in sorted(guard.slices.items(), key=lambda kv: kv[1].start):
+    rest = np.ones(guard.joints.size, dtype=bool)
+    for sl in sorted(guard.slices.values(), key=lambda sl: sl.start):
         idx = np.arange(guard.joints.size)[sl]
+        rest[idx] = False
         for part in (idx[~guard.hand_joints[idx]], idx[guard.hand_joints[idx]]):
             if part.size:
                 groups.append(part)
+    if rest.any():  # joints of no effector (a humanoid's body): one group
+        groups.append(np.flatnonzero(rest))
     return groups
 
 
