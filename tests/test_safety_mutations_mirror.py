@@ -2,8 +2,9 @@
 
 When the devices are further from the twin than one period's motion (after a hold, a release,
 a reset) the mirror makes its own targets on the straight line to the twin's; its guard checks
-each along its path, and a refused one is not sent (the device holds short of it). These tests
-drive a catch-up whose straight path crosses the table or Tape's box (where this episode's
+each along its path, and a refused one is not sent: the mirror plans a way around
+(:mod:`beavr_sim.hardware.detour`), or, with none found, the device holds short of it. These
+tests drive a catch-up whose straight path crosses the table or Tape's box (where this episode's
 reset put it: :meth:`~beavr_sim.hardware.mirror.HardwareMirror.begin_episode` tells the
 mirror's guard), and check every target the emulated
 xArm received (:attr:`~beavr_sim.hardware.rig.EmulatedRig.received`) against a guard.
@@ -20,6 +21,7 @@ import numpy as np
 import pytest
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.hardware.detour import DetourConfig
 from beavr_sim.hardware.mirror import Fixtures, HardwareMirror
 from beavr_sim.hardware.rig import EmulatedRig
 from beavr_sim.twin.guard import CollisionGuard
@@ -67,10 +69,13 @@ def _either_side_of_the_table(env, guard: CollisionGuard) -> tuple[np.ndarray, n
     return _either_side(guard, qpos, _lowered(guard, qpos, env.joints.home.astype(np.float64)))
 
 
-def _catch_up(env, start: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, dict]:
+def _catch_up(
+    env, start: np.ndarray, goal: np.ndarray, detour: bool = True
+) -> tuple[np.ndarray, dict]:
     """The emulated arm holds at ``start`` and the twin stands at ``goal`` (its heartbeats,
-    one control period apart, for longer than the whole catch-up takes): every arm target the
-    emulator received, and the arm's summary."""
+    one control period apart, until the mirror's target reaches it, then 20 more; at most 10
+    straight catch-ups' worth): every arm target the emulator received, and the arm's summary.
+    ``detour=False``: the mirror's planner gets no budget (it finds no way around)."""
     rig = EmulatedRig(env.embodiment, env.joints, q_start=start)
     try:
         mirror_config = dataclasses.replace(
@@ -82,16 +87,24 @@ def _catch_up(env, start: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, dic
         mirror = HardwareMirror(
             config, env.embodiment, env.joints, env.model, env.control_hz, clock=clock
         )
+        if not detour:
+            mirror._detour_config = DetourConfig(max_checks=1)
         try:
             measured = mirror.connect()
             np.testing.assert_allclose(measured[ARM], start[ARM], atol=1e-4)
             mirror.start(measured)
             mirror.begin_episode(measured, Fixtures.of(env.data))  # this episode's fixtures
             distance = float(np.abs(goal - measured).max())
-            for _ in range(math.ceil(distance / (mirror_config.arm_catch_up_speed * period)) + 20):
+            ticks = math.ceil(distance / (mirror_config.arm_catch_up_speed * period))
+            after = 20
+            for _ in range(10 * ticks):
                 clock.t += period
                 mirror.submit(goal, goal)
                 time.sleep(period)  # paced like the twin (nothing is counted against it)
+                if np.array_equal(mirror._dispatch.target, goal):
+                    after -= 1
+                    if not after:
+                        break
             summary = mirror.summary()["right_arm"]
         finally:
             mirror.close()
@@ -101,9 +114,10 @@ def _catch_up(env, start: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, dic
     return targets, summary
 
 
-def _check_received(guard, qpos, start, goal, targets, summary) -> None:
+def _check_received(guard, qpos, start, goal, targets, summary, reached: bool) -> None:
     """Every target the arm received is safe, and so is the way from the one before; the arm
-    caught up towards the twin and stopped short (never reached the goal)."""
+    caught up towards the twin: ``reached``, going around (the straight path is refused), else
+    it stopped short (never reached the goal)."""
     assert len(targets) and summary["catch_up_steps"] > 0 and summary["errors"] == 0
     full = np.tile(goal, (len(targets), 1))
     full[:, ARM] = targets
@@ -117,14 +131,21 @@ def _check_received(guard, qpos, start, goal, targets, summary) -> None:
     ]
     assert not unsafe, f"{len(unsafe)} targets the arm received are unsafe: {unsafe[:2]}"
     assert np.abs(targets[-1] - start[ARM]).max() > 0.05
-    assert np.abs(targets[-1] - goal[ARM]).max() > 0.1
+    assert not guard.check(goal, qpos, start).ok  # the straight way is refused
+    if reached:
+        np.testing.assert_allclose(targets[-1], goal[ARM], atol=1e-4)
+    else:
+        assert np.abs(targets[-1] - goal[ARM]).max() > 0.1
 
 
-@pytest.mark.parametrize("direction", ["a_to_b", "b_to_a"])
-def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
-    """The arm holds at one end, the twin stands at the other: the mirror catches up until its
-    guard refuses the next step into the table, and holds there. Every target the emulated
-    arm received passes the guard (as a configuration and along the path from the one before)."""
+@pytest.mark.parametrize(
+    ("direction", "detour"), [("a_to_b", True), ("b_to_a", True), ("a_to_b", False)]
+)
+def test_a_catch_up_whose_path_crosses_the_table_goes_around_or_stops_short(direction, detour):
+    """The arm holds at one end, the twin stands at the other: the mirror's guard refuses the
+    straight catch-up into the table, and the mirror goes around it (a planned detour) to the
+    twin's pose; with no way found it holds short of the table. Every target the emulated arm
+    received passes the guard (as a configuration and along the path from the one before)."""
     env = gym.make("beavr_sim/PickupBox-v0").unwrapped
     try:
         env.reset(seed=0)
@@ -132,15 +153,16 @@ def test_a_catch_up_whose_path_crosses_the_table_stops_short_of_it(direction):
         qpos = env.data.qpos.copy()
         a, b = _either_side_of_the_table(env, guard)
         start, goal = (a, b) if direction == "a_to_b" else (b, a)
-        targets, summary = _catch_up(env, start, goal)
+        targets, summary = _catch_up(env, start, goal, detour)
     finally:
         env.close()
-    _check_received(guard, qpos, start, goal, targets, summary)
+    _check_received(guard, qpos, start, goal, targets, summary, reached=detour)
 
 
-def test_a_catch_up_whose_path_crosses_a_fixture_stops_short_of_it():
+def test_a_catch_up_whose_path_crosses_a_fixture_goes_around_it():
     """Tape's box where the reset put it (away from its default pose): a catch-up whose path
-    crosses it stops short of it, as for the table."""
+    crosses it goes around it, as for the table (the detour planned against this episode's
+    fixtures)."""
     env = gym.make("beavr_sim/Tape-v0").unwrapped
     try:
         env.reset(seed=0)
@@ -166,4 +188,4 @@ def test_a_catch_up_whose_path_crosses_a_fixture_stops_short_of_it():
         targets, summary = _catch_up(env, a, b)
     finally:
         env.close()
-    _check_received(guard, qpos, a, b, targets, summary)
+    _check_received(guard, qpos, a, b, targets, summary, reached=True)

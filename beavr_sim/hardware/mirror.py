@@ -61,10 +61,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from beavr_sim.hardware.detour import Detour, DetourConfig, plan_detour
 from beavr_sim.hardware.device import Device, DeviceError, MirrorError
 from beavr_sim.hardware.rig import BODY, RigConfig, build_device, joint_names_of
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
-from beavr_sim.twin.guard import CollisionGuard, GuardConfig
+from beavr_sim.twin.guard import CollisionGuard, GuardConfig, GuardVerdict
 from beavr_sim.twin.rate_limit import JointRateLimit
 
 log = logging.getLogger(__name__)
@@ -805,6 +806,14 @@ class HardwareMirror:
         #: The last dispatch before the episode began: in sync needs reads after it.
         self._begin_seq = 0
         self._catch_up_refusals = 0  # (the twin's thread only)
+        # A catch-up's way around a refused straight path (the twin's thread only): the legs
+        # still to go, the goal it was planned for, the last action submitted.
+        self._detour_config = DetourConfig()
+        self._detour: list[np.ndarray] = []
+        self._detour_goal: np.ndarray | None = None
+        self._last_action: np.ndarray | None = None
+        #: Every detour planned (found or not), oldest first.
+        self.detours: list[Detour] = []
         self.started = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -877,6 +886,7 @@ class HardwareMirror:
         if fixtures is not None:
             self.guard.set_fixtures(fixtures.mocap_pos, fixtures.mocap_quat)
         self.guard.reset()
+        self._detour, self._detour_goal, self._last_action = [], None, None
         with self._cond:
             self._episodes += 1
             self._begin_seq = self._dispatch.seq
@@ -940,8 +950,7 @@ class HardwareMirror:
             # limit still owes): catch up slowly, at the same speed whatever the submit rate,
             # guarded.
             caught = True
-            target = self._catch_up_limit.clamp(previous, action, interval).target
-            verdict = self.guard.check(target, self._qpos, previous)
+            target, verdict = self._catch_up_step(action, previous, interval)
             if not verdict.ok:
                 for name in verdict.blocked:
                     sl = self.joints.slices[name]
@@ -990,6 +999,61 @@ class HardwareMirror:
                 dt,
             )
             self._cond.notify_all()
+
+    def _catch_up_step(
+        self, action: np.ndarray, previous: np.ndarray, interval: float
+    ) -> tuple[np.ndarray, GuardVerdict]:
+        """The next catch-up target toward ``action`` and the guard's verdict on it.
+
+        Straight at the catch-up speed while the guard accepts that; when it refuses and the
+        twin stands still (the same action twice: a sync), a detour is planned
+        (:func:`~beavr_sim.hardware.detour.plan_detour`, once per goal) and its legs are
+        followed instead, each step along its leg at the catch-up speed and checked again."""
+        if self._detour_goal is not None and not np.array_equal(action, self._detour_goal):
+            self._detour, self._detour_goal = [], None  # the twin moved on: that plan is stale
+        while self._detour and np.array_equal(previous, self._detour[0]):
+            self._detour.pop(0)
+        cap = np.asarray(self._catch_up_limit.max_velocity) * interval
+        if self._detour:
+            return self._along(self._detour[0], previous, cap)
+        target = self._catch_up_limit.clamp(previous, action, interval).target
+        verdict = self.guard.check(target, self._qpos, previous)
+        standing = self._last_action is not None and np.array_equal(action, self._last_action)
+        self._last_action = action.copy()
+        if verdict.ok or not standing or self._detour_goal is not None:
+            return target, verdict
+        self._detour_goal = action.copy()  # planned once per goal, found or not
+        try:
+            detour = plan_detour(self.guard, previous, action, self._qpos, self._detour_config)
+        except Exception as exc:  # the per-tick path never raises: hold, say why
+            log.warning("mirror catch-up: planning a detour failed: %s", one_line(exc))
+            return target, verdict
+        self.detours.append(detour)
+        if not detour.found:
+            log.warning(
+                "mirror catch-up: the straight path is refused (%s) and %s: the devices hold",
+                verdict.reason(),
+                detour.reason,
+            )
+            return target, verdict
+        log.info(
+            "mirror catch-up: the straight path is refused (%s); going around (%s, %d legs)",
+            verdict.reason(),
+            detour.method,
+            len(detour.waypoints),
+        )
+        self._detour = [w.copy() for w in detour.waypoints]
+        return self._along(self._detour[0], previous, cap)
+
+    def _along(
+        self, waypoint: np.ndarray, previous: np.ndarray, cap: np.ndarray
+    ) -> tuple[np.ndarray, GuardVerdict]:
+        """One catch-up step on the straight leg ``previous`` -> ``waypoint`` (scaled as a
+        whole, so the target stays on the leg the planner checked), guarded."""
+        d = waypoint - previous
+        ratio = float(np.max(np.abs(d) / cap, initial=0.0))
+        target = waypoint.copy() if ratio <= 1.0 else previous + d / ratio
+        return target, self.guard.check(target, self._qpos, previous)
 
     # ------------------------------------------------------------------ the writers' view
     def _halt_for(self, link: _Link) -> tuple[HoldReason, str] | None:
