@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -35,6 +36,7 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.scaling.executors import LOG_FORMAT
+from beavr_sim.teleop.interrupt import StopSignal, stop_on_signals
 
 EPILOG = """exit codes:
   0  the session ran (its summary says how each run went)
@@ -43,7 +45,10 @@ EPILOG = """exit codes:
   4  a mirrored device failed during the session and was not recovered or re-armed
   5  the rig ended the session early: it did not reach an episode's start pose within
      --sync-timeout, or spoilt 3 recorded episodes in a row
-  130 interrupted (Ctrl-C)
+  130 interrupted by Ctrl-C (SIGINT), 143 by SIGTERM: the session still ends in order (the
+      rig, the recorder and the views closed; the episode in progress dropped) and prints its
+      summary, marked "interrupted": true, "ended_by": "SIGINT" / "SIGTERM"; a second
+      signal aborts at once, without a summary
 Device errors are one line each; --debug adds Python tracebacks. See docs/hardware.md."""
 
 #: Exit codes of the hardware outcomes (documented in the epilog and docs/hardware.md).
@@ -278,11 +283,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     start = time.perf_counter()
+    stop = StopSignal()
     try:
-        summary = run_session(options)
-    except KeyboardInterrupt:
+        with stop_on_signals(stop):
+            summary = run_session(options, interrupted=stop)
+    except KeyboardInterrupt:  # a second Ctrl-C: no summary
         print("\ninterrupted", file=sys.stderr)
-        return 130
+        return 128 + (stop.signum or signal.SIGINT)
     except (UnknownNameError, ValueError, FileNotFoundError, FileExistsError, ImportError) as exc:
         if args.debug:
             logging.exception("session failed")
@@ -295,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_RIG_START
     report = summary.to_dict()
     report["wall_s"] = round(time.perf_counter() - start, 3)
+    if stop():
+        report["interrupted"] = True
+        report["ended_by"] = stop.name
     if not args.quiet:
         for line in explain(report):
             print(line, file=sys.stderr)
@@ -306,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     code, why = hardware_outcome(report)
     if why:
         print(why, file=sys.stderr)
-    return code
+    return stop.exit_code if stop() else code
 
 
 if __name__ == "__main__":

@@ -1071,7 +1071,11 @@ class MultiprocessSession:
         self.state_sub.close()
         self.context.term()
 
-    def run(self, max_seconds: float | None, stop_on_success: bool) -> TeleopSummary:
+    def run(
+        self, max_seconds: float | None, stop_on_success: bool, interrupted=lambda: False
+    ) -> TeleopSummary:
+        """``interrupted()`` true (Ctrl-C / SIGTERM) ends the session in order, as the end
+        of a run does."""
         self.start()
         requests: list[str] = []  # from the keyboard thread; sent from this one
         if self.mirror_hardware and sys.stdin is not None and sys.stdin.isatty():
@@ -1111,7 +1115,7 @@ class MultiprocessSession:
                     (success and stop_on_success) or (max_seconds and elapsed >= max_seconds)
                 ):
                     break
-                if "twin" in reported or (self.lockstep and reported):
+                if "twin" in reported or (self.lockstep and reported) or interrupted():
                     break  # lockstep: no tick follows without both processes
         finally:
             self.stop()
@@ -1223,7 +1227,7 @@ def process_configs(
     return operator, twin
 
 
-def run_multiprocess(options) -> TeleopSummary:
+def run_multiprocess(options, interrupted=lambda: False) -> TeleopSummary:
     return MultiprocessSession(options).run(
-        options.max_seconds, stop_on_success=options.source == "trace"
+        options.max_seconds, stop_on_success=options.source == "trace", interrupted=interrupted
     )

@@ -29,6 +29,7 @@ from beavr_sim.headset.sources import HandSource
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
+from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.pipeline import RunRecord, TeleopLoop, TeleopSummary, ThreadedListener
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
@@ -409,9 +410,11 @@ class HardwareSync:
     def run(self) -> str:
         """:meth:`start`, then tick until in sync; returns the fault ("" when in sync)."""
         self.start()
-        while self.syncing:
+        while self.syncing and not self.loop.interrupted():
             tick = self.loop.tick()
             self.progress(tick)
+        if self.syncing:  # Ctrl-C / SIGTERM before the rig was in sync
+            self._finish("interrupted before the rig was in sync")
         return self.fault
 
     def _why(self) -> str:
@@ -505,20 +508,25 @@ def build_loop(options: SessionOptions, context=None):
 
 
 def run_session(
-    options: SessionOptions, on_loop: Callable[[TeleopLoop], None] | None = None
+    options: SessionOptions,
+    on_loop: Callable[[TeleopLoop], None] | None = None,
+    interrupted: Callable[[], bool] = never,
 ) -> TeleopSummary:
     """Run the session of ``options``; ``on_loop``: called with the single-process loop once
-    it is built, before it runs (attach listeners and command hooks to it)."""
+    it is built, before it runs (attach listeners and command hooks to it). ``interrupted``
+    (asked every tick; :class:`~beavr_sim.teleop.interrupt.StopSignal`): true ends the session
+    in order, the episode in progress dropped, and returns its summary so far."""
     if options.multiprocess:
         from beavr_sim.teleop.processes import run_multiprocess
 
-        return run_multiprocess(options)
+        return run_multiprocess(options, interrupted)
     context = None
     if options.source == "quest" or not options.headless:
         import zmq
 
         context = zmq.Context()
     loop = build_loop(options, context)
+    loop.interrupted = interrupted
     closers = [loop.source.close, loop.twin.env.close]
     if on_loop is not None:
         on_loop(loop)
@@ -669,6 +677,8 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         if sync is not None:
             fault = sync.run()
             sync_s = sync.last_sync_s
+            if loop.interrupted():
+                break
             if fault:
                 records.append(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
                 stopped = f"run {run + 1}: {fault}"
@@ -695,7 +705,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         if mirror is not None and failed_for_good(mirror) and stop_when is not None:
             stopped = f"run {run}: {fault}"
             break
-        if options.repeat and run >= options.repeat:
+        if loop.interrupted() or (options.repeat and run >= options.repeat):
             break
         if remaining is not None and played >= options.max_seconds - 1e-9:
             break
@@ -749,8 +759,9 @@ def record_episodes(
     reset; until then the twin follows the hands without recording. It ends at task success
     (plus the recording's tail), failure, the time limit, the end of a trace, or a stop
     (saved), discard (dropped) or quit (saved, then the session ends) request. A trace is
-    replayed ``options.episodes`` times; a live session records until that many are saved.
-    Ctrl-C drops only the episode in progress.
+    replayed ``options.episodes`` times; a live session records until that many are saved,
+    or ``options.max_seconds`` of session time (idle or recording) have passed. Ctrl-C or
+    SIGTERM (``loop.interrupted``) ends the session and drops only the episode in progress.
     """
     from beavr_sim.datasets.features import lerobot_features
     from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch, run_recorded_episode
@@ -790,6 +801,15 @@ def record_episodes(
     # A trace's episode the hardware spoilt is played again (it does not count towards
     # --episodes), but a rig that spoils MAX_FAULTS_IN_A_ROW in a row ends the session.
     faulty = in_a_row = 0
+    # --max-seconds bounds the whole session: idle waits and recorded episodes alike.
+    played = 0.0
+
+    def remaining() -> float | None:
+        return None if options.max_seconds is None else max(options.max_seconds - played, 0.0)
+
+    def out_of_time() -> bool:
+        left = remaining()
+        return loop.interrupted() or (left is not None and left <= 1e-9)
 
     def fresh_episode() -> str:
         """Reset (and, mirrored, sync) for the next episode; the sync's fault or ""."""
@@ -808,19 +828,23 @@ def record_episodes(
             if not options.auto_start:
                 progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
                 while True:
-                    loop.run(
+                    idle = loop.run(
+                        max_seconds=remaining(),
                         stop_on_success=False,
                         progress=progress,
                         stop_when=requests.taker("toggle", "start", "quit"),
                     )
-                    if requests.last or (trace and loop.source.finished):
+                    played += idle.duration_s
+                    if requests.last or (trace and loop.source.finished) or out_of_time():
                         break
                     loop.reset(loop.seed)  # the scene failed or timed out while idle
-                if "quit" in requests.last or not requests.last:
+                if "quit" in requests.last or not requests.last or out_of_time():
                     break
             if attempts > 0 or not options.auto_start or sync is not None:
                 progress.label = f"{name}: sync"
                 fault = fresh_episode()
+                if loop.interrupted():
+                    break
                 if fault:
                     records.append(
                         RunRecord(attempts + 1, False, 0.0, fault, saved=False, sync_s=sync_s())
@@ -838,16 +862,28 @@ def record_episodes(
                 config,
                 progress=progress,
                 stop_when=requests.taker("toggle", "stop", "discard", "quit"),
+                max_seconds=remaining(),
             )
+            played += summary.duration_s
             asked = requests.last
             fault = recorder.fault
+            # Ctrl-C / SIGTERM drops the episode in progress (never saved as if it had ended).
+            interrupted = loop.interrupted()
             written = recorder.end(
-                keep="discard" not in asked and (not fault or options.keep_faulty_episodes),
-                success=bool(summary.success) and not fault,
+                keep="discard" not in asked
+                and not interrupted
+                and (not fault or options.keep_faulty_episodes),
+                success=bool(summary.success) and not fault and not interrupted,
                 task_success=bool(summary.success),
                 seed=loop.seed,
                 source=options.source,
-                ended_by="hardware_fault" if fault else asked[0] if asked else "auto",
+                ended_by="hardware_fault"
+                if fault
+                else "interrupted"
+                if interrupted
+                else asked[0]
+                if asked
+                else "auto",
             )
             attempts += 1
             saved += int(written and not fault)
@@ -867,6 +903,8 @@ def record_episodes(
                 outcome = (
                     ("kept, marked hardware_fault" if written else "discarded")
                     if fault
+                    else "interrupted, not saved"
+                    if interrupted
                     else "saved"
                     if written
                     else "discarded"
@@ -881,7 +919,7 @@ def record_episodes(
                     file=sys.stderr,
                 )
             progress.status = f"last episode: HARDWARE FAULT ({fault})" if fault else ""
-            if "quit" in asked:
+            if "quit" in asked or out_of_time():
                 break
             if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
                 stopped = f"{name}: {fault or episode_fault(mirror)}"
