@@ -782,6 +782,10 @@ def record_episodes(
     def seed_of(attempt: int) -> int | None:
         return loop.seed if trace else first_seed + attempt
 
+    note = repeated_trace_note(options, loop.seed)
+    if note:
+        print(note, file=sys.stderr)
+
     writer = EpisodeWriter(
         options.record,
         options.repo_id,
@@ -937,6 +941,21 @@ def record_episodes(
     summary.successes = sum(1 for r in records if r.success and not r.hardware_fault and r.saved)
     summary.stopped_early = stopped
     return summary
+
+
+def repeated_trace_note(options: SessionOptions, seed: int | None) -> str:
+    """The line said when a trace is recorded more than once: every episode is the same
+    demonstration. (A trace's hand motion was made for its seed's object layout; another seed
+    would move the objects away from the hand, so the episodes cannot take seed, seed + 1, ...
+    the way ``datasets generate`` does.) "" when it does not apply."""
+    if options.source != "trace" or options.record is None or options.episodes < 2:
+        return ""
+    return (
+        f"note: --source trace records the same demonstration {options.episodes} times "
+        f"(seed {seed}, the trace's hand motion: identical episodes); for varied "
+        f"demonstrations use python -m beavr_sim.datasets generate --task {options.task} "
+        f"--episodes {options.episodes} --out DIR (a synthesized trace per seed)"
+    )
 
 
 def follow_limits(mirror, env):
