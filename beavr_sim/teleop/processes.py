@@ -68,6 +68,7 @@ import numpy as np
 import zmq
 
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
+from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import (
     LatencyLog,
     TeleopSummary,
@@ -925,7 +926,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         hardware = {}
         if mirror is not None:
             mirror.close()
-            hardware = mirror.summary()
+            hardware = hardware_summary(mirror)
         for finish in finishers:
             try:
                 finish()

@@ -30,6 +30,7 @@ from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
+from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import RunRecord, TeleopLoop, TeleopSummary, ThreadedListener
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
@@ -629,7 +630,7 @@ def run_session(
         if mirror is not None:
             summary.failed_devices = list(mirror.failed_devices)
             mirror.close()
-            summary.hardware = mirror.summary()
+            summary.hardware = hardware_summary(mirror)
         return summary
     finally:
         for close in reversed(closers):
