@@ -180,6 +180,11 @@ class SessionOptions:
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
+        elif self.episodes != 1:
+            raise ValueError(
+                "--episodes needs --record (it counts recorded episodes; --repeat N plays a "
+                "trace N times without recording)"
+            )
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
         if self.rerun is not None:
