@@ -58,6 +58,7 @@ import json
 import logging
 import math
 import multiprocessing as mp
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -235,7 +236,14 @@ def command_from_wire(msg: JointCommandMsg, held: np.ndarray | None = None) -> J
 
 
 # ---------------------------------------------------------------------------- operator
+def _leave_ctrl_c_to_the_session() -> None:
+    """A worker ignores Ctrl-C: a terminal sends it to the whole process group, and the
+    session (the parent) stops its processes in order (:meth:`MultiprocessSession.stop`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def operator_main(config: OperatorProcessConfig, transport: TransportConfig, conn) -> None:
+    _leave_ctrl_c_to_the_session()
     from beavr_sim.headset.sources import QuestSource, TraceSource
     from beavr_sim.headset.sources import WebXRSource as WebXRSourceType
     from beavr_sim.headset.validation import StreamValidator
@@ -601,6 +609,7 @@ def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Calla
 
 
 def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
+    _leave_ctrl_c_to_the_session()
     import gymnasium as gym
 
     import beavr_sim  # noqa: F401
