@@ -36,6 +36,7 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.scaling.executors import LOG_FORMAT
+from beavr_sim.teleop.console import LineSafeHandler
 from beavr_sim.teleop.interrupt import StopSignal, stop_on_signals
 
 EPILOG = """exit codes:
@@ -228,7 +229,7 @@ class OneLineFormatter(logging.Formatter):
 
 
 def configure_logging(debug: bool) -> None:
-    handler = logging.StreamHandler()
+    handler = LineSafeHandler()  # a record never glues onto the progress line
     handler.setFormatter(logging.Formatter(LOG_FORMAT) if debug else OneLineFormatter(LOG_FORMAT))
     logging.basicConfig(level=logging.INFO if debug else logging.WARNING, handlers=[handler])
 
@@ -274,22 +275,31 @@ def explain(report: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.debug)
-    from beavr_sim.hardware.device import MirrorError
-    from beavr_sim.teleop.session import SessionOptions, run_session
+    from beavr_sim.teleop.session import SessionOptions
 
     try:
         options = SessionOptions.from_args(args)
     except (UnknownNameError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    start = time.perf_counter()
     stop = StopSignal()
     try:
+        # Kept while the summary is written too: a signal then is absorbed, never a traceback.
         with stop_on_signals(stop):
-            summary = run_session(options, interrupted=stop)
+            return _run(args, options, stop)
     except KeyboardInterrupt:  # a second Ctrl-C: no summary
         print("\ninterrupted", file=sys.stderr)
         return 128 + (stop.signum or signal.SIGINT)
+
+
+def _run(args: argparse.Namespace, options, stop: StopSignal) -> int:
+    """The session of ``options``, its summary printed (and written); the exit code."""
+    from beavr_sim.hardware.device import MirrorError
+    from beavr_sim.teleop.session import run_session
+
+    start = time.perf_counter()
+    try:
+        summary = run_session(options, interrupted=stop)
     except (UnknownNameError, ValueError, FileNotFoundError, FileExistsError, ImportError) as exc:
         if args.debug:
             logging.exception("session failed")
@@ -300,9 +310,10 @@ def main(argv: list[str] | None = None) -> int:
             logging.exception("rig failed")
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_RIG_START
+    interrupted = stop()  # a signal after the session ended does not mark it
     report = summary.to_dict()
     report["wall_s"] = round(time.perf_counter() - start, 3)
-    if stop():
+    if interrupted:
         report["interrupted"] = True
         report["ended_by"] = stop.name
     if not args.quiet:
@@ -316,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     code, why = hardware_outcome(report)
     if why:
         print(why, file=sys.stderr)
-    return stop.exit_code if stop() else code
+    return stop.exit_code if interrupted else code
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.headset.sources import HandSource
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.mirroring import hardware_summary
@@ -320,14 +321,11 @@ class ProgressLine:
         lat = self.loop.latencies_ms[-200:]
         lat_s = f"{sorted(lat)[len(lat) // 2]:.2f} ms" if lat else "-"
         head = "  ".join(part for part in (self.label, self.status) if part)
-        print(
-            f"\r{head + '  ' if head else ''}t={tick.state.t:6.1f} s"
+        CONSOLE.progress(
+            f"{head + '  ' if head else ''}t={tick.state.t:6.1f} s"
             f"  frames={self.loop.frames_received}"
             f"  rejected={self.loop.validator.rejected}  latency p50={lat_s}"
-            f"  {'SUCCESS' if self.success else ''}   ",
-            end="",
-            file=sys.stderr,
-            flush=True,
+            f"  {'SUCCESS' if self.success else ''}   "
         )
 
 
@@ -630,8 +628,7 @@ def run_session(
             )
         else:
             summary = _play_runs(options, loop, progress, mirror, sync)
-        if options.progress:
-            print(file=sys.stderr)
+        CONSOLE.end_line()
         if mirror is not None:
             summary.failed_devices = list(mirror.failed_devices)
             mirror.close()
