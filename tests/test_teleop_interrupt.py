@@ -1,6 +1,7 @@
 """Ctrl-C and SIGTERM end a teleop session in order: the JSON summary is still printed and
 written (marked interrupted), the exit code is 128 + the signal, finished episodes are saved and
-the one in progress is not; an idle live recording ends at --max-seconds.
+the one in progress is not; an idle live recording ends at --max-seconds; recording into an
+existing dataset says it appends.
 
 Each session runs as a subprocess; the signal is sent once its stderr shows it reached the
 point under test (a readiness line, never a fixed sleep)."""
@@ -105,6 +106,17 @@ def test_an_interrupted_recording_keeps_finished_episodes_only(tmp_path):
     # the same trace recorded 3 times: said once, with where varied demonstrations come from
     assert session.err.count("records the same demonstration 3 times") == 1
     assert "python -m beavr_sim.datasets generate --task Pour --episodes 3" in session.err
+
+
+def test_recording_into_an_existing_dataset_says_it_appends(tmp_path):
+    args = (*TRACE_SESSION, "--record", str(tmp_path / "ds"), "--cameras", "none")
+    args += ("--max-seconds", "0.3", "--quiet")
+    for run in (1, 2):
+        session = Session(*args)
+        rc, _ = session.finish()
+        assert rc == 0, session.err[-2000:]
+        said = "appending to the 1 episodes already there" in session.err
+        assert said is (run == 2), session.err[-2000:]
 
 
 def _free_port() -> int:

@@ -797,6 +797,12 @@ def record_episodes(
         robot_type=env.embodiment.name,
         use_videos=config.use_videos,
     )
+    if writer.num_episodes:  # an existing dataset: say so (a re-run appends, never replaces)
+        print(
+            f"{options.record}: appending to the {writer.num_episodes} episodes already there "
+            "(a new folder starts a new dataset)",
+            file=sys.stderr,
+        )
     watch = None
     if mirror is not None:
         watch = HardwareWatch(mirror.health, follow_limits(mirror, env), config.fps)
