@@ -1,6 +1,7 @@
 """Errors a new user meets in the first hour name the cause: the emulators' ``--help``, a
-truncated trace (and ``traces recover``), a text file for ``--qpos-file``, and ``lerobot-eval``
-with an env that differs from the policy."""
+truncated trace (and ``traces recover``), a text file for ``--qpos-file``, ``lerobot-eval``
+with an env that differs from the policy, ``--episodes`` without ``--record``; recording one
+trace several times says the episodes are the same."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from beavr_sim.assets import bundled_trace
+from beavr_sim.teleop.session import SessionOptions, repeated_trace_note
 from beavr_sim.traces.format import TraceReader, TraceTruncatedError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,3 +119,17 @@ def test_lerobot_eval_warns_when_the_env_renders_other_images_than_the_policy_ta
     assert same.warn_if_policy_differs(policy) == []
     both = BeavrSimEnvConfig(task="PickupBox", image_height=24, image_width=32)
     assert any("--env.cameras='[front]'" in m for m in both.warn_if_policy_differs(policy))
+
+
+@pytest.mark.parametrize(("episodes", "said"), [(2, True), (1, False)])
+def test_recording_a_trace_twice_says_the_episodes_are_the_same(tmp_path, episodes, said):
+    options = SessionOptions(task="pour", source="trace", record=tmp_path, episodes=episodes)
+    note = repeated_trace_note(options, seed=0)
+    assert bool(note) is said
+    if said:
+        assert "same demonstration 2 times (seed 0" in note and "datasets generate" in note
+
+
+def test_episodes_without_record_is_refused_not_ignored():
+    with pytest.raises(ValueError, match="--episodes needs --record"):
+        SessionOptions(task="pour", source="trace", episodes=3)

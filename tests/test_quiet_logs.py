@@ -1,10 +1,11 @@
 """Quiet logs: a recording writes no encoder banners or ``datasets`` progress bars, and local
 workers log in the command lines' format; a local worker's job may start processes (LeRobot's
-video encoding of two cameras does)."""
+video encoding of two cameras does); a warning never glues onto teleop's progress line."""
 
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing
 import os
 import subprocess
@@ -15,6 +16,7 @@ import pytest
 
 from beavr_sim.datasets.quiet import DATASETS_BARS_ENV, SVT_LOG_ENV
 from beavr_sim.scaling.executors import LocalPool
+from beavr_sim.teleop.console import CONSOLE, LineSafeHandler
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,3 +67,23 @@ def test_a_local_workers_job_may_start_processes_of_its_own():
         assert pool.next_result() == (0, 7)
     finally:
         pool.close()
+
+
+def test_a_warning_starts_its_own_line_after_the_progress_line(capsys):
+    log = logging.getLogger("beavr_sim.test_console")
+    handler = LineSafeHandler()  # on the captured stderr
+    handler.setFormatter(logging.Formatter("WARNING %(message)s"))
+    log.addHandler(handler)
+    try:
+        CONSOLE.progress("t=   1.0 s  frames=30")
+        log.warning("right hand lost")
+        CONSOLE.progress("t=   2.0 s  frames=60")
+        CONSOLE.end_line()
+        log.warning("second")
+    finally:
+        log.removeHandler(handler)
+    err = capsys.readouterr().err
+    assert err == (
+        "\rt=   1.0 s  frames=30\nWARNING right hand lost\n"
+        "\rt=   2.0 s  frames=60\nWARNING second\n"
+    ), repr(err)

@@ -153,6 +153,23 @@ def test_repeated_session_syncs_every_run_and_reports_them_all(capsys):
     assert summary["hardware"]["right_arm"]["commands_sent"] >= 0.8 * 20 * 30
 
 
+def test_a_dry_run_reports_no_writes(capsys):
+    """Issue 39 item 8: a dry run writes nothing, so its hardware block has no write latency
+    or write rate; it says it was a dry run, and the devices connected all run say so."""
+    code = teleop_main(
+        ["--task", "pour", "--source", "trace", *MIRRORED, "--dry-run", "--quiet",
+         "--max-seconds", "1"]
+    )  # fmt: skip
+    summary = _summary(capsys)
+    assert code == 0
+    assert summary["hardware"], summary
+    for name, device in summary["hardware"].items():
+        assert device["dry_run"] is True, name
+        assert device["commands_sent"] == 0, name
+        assert "write_latency_ms" not in device and "write_rate_hz" not in device, device
+        assert device["connected"] is True, name
+
+
 def _children(pid: int) -> list[int]:
     out = []
     for task in Path(f"/proc/{pid}/task").glob("*"):

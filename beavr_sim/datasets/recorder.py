@@ -279,10 +279,16 @@ class EpisodeRecorder:
 
 
 def run_recorded_episode(
-    loop, recorder: EpisodeRecorder, config: RecordingConfig, progress=None, stop_when=None
+    loop,
+    recorder: EpisodeRecorder,
+    config: RecordingConfig,
+    progress=None,
+    stop_when=None,
+    max_seconds: float | None = None,
 ):
     """Run the loop's current episode while recording, until it ends by itself (success,
-    failure, time limit, end of a trace), ``stop_when()`` or a hardware fault
+    failure, time limit, end of a trace), ``max_seconds`` (the session's time left; the
+    episode's own limit is ``config.episode_seconds``), ``stop_when()`` or a hardware fault
     (:attr:`EpisodeRecorder.fault`); ticks on for ``tail_seconds`` after success so the data
     shows the outcome settled. Returns the loop's summary."""
 
@@ -293,7 +299,9 @@ def run_recorded_episode(
     loop.listeners.append(recorder)
     try:
         summary = loop.run(
-            max_seconds=config.episode_seconds,
+            max_seconds=min(
+                (s for s in (config.episode_seconds, max_seconds) if s is not None), default=None
+            ),
             stop_on_success=True,
             progress=progress,
             stop_when=stop,

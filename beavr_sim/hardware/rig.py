@@ -408,8 +408,9 @@ class EmulatedRig:
                     port=where[name], variant=leap_variant, reply_timeout_s=0.25
                 )
             devices.append(DeviceEntry(name, kind, effector, config))
-        # Emulated fingers close on nothing; the twin's stop on the objects they grasp.
-        self.config = RigConfig(tuple(devices), MirrorConfig(hand_divergence_rad=2.5), "emulated")
+        # The mirror's own limits (hand_divergence_rad 0.8, docs/hardware.md): the divergence
+        # is measured against what each device was sent, which the emulated servos follow.
+        self.config = RigConfig(tuple(devices), MirrorConfig(), "emulated")
 
     def _fault_specs(self, faults: str | Sequence[FaultSpec]) -> tuple[FaultSpec, ...]:
         if isinstance(faults, str):

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -35,6 +36,8 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.scaling.executors import LOG_FORMAT
+from beavr_sim.teleop.console import LineSafeHandler
+from beavr_sim.teleop.interrupt import StopSignal, stop_on_signals
 
 EPILOG = """exit codes:
   0  the session ran (its summary says how each run went)
@@ -43,7 +46,10 @@ EPILOG = """exit codes:
   4  a mirrored device failed during the session and was not recovered or re-armed
   5  the rig ended the session early: it did not reach an episode's start pose within
      --sync-timeout, or spoilt 3 recorded episodes in a row
-  130 interrupted (Ctrl-C)
+  130 interrupted by Ctrl-C (SIGINT), 143 by SIGTERM: the session still ends in order (the
+      rig, the recorder and the views closed; the episode in progress dropped) and prints its
+      summary, marked "interrupted": true, "ended_by": "SIGINT" / "SIGTERM"; a second
+      signal aborts at once, without a summary
 Device errors are one line each; --debug adds Python tracebacks. See docs/hardware.md."""
 
 #: Exit codes of the hardware outcomes (documented in the epilog and docs/hardware.md).
@@ -223,7 +229,7 @@ class OneLineFormatter(logging.Formatter):
 
 
 def configure_logging(debug: bool) -> None:
-    handler = logging.StreamHandler()
+    handler = LineSafeHandler()  # a record never glues onto the progress line
     handler.setFormatter(logging.Formatter(LOG_FORMAT) if debug else OneLineFormatter(LOG_FORMAT))
     logging.basicConfig(level=logging.INFO if debug else logging.WARNING, handlers=[handler])
 
@@ -269,20 +275,31 @@ def explain(report: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.debug)
-    from beavr_sim.hardware.device import MirrorError
-    from beavr_sim.teleop.session import SessionOptions, run_session
+    from beavr_sim.teleop.session import SessionOptions
 
     try:
         options = SessionOptions.from_args(args)
     except (UnknownNameError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    stop = StopSignal()
+    try:
+        # Kept while the summary is written too: a signal then is absorbed, never a traceback.
+        with stop_on_signals(stop):
+            return _run(args, options, stop)
+    except KeyboardInterrupt:  # a second Ctrl-C: no summary
+        print("\ninterrupted", file=sys.stderr)
+        return 128 + (stop.signum or signal.SIGINT)
+
+
+def _run(args: argparse.Namespace, options, stop: StopSignal) -> int:
+    """The session of ``options``, its summary printed (and written); the exit code."""
+    from beavr_sim.hardware.device import MirrorError
+    from beavr_sim.teleop.session import run_session
+
     start = time.perf_counter()
     try:
-        summary = run_session(options)
-    except KeyboardInterrupt:
-        print("\ninterrupted", file=sys.stderr)
-        return 130
+        summary = run_session(options, interrupted=stop)
     except (UnknownNameError, ValueError, FileNotFoundError, FileExistsError, ImportError) as exc:
         if args.debug:
             logging.exception("session failed")
@@ -293,8 +310,12 @@ def main(argv: list[str] | None = None) -> int:
             logging.exception("rig failed")
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_RIG_START
+    interrupted = stop()  # a signal after the session ended does not mark it
     report = summary.to_dict()
     report["wall_s"] = round(time.perf_counter() - start, 3)
+    if interrupted:
+        report["interrupted"] = True
+        report["ended_by"] = stop.name
     if not args.quiet:
         for line in explain(report):
             print(line, file=sys.stderr)
@@ -306,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     code, why = hardware_outcome(report)
     if why:
         print(why, file=sys.stderr)
-    return code
+    return stop.exit_code if interrupted else code
 
 
 if __name__ == "__main__":

@@ -90,6 +90,23 @@ def connect_mirror(choice: RigChoice, env, closers: list):
     return mirror, q_measured
 
 
+#: Per-device summary fields that describe device writes: left out of a dry run's summary
+#: (nothing was written, so no write latency or rate exists).
+WRITE_FIELDS = ("write_latency_ms", "write_rate_hz")
+
+
+def hardware_summary(mirror) -> dict:
+    """The mirror's per-device summary for the session's report; a dry run says so per
+    device (``"dry_run": true``) and reports no write latency or rate."""
+    out = mirror.summary()
+    if mirror.dry_run:
+        for stats in out.values():
+            for name in WRITE_FIELDS:
+                stats.pop(name, None)
+            stats["dry_run"] = True
+    return out
+
+
 class MirrorListener:
     """Hands the twin's guarded action to the hardware mirror: at each command the twin
     applies (:meth:`on_command`, a command hook of the real-time loop: a command per hand

@@ -40,6 +40,7 @@ from beavr_sim.headset.sources import HandSource
 from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.operator.obstacles import fixture_obstacles
 from beavr_sim.operator.operator import Operator
+from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.stages import (
     MIN_COMMAND_DT_S,
     OperatorStage,
@@ -444,6 +445,9 @@ class TeleopLoop:
         self._pending_frames: list = []
         self._pending_commands: dict[str, JointCommand] = {}
         self._pending_sides: set[str] = set()
+        #: Asked after every tick of :meth:`run`: true ends the run (Ctrl-C / SIGTERM,
+        #: :mod:`beavr_sim.teleop.interrupt`); the session then ends in order.
+        self.interrupted: Callable[[], bool] = never
 
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> None:
@@ -600,8 +604,8 @@ class TeleopLoop:
         stop_when: Callable[[], bool] | None = None,
     ) -> TeleopSummary:
         """Tick until success / failure / the env's time limit / ``max_seconds`` / the end of
-        a finite source plus ``tail_seconds`` (objects settle) / ``stop_when()`` (asked after
-        every tick)."""
+        a finite source plus ``tail_seconds`` (objects settle) / ``stop_when()`` or
+        :attr:`interrupted` (asked after every tick)."""
         start_wall = time.perf_counter()
         self.schedule.resume()  # the first tick now, not at a deadline from before set-up
         finished_at: float | None = None
@@ -615,7 +619,7 @@ class TeleopLoop:
             elapsed = self.ticks * self.dt
             if (tick.state.success and stop_on_success) or tick.state.failure:
                 break
-            if stop_when is not None and stop_when():
+            if self.interrupted() or (stop_when is not None and stop_when()):
                 break
             if tick.state.truncated or (max_seconds is not None and elapsed >= max_seconds):
                 break

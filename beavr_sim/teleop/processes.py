@@ -58,6 +58,7 @@ import json
 import logging
 import math
 import multiprocessing as mp
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -68,6 +69,7 @@ import numpy as np
 import zmq
 
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
+from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import (
     LatencyLog,
     TeleopSummary,
@@ -234,7 +236,14 @@ def command_from_wire(msg: JointCommandMsg, held: np.ndarray | None = None) -> J
 
 
 # ---------------------------------------------------------------------------- operator
+def _leave_ctrl_c_to_the_session() -> None:
+    """A worker ignores Ctrl-C: a terminal sends it to the whole process group, and the
+    session (the parent) stops its processes in order (:meth:`MultiprocessSession.stop`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def operator_main(config: OperatorProcessConfig, transport: TransportConfig, conn) -> None:
+    _leave_ctrl_c_to_the_session()
     from beavr_sim.headset.sources import QuestSource, TraceSource
     from beavr_sim.headset.sources import WebXRSource as WebXRSourceType
     from beavr_sim.headset.validation import StreamValidator
@@ -600,6 +609,7 @@ def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Calla
 
 
 def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
+    _leave_ctrl_c_to_the_session()
     import gymnasium as gym
 
     import beavr_sim  # noqa: F401
@@ -925,7 +935,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         hardware = {}
         if mirror is not None:
             mirror.close()
-            hardware = mirror.summary()
+            hardware = hardware_summary(mirror)
         for finish in finishers:
             try:
                 finish()
@@ -1071,7 +1081,11 @@ class MultiprocessSession:
         self.state_sub.close()
         self.context.term()
 
-    def run(self, max_seconds: float | None, stop_on_success: bool) -> TeleopSummary:
+    def run(
+        self, max_seconds: float | None, stop_on_success: bool, interrupted=lambda: False
+    ) -> TeleopSummary:
+        """``interrupted()`` true (Ctrl-C / SIGTERM) ends the session in order, as the end
+        of a run does."""
         self.start()
         requests: list[str] = []  # from the keyboard thread; sent from this one
         if self.mirror_hardware and sys.stdin is not None and sys.stdin.isatty():
@@ -1111,7 +1125,7 @@ class MultiprocessSession:
                     (success and stop_on_success) or (max_seconds and elapsed >= max_seconds)
                 ):
                     break
-                if "twin" in reported or (self.lockstep and reported):
+                if "twin" in reported or (self.lockstep and reported) or interrupted():
                     break  # lockstep: no tick follows without both processes
         finally:
             self.stop()
@@ -1223,7 +1237,7 @@ def process_configs(
     return operator, twin
 
 
-def run_multiprocess(options) -> TeleopSummary:
+def run_multiprocess(options, interrupted=lambda: False) -> TeleopSummary:
     return MultiprocessSession(options).run(
-        options.max_seconds, stop_on_success=options.source == "trace"
+        options.max_seconds, stop_on_success=options.source == "trace", interrupted=interrupted
     )

@@ -28,7 +28,10 @@ from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.headset.sources import HandSource
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
+from beavr_sim.teleop.interrupt import never
+from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import RunRecord, TeleopLoop, TeleopSummary, ThreadedListener
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
@@ -178,6 +181,11 @@ class SessionOptions:
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
+        elif self.episodes != 1:
+            raise ValueError(
+                "--episodes needs --record (it counts recorded episodes; --repeat N plays a "
+                "trace N times without recording)"
+            )
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
         if self.rerun is not None:
@@ -313,14 +321,11 @@ class ProgressLine:
         lat = self.loop.latencies_ms[-200:]
         lat_s = f"{sorted(lat)[len(lat) // 2]:.2f} ms" if lat else "-"
         head = "  ".join(part for part in (self.label, self.status) if part)
-        print(
-            f"\r{head + '  ' if head else ''}t={tick.state.t:6.1f} s"
+        CONSOLE.progress(
+            f"{head + '  ' if head else ''}t={tick.state.t:6.1f} s"
             f"  frames={self.loop.frames_received}"
             f"  rejected={self.loop.validator.rejected}  latency p50={lat_s}"
-            f"  {'SUCCESS' if self.success else ''}   ",
-            end="",
-            file=sys.stderr,
-            flush=True,
+            f"  {'SUCCESS' if self.success else ''}   "
         )
 
 
@@ -409,9 +414,11 @@ class HardwareSync:
     def run(self) -> str:
         """:meth:`start`, then tick until in sync; returns the fault ("" when in sync)."""
         self.start()
-        while self.syncing:
+        while self.syncing and not self.loop.interrupted():
             tick = self.loop.tick()
             self.progress(tick)
+        if self.syncing:  # Ctrl-C / SIGTERM before the rig was in sync
+            self._finish("interrupted before the rig was in sync")
         return self.fault
 
     def _why(self) -> str:
@@ -505,20 +512,25 @@ def build_loop(options: SessionOptions, context=None):
 
 
 def run_session(
-    options: SessionOptions, on_loop: Callable[[TeleopLoop], None] | None = None
+    options: SessionOptions,
+    on_loop: Callable[[TeleopLoop], None] | None = None,
+    interrupted: Callable[[], bool] = never,
 ) -> TeleopSummary:
     """Run the session of ``options``; ``on_loop``: called with the single-process loop once
-    it is built, before it runs (attach listeners and command hooks to it)."""
+    it is built, before it runs (attach listeners and command hooks to it). ``interrupted``
+    (asked every tick; :class:`~beavr_sim.teleop.interrupt.StopSignal`): true ends the session
+    in order, the episode in progress dropped, and returns its summary so far."""
     if options.multiprocess:
         from beavr_sim.teleop.processes import run_multiprocess
 
-        return run_multiprocess(options)
+        return run_multiprocess(options, interrupted)
     context = None
     if options.source == "quest" or not options.headless:
         import zmq
 
         context = zmq.Context()
     loop = build_loop(options, context)
+    loop.interrupted = interrupted
     closers = [loop.source.close, loop.twin.env.close]
     if on_loop is not None:
         on_loop(loop)
@@ -616,12 +628,11 @@ def run_session(
             )
         else:
             summary = _play_runs(options, loop, progress, mirror, sync)
-        if options.progress:
-            print(file=sys.stderr)
+        CONSOLE.end_line()
         if mirror is not None:
             summary.failed_devices = list(mirror.failed_devices)
             mirror.close()
-            summary.hardware = mirror.summary()
+            summary.hardware = hardware_summary(mirror)
         return summary
     finally:
         for close in reversed(closers):
@@ -669,6 +680,8 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         if sync is not None:
             fault = sync.run()
             sync_s = sync.last_sync_s
+            if loop.interrupted():
+                break
             if fault:
                 records.append(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
                 stopped = f"run {run + 1}: {fault}"
@@ -695,7 +708,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         if mirror is not None and failed_for_good(mirror) and stop_when is not None:
             stopped = f"run {run}: {fault}"
             break
-        if options.repeat and run >= options.repeat:
+        if loop.interrupted() or (options.repeat and run >= options.repeat):
             break
         if remaining is not None and played >= options.max_seconds - 1e-9:
             break
@@ -749,8 +762,9 @@ def record_episodes(
     reset; until then the twin follows the hands without recording. It ends at task success
     (plus the recording's tail), failure, the time limit, the end of a trace, or a stop
     (saved), discard (dropped) or quit (saved, then the session ends) request. A trace is
-    replayed ``options.episodes`` times; a live session records until that many are saved.
-    Ctrl-C drops only the episode in progress.
+    replayed ``options.episodes`` times; a live session records until that many are saved,
+    or ``options.max_seconds`` of session time (idle or recording) have passed. Ctrl-C or
+    SIGTERM (``loop.interrupted``) ends the session and drops only the episode in progress.
     """
     from beavr_sim.datasets.features import lerobot_features
     from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch, run_recorded_episode
@@ -771,6 +785,10 @@ def record_episodes(
     def seed_of(attempt: int) -> int | None:
         return loop.seed if trace else first_seed + attempt
 
+    note = repeated_trace_note(options, loop.seed)
+    if note:
+        print(note, file=sys.stderr)
+
     writer = EpisodeWriter(
         options.record,
         options.repo_id,
@@ -779,6 +797,12 @@ def record_episodes(
         robot_type=env.embodiment.name,
         use_videos=config.use_videos,
     )
+    if writer.num_episodes:  # an existing dataset: say so (a re-run appends, never replaces)
+        print(
+            f"{options.record}: appending to the {writer.num_episodes} episodes already there "
+            "(a new folder starts a new dataset)",
+            file=sys.stderr,
+        )
     watch = None
     if mirror is not None:
         watch = HardwareWatch(mirror.health, follow_limits(mirror, env), config.fps)
@@ -790,6 +814,15 @@ def record_episodes(
     # A trace's episode the hardware spoilt is played again (it does not count towards
     # --episodes), but a rig that spoils MAX_FAULTS_IN_A_ROW in a row ends the session.
     faulty = in_a_row = 0
+    # --max-seconds bounds the whole session: idle waits and recorded episodes alike.
+    played = 0.0
+
+    def remaining() -> float | None:
+        return None if options.max_seconds is None else max(options.max_seconds - played, 0.0)
+
+    def out_of_time() -> bool:
+        left = remaining()
+        return loop.interrupted() or (left is not None and left <= 1e-9)
 
     def fresh_episode() -> str:
         """Reset (and, mirrored, sync) for the next episode; the sync's fault or ""."""
@@ -808,19 +841,23 @@ def record_episodes(
             if not options.auto_start:
                 progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
                 while True:
-                    loop.run(
+                    idle = loop.run(
+                        max_seconds=remaining(),
                         stop_on_success=False,
                         progress=progress,
                         stop_when=requests.taker("toggle", "start", "quit"),
                     )
-                    if requests.last or (trace and loop.source.finished):
+                    played += idle.duration_s
+                    if requests.last or (trace and loop.source.finished) or out_of_time():
                         break
                     loop.reset(loop.seed)  # the scene failed or timed out while idle
-                if "quit" in requests.last or not requests.last:
+                if "quit" in requests.last or not requests.last or out_of_time():
                     break
             if attempts > 0 or not options.auto_start or sync is not None:
                 progress.label = f"{name}: sync"
                 fault = fresh_episode()
+                if loop.interrupted():
+                    break
                 if fault:
                     records.append(
                         RunRecord(attempts + 1, False, 0.0, fault, saved=False, sync_s=sync_s())
@@ -838,16 +875,28 @@ def record_episodes(
                 config,
                 progress=progress,
                 stop_when=requests.taker("toggle", "stop", "discard", "quit"),
+                max_seconds=remaining(),
             )
+            played += summary.duration_s
             asked = requests.last
             fault = recorder.fault
+            # Ctrl-C / SIGTERM drops the episode in progress (never saved as if it had ended).
+            interrupted = loop.interrupted()
             written = recorder.end(
-                keep="discard" not in asked and (not fault or options.keep_faulty_episodes),
-                success=bool(summary.success) and not fault,
+                keep="discard" not in asked
+                and not interrupted
+                and (not fault or options.keep_faulty_episodes),
+                success=bool(summary.success) and not fault and not interrupted,
                 task_success=bool(summary.success),
                 seed=loop.seed,
                 source=options.source,
-                ended_by="hardware_fault" if fault else asked[0] if asked else "auto",
+                ended_by="hardware_fault"
+                if fault
+                else "interrupted"
+                if interrupted
+                else asked[0]
+                if asked
+                else "auto",
             )
             attempts += 1
             saved += int(written and not fault)
@@ -867,6 +916,8 @@ def record_episodes(
                 outcome = (
                     ("kept, marked hardware_fault" if written else "discarded")
                     if fault
+                    else "interrupted, not saved"
+                    if interrupted
                     else "saved"
                     if written
                     else "discarded"
@@ -881,7 +932,7 @@ def record_episodes(
                     file=sys.stderr,
                 )
             progress.status = f"last episode: HARDWARE FAULT ({fault})" if fault else ""
-            if "quit" in asked:
+            if "quit" in asked or out_of_time():
                 break
             if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
                 stopped = f"{name}: {fault or episode_fault(mirror)}"
@@ -899,6 +950,21 @@ def record_episodes(
     summary.successes = sum(1 for r in records if r.success and not r.hardware_fault and r.saved)
     summary.stopped_early = stopped
     return summary
+
+
+def repeated_trace_note(options: SessionOptions, seed: int | None) -> str:
+    """The line said when a trace is recorded more than once: every episode is the same
+    demonstration. (A trace's hand motion was made for its seed's object layout; another seed
+    would move the objects away from the hand, so the episodes cannot take seed, seed + 1, ...
+    the way ``datasets generate`` does.) "" when it does not apply."""
+    if options.source != "trace" or options.record is None or options.episodes < 2:
+        return ""
+    return (
+        f"note: --source trace records the same demonstration {options.episodes} times "
+        f"(seed {seed}, the trace's hand motion: identical episodes); for varied "
+        f"demonstrations use python -m beavr_sim.datasets generate --task {options.task} "
+        f"--episodes {options.episodes} --out DIR (a synthesized trace per seed)"
+    )
 
 
 def follow_limits(mirror, env):
