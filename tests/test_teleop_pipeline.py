@@ -102,6 +102,16 @@ def test_cli_writes_the_summary_json(tmp_path, capsys):
     assert set(report["latency_ms"]) >= {"p50", "p99"} and report["latency_ms"]["p50"] > 0
 
 
+def test_cli_summary_json_dash_means_stdout_not_a_file(tmp_path, capsys, monkeypatch):
+    from beavr_sim.teleop.__main__ import main
+
+    monkeypatch.chdir(tmp_path)
+    args = ["--task", "pickup_box", "--source", "trace", "--no-viser", "--headless", "--quiet"]
+    assert main([*args, "--summary-json", "-"]) == 0
+    assert not (tmp_path / "-").exists()
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["task"] == "PickupBox"
+
+
 def test_cli_rejects_bad_arguments_with_clear_errors(capsys, tmp_path):
     from beavr_sim.assets import bundled_trace
     from beavr_sim.teleop.__main__ import main

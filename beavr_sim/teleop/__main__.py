@@ -122,7 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--max-seconds", type=float, default=None, help="stop after this long")
     p.add_argument("--repeat", type=int, default=1, help="trace: play it N times, 0 = until Ctrl-C")
-    p.add_argument("--summary-json", type=Path, default=None, help="also write the summary here")
+    p.add_argument(
+        "--summary-json",
+        type=Path,
+        default=None,
+        help="also write the summary here ('-': stdout only; it is always the last stdout line)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument(
         "--debug", action="store_true", help="log with Python tracebacks (default: one line each)"
@@ -320,7 +325,7 @@ def _run(args: argparse.Namespace, options, stop: StopSignal) -> int:
         for line in explain(report):
             print(line, file=sys.stderr)
     line = json.dumps(report)
-    if args.summary_json is not None:
+    if args.summary_json is not None and str(args.summary_json) != "-":  # '-': stdout (below)
         args.summary_json.parent.mkdir(parents=True, exist_ok=True)
         args.summary_json.write_text(line + "\n")
     print(line)
