@@ -109,12 +109,17 @@ def test_an_interrupted_recording_keeps_finished_episodes_only(tmp_path):
 
 
 def test_recording_into_an_existing_dataset_says_it_appends(tmp_path):
-    args = (*TRACE_SESSION, "--record", str(tmp_path / "ds"), "--cameras", "none")
-    args += ("--max-seconds", "0.3", "--quiet")
-    for run in (1, 2):
-        session = Session(*args)
+    dataset = tmp_path / "ds"
+    args = (*TRACE_SESSION, "--record", str(dataset), "--cameras", "none", "--quiet")
+    # the first run saves its whole episode (no time limit: a loaded machine must not matter);
+    # the second only needs to open the dataset
+    for run, extra in ((1, ()), (2, ("--max-seconds", "0.3"))):
+        session = Session(*args, *extra)
         rc, _ = session.finish()
         assert rc == 0, session.err[-2000:]
+        if run == 1:
+            info = json.loads((dataset / "meta" / "info.json").read_text())
+            assert info["total_episodes"] == 1, info
         said = "appending to the 1 episodes already there" in session.err
         assert said is (run == 2), session.err[-2000:]
 
