@@ -13,7 +13,7 @@ import pytest
 
 from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
 from beavr_sim.teleop.__main__ import hardware_outcome
-from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, TeleopSummary
+from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, RunTally, TeleopSummary
 from beavr_sim.teleop.session import HardwareSync, ProgressLine, SessionOptions, build_loop
 
 
@@ -190,11 +190,16 @@ def test_latency_log_is_bounded_and_reads_like_a_list():
 
 def test_summary_counts_runs_and_the_cli_outcome():
     summary = TeleopSummary("T", "E", False, 0, 0, 0, 1.0, {})
-    summary.add_run(RunRecord(1, True, 9.0))
-    summary.add_run(RunRecord(2, True, 9.0, hardware_fault="right_arm failed"))
-    summary.add_run(RunRecord(3, False, 2.5))
+    tally = RunTally()
+    tally.add(RunRecord(1, True, 9.0))
+    tally.add(RunRecord(2, True, 9.0, hardware_fault="right_arm failed"))
+    tally.add(RunRecord(3, False, 2.5))
+    tally.add(RunRecord(4, True, 9.0, saved=False))  # recorded, discarded: not a success
+    summary.count_runs(tally)
     report = summary.to_dict()
-    assert report["runs"] == 3 and report["successes"] == 1 and report["hardware_faults"] == 1
+    assert report["runs"] == 4 and report["successes"] == 1 and report["hardware_faults"] == 1
+    assert report["per_run_dropped"] == 0 and len(report["per_run"]) == 4
+    assert report["run_totals"]["duration_s"] == 29.5
     assert report["per_run"][1] == {
         "run": 2,
         "success": True,
@@ -208,6 +213,25 @@ def test_summary_counts_runs_and_the_cli_outcome():
     assert code == 4 and "right_arm" in line and "no answer within 5 s" in line
     code, line = hardware_outcome({"stopped_early": "episode 2/3: not in sync"})
     assert code == 5 and "not in sync" in line
+
+
+def test_a_long_sessions_run_lines_stay_bounded():
+    """A day of ``--repeat`` runs keeps the first and the last ``kept`` runs' lines and counts
+    every run (the lines were kept whole: one per run, for ever)."""
+    tally = RunTally(kept=3)
+    for run in range(1, 1001):
+        tally.add(RunRecord(run, run % 2 == 0, 2.0, sync_s=0.5 if run == 7 else 0.25))
+    summary = TeleopSummary("T", "E", False, 0, 0, 0, 1.0, {})
+    summary.count_runs(tally)
+    report = summary.to_dict()
+    assert [line["run"] for line in report["per_run"]] == [1, 2, 3, 998, 999, 1000]
+    assert report["runs"] == 1000 and report["successes"] == 500
+    assert report["per_run_kept"] == 3 and report["per_run_dropped"] == 994
+    totals = report["run_totals"]
+    assert totals["duration_s"] == 2000.0 and totals["longest_s"] == 2.0
+    assert totals["slowest_sync_s"] == 0.5 and totals["mean_sync_s"] == 0.25
+    with pytest.raises(ValueError, match="kept must be >= 1"):
+        RunTally(kept=0)
 
 
 def test_watch_allows_the_devices_lag_but_not_a_frozen_state():
