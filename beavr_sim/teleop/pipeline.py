@@ -139,15 +139,17 @@ class LatencyLog:
     (``log[-200:]``, ``log[k:]`` with ``k`` an absolute count, as a list of the values still
     held), and a uniform sample of all of them (reservoir sampling, at most ``sample``
     values; every value while fewer came) gives the percentiles. ``len()`` counts every value
-    appended since the last :meth:`clear`. A whole-day session keeps the same few megabytes
-    as a minute's.
+    appended since the last :meth:`clear`. Both buffers are resident from construction, so a
+    whole-day session holds the same megabyte as a minute's.
     """
 
     def __init__(self, recent: int = 1 << 16, sample: int = 1 << 16, seed: int = 0):
         if recent < 1 or sample < 1:
             raise ValueError(f"recent and sample must be >= 1, got {recent}, {sample}")
-        self._ring = np.zeros(int(recent))
-        self._sample = np.zeros(int(sample))
+        # Written through now: np.zeros' pages become resident only when first written, so
+        # the process's memory would creep up for as long as the buffers take to fill.
+        self._ring = np.full(int(recent), np.nan)
+        self._sample = np.full(int(sample), np.nan)
         self._rng = np.random.default_rng(seed)
         self._n = 0
 
