@@ -8,7 +8,7 @@ process every ``--sample-s`` seconds. Reports the slope of a least-squares line 
 samples after the warm-up (MB per hour; its standard error), target <= 1 MB per hour for this
 process: every per-write and per-frame statistic is kept in bounded form, so a day's session
 holds what a minute's does. Beside the RSS it fits what the allocators hold in use: glibc's
-``mallinfo2`` (bytes malloc handed out and did not get back: numpy, MuJoCo, the SDKs) and
+``mallinfo2`` (:func:`beavr_sim.heap.in_use_mb`: numpy, MuJoCo, the SDKs) and
 ``sys.getallocatedblocks()`` (Python objects), so that a slope of the RSS alone (a buffer's
 pages first written, allocator arenas) tells itself from a leak (in-use memory that grows).
 JSON on the last stdout line. Figures: docs/hardware.md ("A recording day"),
@@ -18,7 +18,6 @@ docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import math
 import sys
@@ -28,6 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from beavr_sim.heap import in_use_mb
 
 #: The target slope of this process's resident memory after warm-up (MB per hour).
 TARGET_MB_PER_HOUR = 1.0
@@ -42,38 +43,6 @@ def rss_mb(pid: int | str = "self") -> float | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
-
-
-class _MallInfo2(ctypes.Structure):
-    _fields_ = [
-        (name, ctypes.c_size_t)
-        for name in (
-            "arena", "ordblks", "smblks", "hblks", "hblkhd",
-            "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost",
-        )
-    ]  # fmt: skip
-
-
-def _mallinfo2():
-    """glibc's ``mallinfo2`` (2.33 and later), or None with another C library."""
-    try:
-        fn = ctypes.CDLL(None).mallinfo2
-    except (OSError, AttributeError):
-        return None
-    fn.restype = _MallInfo2
-    return fn
-
-
-_MALLINFO2 = _mallinfo2()
-
-
-def malloc_in_use_mb() -> float | None:
-    """MB this process's C allocator has handed out and not had back (every arena and the
-    mmapped blocks: glibc's ``mallinfo2``); None where that is not available."""
-    if _MALLINFO2 is None:
-        return None
-    info = _MALLINFO2()
-    return (info.uordblks + info.hblkhd) / (1024.0 * 1024.0)
 
 
 def child_pids(pid: int | str = "self") -> list[int]:
@@ -137,7 +106,7 @@ class RssSampler:
                 self.t.append(time.monotonic() - self._t0)
                 self.own.append(own)
                 self.children.append(sum(k for k in kids if k is not None))
-                in_use = malloc_in_use_mb()
+                in_use = in_use_mb()
                 self.malloc.append(math.nan if in_use is None else in_use)
                 self.py_blocks.append(sys.getallocatedblocks())
             self._stop.wait(self.period_s)
