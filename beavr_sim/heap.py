@@ -1,11 +1,9 @@
-"""The process's C heap (glibc malloc): what it holds in use, and handing its free pages back.
+"""The process's C heap (glibc malloc): how much of it is in use.
 
 A long session allocates and frees the same sizes for hours from several threads (the twin,
 the mirror's writers, the SDKs' receivers); glibc keeps freed memory in its arenas, so the
 resident memory can creep up while the memory in use stays flat. :func:`in_use_mb` tells the
-two apart (the soak benchmark fits both); :func:`trim` hands the arenas' free pages back to
-the OS (``malloc_trim(0)``), for a moment between episodes, never on the per-tick path. Both
-are no-ops (None, False) with another C library.
+two apart (the soak benchmark fits both). None with another C library.
 """
 
 from __future__ import annotations
@@ -33,9 +31,6 @@ def _libc_function(name: str, restype):
 
 
 _MALLINFO2 = _libc_function("mallinfo2", _MallInfo2)  # glibc 2.33 and later
-_MALLOC_TRIM = _libc_function("malloc_trim", ctypes.c_int)
-if _MALLOC_TRIM is not None:
-    _MALLOC_TRIM.argtypes = [ctypes.c_size_t]
 
 
 def in_use_mb() -> float | None:
@@ -45,9 +40,3 @@ def in_use_mb() -> float | None:
         return None
     info = _MALLINFO2()
     return (info.uordblks + info.hblkhd) / (1024.0 * 1024.0)
-
-
-def trim() -> bool:
-    """Hand the C heap's free pages back to the OS; whether any were (False: none, or not
-    glibc). Takes about a millisecond per arena: call it between episodes."""
-    return bool(_MALLOC_TRIM(0)) if _MALLOC_TRIM is not None else False

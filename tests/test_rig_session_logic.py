@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from beavr_sim import heap
 from beavr_sim.bench.soak import rss_mb
 from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
 from beavr_sim.hardware.mirror import WriteLog
@@ -125,17 +124,6 @@ def loop():
     loop = build_loop(options)
     yield loop
     loop.twin.env.close()
-
-
-def test_each_reset_hands_the_c_heaps_free_pages_back(loop, monkeypatch):
-    """Between episodes the loop trims the C heap (freed memory stayed in glibc's arenas:
-    a mirrored soak's RSS crept while the memory in use stayed flat)."""
-    trims = []
-    monkeypatch.setattr(heap, "trim", lambda: trims.append(1) or True)
-    loop.reset(0)
-    loop.reset(1)
-    assert len(trims) == 2
-    assert isinstance(heap.in_use_mb(), float | None)
 
 
 def test_sync_ticks_without_consuming_the_trace_then_resets(loop):

@@ -37,7 +37,6 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from beavr_sim import heap
 from beavr_sim.headset.sources import HandSource
 from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.operator.obstacles import fixture_obstacles
@@ -529,11 +528,9 @@ class TeleopLoop:
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> None:
         """Reset the twin (new episode; the robot at ``robot_qpos`` or home) and re-home the
-        operator from the measured joints. The C heap's free pages go back to the OS here,
-        between episodes (:func:`beavr_sim.heap.trim`), so a day of episodes does not creep."""
+        operator from the measured joints."""
         self.seed = seed
         self.resets += 1
-        heap.trim()
         q = self.twin.reset(seed, robot_qpos)
         self.operator.reset(q, self.twin.slices)
         env = self.twin.env
