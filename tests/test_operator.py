@@ -18,7 +18,7 @@ from beavr_sim.operator.filters import (
     so3_exp,
     so3_log,
 )
-from beavr_sim.operator.operator import Operator, OperatorConfig
+from beavr_sim.operator.operator import MAX_PENDING_GESTURES, Operator, OperatorConfig
 from beavr_sim.operator.palm import R_world_palm, T_world_palm, keypoints_in_palm
 from beavr_sim.operator.retarget import human_keypoints_for
 from beavr_sim.robots import make_embodiment
@@ -397,6 +397,21 @@ def test_both_hands_pinching_is_the_estop_gesture(operator):
     assert gestures == [] and operator.take_gestures() == ["estop"]
     with pytest.raises(UnknownNameError, match="estop"):
         operator.take_gestures("stop")
+
+
+def test_gestures_nobody_takes_stay_bounded(operator):
+    """A session that does not record never takes the record gesture: the queue keeps only
+    the newest MAX_PENDING_GESTURES (it grew by one per gesture for the whole session)."""
+    fresh(operator)
+    L, R = palm_down([0.3, 0.2, 1.0]), palm_down([0.3, -0.2, 1.0])
+    operator.observe(frame(R, 0.0, pinch=True))
+    t = 0.0
+    for _ in range(100):  # both hands pinch again and again: one e-stop gesture each time
+        operator.observe(frame(L, t, side="left", pinch=True))
+        operator.observe(frame(L, t + 0.01, side="left", pinch=False))
+        t += 0.02
+    assert operator.take_gestures("record") == []
+    assert operator.take_gestures() == ["estop"] * MAX_PENDING_GESTURES
 
 
 def test_commands_respect_joint_limits(operator):

@@ -11,9 +11,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from beavr_sim.bench.soak import rss_mb
 from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
+from beavr_sim.hardware.mirror import WriteLog
 from beavr_sim.teleop.__main__ import hardware_outcome
-from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, TeleopSummary
+from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, RunTally, TeleopSummary
 from beavr_sim.teleop.session import HardwareSync, ProgressLine, SessionOptions, build_loop
 
 
@@ -188,13 +190,33 @@ def test_latency_log_is_bounded_and_reads_like_a_list():
     assert len(small) == 0 and small[-5:] == []
 
 
+def test_bounded_statistics_are_resident_from_the_start():
+    """Filling a latency log or a device's write log does not grow the process: their buffers
+    are written through at construction (np.zeros' pages became resident only as each was
+    first written, which a soak saw as a slope of ~1 MB/h for the first hour)."""
+    n = 1 << 19  # 4 MB per buffer
+    for log, add in (
+        (LatencyLog(recent=n, sample=n), lambda log, v: log.append(v)),
+        (WriteLog(size=n), lambda log, v: log.add(v, v)),
+    ):
+        before = rss_mb()
+        for v in range(n):
+            add(log, float(v))
+        assert rss_mb() - before < 2.0, type(log).__name__  # was ~8 MB: every page touched
+
+
 def test_summary_counts_runs_and_the_cli_outcome():
     summary = TeleopSummary("T", "E", False, 0, 0, 0, 1.0, {})
-    summary.add_run(RunRecord(1, True, 9.0))
-    summary.add_run(RunRecord(2, True, 9.0, hardware_fault="right_arm failed"))
-    summary.add_run(RunRecord(3, False, 2.5))
+    tally = RunTally()
+    tally.add(RunRecord(1, True, 9.0))
+    tally.add(RunRecord(2, True, 9.0, hardware_fault="right_arm failed"))
+    tally.add(RunRecord(3, False, 2.5))
+    tally.add(RunRecord(4, True, 9.0, saved=False))  # recorded, discarded: not a success
+    summary.count_runs(tally)
     report = summary.to_dict()
-    assert report["runs"] == 3 and report["successes"] == 1 and report["hardware_faults"] == 1
+    assert report["runs"] == 4 and report["successes"] == 1 and report["hardware_faults"] == 1
+    assert report["per_run_dropped"] == 0 and len(report["per_run"]) == 4
+    assert report["run_totals"]["duration_s"] == 29.5
     assert report["per_run"][1] == {
         "run": 2,
         "success": True,
@@ -208,6 +230,25 @@ def test_summary_counts_runs_and_the_cli_outcome():
     assert code == 4 and "right_arm" in line and "no answer within 5 s" in line
     code, line = hardware_outcome({"stopped_early": "episode 2/3: not in sync"})
     assert code == 5 and "not in sync" in line
+
+
+def test_a_long_sessions_run_lines_stay_bounded():
+    """A day of ``--repeat`` runs keeps the first and the last ``kept`` runs' lines and counts
+    every run (the lines were kept whole: one per run, for ever)."""
+    tally = RunTally(kept=3)
+    for run in range(1, 1001):
+        tally.add(RunRecord(run, run % 2 == 0, 2.0, sync_s=0.5 if run == 7 else 0.25))
+    summary = TeleopSummary("T", "E", False, 0, 0, 0, 1.0, {})
+    summary.count_runs(tally)
+    report = summary.to_dict()
+    assert [line["run"] for line in report["per_run"]] == [1, 2, 3, 998, 999, 1000]
+    assert report["runs"] == 1000 and report["successes"] == 500
+    assert report["per_run_kept"] == 3 and report["per_run_dropped"] == 994
+    totals = report["run_totals"]
+    assert totals["duration_s"] == 2000.0 and totals["longest_s"] == 2.0
+    assert totals["slowest_sync_s"] == 0.5 and totals["mean_sync_s"] == 0.25
+    with pytest.raises(ValueError, match="kept must be >= 1"):
+        RunTally(kept=0)
 
 
 def test_watch_allows_the_devices_lag_but_not_a_frozen_state():

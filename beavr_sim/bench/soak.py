@@ -7,13 +7,19 @@ the resident memory (``VmRSS`` of ``/proc/<pid>/status``) of this process and of
 process every ``--sample-s`` seconds. Reports the slope of a least-squares line through the
 samples after the warm-up (MB per hour; its standard error), target <= 1 MB per hour for this
 process: every per-write and per-frame statistic is kept in bounded form, so a day's session
-holds what a minute's does. JSON on the last stdout line. Figures: docs/hardware.md ("A recording day").
+holds what a minute's does. Beside the RSS it fits what the allocators hold in use: glibc's
+``mallinfo2`` (:func:`beavr_sim.heap.in_use_mb`: numpy, MuJoCo, the SDKs) and
+``sys.getallocatedblocks()`` (Python objects), so that a slope of the RSS alone (a buffer's
+pages first written, allocator arenas) tells itself from a leak (in-use memory that grows).
+JSON on the last stdout line. Figures: docs/hardware.md ("A recording day"),
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import threading
 import time
@@ -21,6 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from beavr_sim.heap import in_use_mb
 
 #: The target slope of this process's resident memory after warm-up (MB per hour).
 TARGET_MB_PER_HOUR = 1.0
@@ -80,6 +88,9 @@ class RssSampler:
         self.t: list[float] = []
         self.own: list[float] = []
         self.children: list[float] = []
+        #: What the allocators hold in use: malloc'd MB (nan where unknown), Python's blocks.
+        self.malloc: list[float] = []
+        self.py_blocks: list[int] = []
         self._stop = threading.Event()
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
@@ -95,6 +106,9 @@ class RssSampler:
                 self.t.append(time.monotonic() - self._t0)
                 self.own.append(own)
                 self.children.append(sum(k for k in kids if k is not None))
+                in_use = in_use_mb()
+                self.malloc.append(math.nan if in_use is None else in_use)
+                self.py_blocks.append(sys.getallocatedblocks())
             self._stop.wait(self.period_s)
 
     def stop(self) -> None:
@@ -146,6 +160,10 @@ def run(
     warm = t >= warmup_minutes * 60.0
     own = Slope.fit(t[warm], np.asarray(sampler.own)[warm])
     emulators = Slope.fit(t[warm], np.asarray(sampler.children)[warm])
+    malloc_mb = np.asarray(sampler.malloc)
+    known = warm & np.isfinite(malloc_mb)
+    malloc = Slope.fit(t[known], malloc_mb[known])
+    blocks = Slope.fit(t[warm], np.asarray(sampler.py_blocks, dtype=float)[warm] / 1e3)
     return {
         "benchmark": "soak",
         "task": summary.task,
@@ -168,6 +186,10 @@ def run(
         "rss_slope_mb_per_hour": own.mb_per_hour,
         "rss_slope_stderr_mb_per_hour": own.stderr_mb_per_hour,
         "samples_after_warmup": own.samples,
+        "malloc_in_use_slope_mb_per_hour": malloc.mb_per_hour,
+        "malloc_in_use_slope_stderr_mb_per_hour": malloc.stderr_mb_per_hour,
+        "python_blocks_slope_k_per_hour": blocks.mb_per_hour,
+        "python_blocks_slope_stderr_k_per_hour": blocks.stderr_mb_per_hour,
         "emulator_rss_slope_mb_per_hour": emulators.mb_per_hour,
         "target_mb_per_hour": TARGET_MB_PER_HOUR,
         "within_target": own.mb_per_hour is not None and own.mb_per_hour <= TARGET_MB_PER_HOUR,

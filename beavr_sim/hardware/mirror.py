@@ -204,11 +204,12 @@ class _Orders:
 class WriteLog:
     """Bounded timing of a device's writes: the last :data:`WRITE_LOG_SIZE` (monotonic time,
     latency in ms) pairs for percentiles, and the count and first/last times of all of them
-    for the rate. Memory does not grow with the writes."""
+    for the rate. Memory does not grow with the writes: the ring is resident from
+    construction (np.zeros' pages would become resident one by one as the ring fills)."""
 
     def __init__(self, size: int = WRITE_LOG_SIZE):
-        self._times = np.zeros(size)
-        self._latency = np.zeros(size)
+        self._times = np.full(size, np.nan)
+        self._latency = np.full(size, np.nan)
         self.count = 0
         self.first = math.nan
         self.last = math.nan

@@ -24,7 +24,8 @@ Session control:
   (start / stop a recorded episode): the pause its press toggled is undone and ``"record"``
   is queued for :meth:`Operator.take_gestures`. The robot holds during the gesture. Both
   hands pinching at once (rising edge) is the emergency-stop gesture ``"estop"`` (a mirrored
-  session latches its e-stop on it).
+  session latches its e-stop on it). At most :data:`MAX_PENDING_GESTURES` wait to be taken
+  (the oldest go first: a session that never takes the record gesture keeps a few).
 - tracking loss: no usable frame (palm joints tracked) for ``tracking_timeout_s``: the effector
   holds where it is and a warning is logged; when tracking returns it continues from the same
   anchor (the hand may have moved meanwhile, within the jump limit).
@@ -62,6 +63,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -107,6 +109,8 @@ HOLD_REASONS = (
     "retarget_infeasible",
 )
 GESTURES = ("record", "estop")
+#: Gestures kept until taken; older ones are dropped.
+MAX_PENDING_GESTURES = 16
 
 
 def log_due(count: int) -> bool:
@@ -581,7 +585,7 @@ class Operator:
         self._pinch_paused = False
         self._last_pinch = {s: False for s in SIDES}
         self._pinch_start: float | None = None  # source time of the held pinch's press
-        self._gestures: list[str] = []
+        self._gestures: deque[str] = deque(maxlen=MAX_PENDING_GESTURES)
         self._was_paused = False
         #: Frames no effector could take (no side, or a side this embodiment does not know),
         #: and exceptions caught in the session rules (pause, pinch); the effectors count
@@ -678,7 +682,9 @@ class Operator:
         for kind in kinds:
             check_name("gesture", kind, GESTURES)
         taken = [g for g in self._gestures if not kinds or g in kinds]
-        self._gestures = [g for g in self._gestures if kinds and g not in kinds]
+        self._gestures = deque(
+            (g for g in self._gestures if kinds and g not in kinds), maxlen=MAX_PENDING_GESTURES
+        )
         return taken
 
     def targets(self) -> dict[str, EffectorTargets]:

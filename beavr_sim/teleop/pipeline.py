@@ -31,6 +31,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 
@@ -139,15 +140,17 @@ class LatencyLog:
     (``log[-200:]``, ``log[k:]`` with ``k`` an absolute count, as a list of the values still
     held), and a uniform sample of all of them (reservoir sampling, at most ``sample``
     values; every value while fewer came) gives the percentiles. ``len()`` counts every value
-    appended since the last :meth:`clear`. A whole-day session keeps the same few megabytes
-    as a minute's.
+    appended since the last :meth:`clear`. Both buffers are resident from construction, so a
+    whole-day session holds the same megabyte as a minute's.
     """
 
     def __init__(self, recent: int = 1 << 16, sample: int = 1 << 16, seed: int = 0):
         if recent < 1 or sample < 1:
             raise ValueError(f"recent and sample must be >= 1, got {recent}, {sample}")
-        self._ring = np.zeros(int(recent))
-        self._sample = np.zeros(int(sample))
+        # Written through now: np.zeros' pages become resident only when first written, so
+        # the process's memory would creep up for as long as the buffers take to fill.
+        self._ring = np.full(int(recent), np.nan)
+        self._sample = np.full(int(sample), np.nan)
         self._rng = np.random.default_rng(seed)
         self._n = 0
 
@@ -314,6 +317,76 @@ class RunRecord:
         return out
 
 
+#: Runs whose lines a session's summary keeps at each end (the first and the last this many);
+#: the runs between are counted, not listed, so a day of ``--repeat`` holds what an hour does.
+PER_RUN_KEPT = 50
+
+
+class RunTally:
+    """A session's runs in bounded form: every run counted (runs, successes, hardware faults,
+    play and sync time), the lines (:meth:`RunRecord.to_dict`) of the first and the last
+    ``kept`` runs kept, and how many lines between them were dropped.
+
+    A success is a run that reached task success without a hardware fault and, when
+    recording, whose episode was saved (``saved`` not False).
+    """
+
+    def __init__(self, kept: int = PER_RUN_KEPT):
+        if kept < 1:
+            raise ValueError(f"kept must be >= 1, got {kept}")
+        self.kept = int(kept)
+        self.runs = 0
+        self.successes = 0
+        self.hardware_faults = 0
+        self.duration_s = 0.0
+        self.longest_s = 0.0
+        self.syncs = 0
+        self.sync_s = 0.0
+        self.slowest_sync_s = 0.0
+        self._first: list[dict] = []
+        self._last: deque[dict] = deque(maxlen=self.kept)
+
+    def add(self, record: RunRecord) -> None:
+        """Count ``record`` (the run just ended)."""
+        self.runs += 1
+        self.successes += int(
+            record.success and not record.hardware_fault and record.saved is not False
+        )
+        self.hardware_faults += int(bool(record.hardware_fault))
+        self.duration_s += record.duration_s
+        self.longest_s = max(self.longest_s, record.duration_s)
+        if record.sync_s is not None:
+            self.syncs += 1
+            self.sync_s += record.sync_s
+            self.slowest_sync_s = max(self.slowest_sync_s, record.sync_s)
+        line = record.to_dict()
+        if len(self._first) < self.kept:
+            self._first.append(line)
+        else:
+            self._last.append(line)
+
+    @property
+    def dropped(self) -> int:
+        """Runs counted whose lines are not kept (between the first and the last ``kept``)."""
+        return self.runs - len(self._first) - len(self._last)
+
+    def lines(self) -> list[dict]:
+        """The kept runs' lines, oldest first."""
+        return self._first + list(self._last)
+
+    def totals(self) -> dict:
+        """Aggregates over every run (the summary's ``run_totals``)."""
+        out: dict = {
+            "duration_s": round(self.duration_s, 3),
+            "mean_duration_s": round(self.duration_s / self.runs, 3) if self.runs else None,
+            "longest_s": round(self.longest_s, 3),
+        }
+        if self.syncs:
+            out["mean_sync_s"] = round(self.sync_s / self.syncs, 2)
+            out["slowest_sync_s"] = round(self.slowest_sync_s, 2)
+        return out
+
+
 @dataclass
 class TeleopSummary:
     task: str
@@ -354,19 +427,26 @@ class TeleopSummary:
     successes: int = 0
     #: Runs ended or spoilt by the hardware (a device held, failed, diverged or never synced).
     hardware_faults: int = 0
-    #: One line per run, oldest first: :class:`RunRecord` as a dict.
+    #: One line per run, oldest first (:class:`RunRecord` as a dict): the first and the last
+    #: ``per_run_kept`` runs; ``per_run_dropped`` runs between them are counted, not listed.
     per_run: list = field(default_factory=list)
+    per_run_kept: int = PER_RUN_KEPT
+    per_run_dropped: int = 0
+    #: Aggregates over every run (:meth:`RunTally.totals`: play time, mean and longest run,
+    #: mean and slowest sync).
+    run_totals: dict = field(default_factory=dict)
     #: Mirrored devices that failed and were not recovered (the CLI exits with code 4).
     failed_devices: list = field(default_factory=list)
     #: Why the session ended before all its runs were played ("" when it did not).
     stopped_early: str = ""
 
-    def add_run(self, record: RunRecord) -> None:
-        """Count ``record`` (the run just ended) in the session's totals."""
-        self.per_run.append(record.to_dict())
-        self.runs = len(self.per_run)
-        self.successes += int(record.success and not record.hardware_fault)
-        self.hardware_faults += int(bool(record.hardware_fault))
+    def count_runs(self, tally: RunTally) -> None:
+        """Describe the session's runs (the session runner's :class:`RunTally`)."""
+        self.runs, self.successes = tally.runs, tally.successes
+        self.hardware_faults = tally.hardware_faults
+        self.per_run = tally.lines()
+        self.per_run_kept, self.per_run_dropped = tally.kept, tally.dropped
+        self.run_totals = tally.totals()
 
     def to_dict(self) -> dict:
         return asdict(self)

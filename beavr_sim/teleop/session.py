@@ -32,7 +32,13 @@ from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.mirroring import hardware_summary
-from beavr_sim.teleop.pipeline import RunRecord, TeleopLoop, TeleopSummary, ThreadedListener
+from beavr_sim.teleop.pipeline import (
+    RunRecord,
+    RunTally,
+    TeleopLoop,
+    TeleopSummary,
+    ThreadedListener,
+)
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
 
@@ -665,7 +671,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
     synced rig. Returns the last run's summary with every run counted."""
     from beavr_sim.headset.sources import TraceSource
 
-    records: list[RunRecord] = []
+    records = RunTally()
     stopped = ""
     run, played = 0, 0.0
     summary = None
@@ -683,7 +689,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
             if loop.interrupted():
                 break
             if fault:
-                records.append(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
+                records.add(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
                 stopped = f"run {run + 1}: {fault}"
                 break
         remaining = None if options.max_seconds is None else options.max_seconds - played
@@ -696,9 +702,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
         run += 1
         played += summary.duration_s
         fault = episode_fault(mirror) if mirror is not None else ""
-        records.append(
-            RunRecord(run, bool(summary.success), summary.duration_s, fault, sync_s=sync_s)
-        )
+        records.add(RunRecord(run, bool(summary.success), summary.duration_s, fault, sync_s=sync_s))
         if options.progress:
             print(
                 f"\nrun {run}: {'success' if summary.success else 'no success'}, "
@@ -714,8 +718,7 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
             break
     if summary is None:
         summary = loop.summary(False)
-    for record in records:
-        summary.add_run(record)
+    summary.count_runs(records)
     summary.stopped_early = stopped
     return summary
 
@@ -809,7 +812,7 @@ def record_episodes(
     recorder = EpisodeRecorder(writer, env, config, state_source=state_source, watch=watch)
     summary = None
     attempts = saved = 0
-    records: list[RunRecord] = []
+    records = RunTally()
     stopped = ""
     # A trace's episode the hardware spoilt is played again (it does not count towards
     # --episodes), but a rig that spoils MAX_FAULTS_IN_A_ROW in a row ends the session.
@@ -859,7 +862,7 @@ def record_episodes(
                 if loop.interrupted():
                     break
                 if fault:
-                    records.append(
+                    records.add(
                         RunRecord(attempts + 1, False, 0.0, fault, saved=False, sync_s=sync_s())
                     )
                     stopped = f"{name}: {fault}"
@@ -902,7 +905,7 @@ def record_episodes(
             saved += int(written and not fault)
             faulty += int(bool(fault))
             in_a_row = in_a_row + 1 if fault else 0
-            records.append(
+            records.add(
                 RunRecord(
                     attempts,
                     bool(summary.success),
@@ -945,9 +948,7 @@ def record_episodes(
         writer.close()
     if summary is None:
         summary = loop.summary(False)
-    for record in records:
-        summary.add_run(record)
-    summary.successes = sum(1 for r in records if r.success and not r.hardware_fault and r.saved)
+    summary.count_runs(records)
     summary.stopped_early = stopped
     return summary
 
