@@ -22,7 +22,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "beavr_sim"
 
 #: Top-level modules and packages of ``beavr_sim``, lowest layer first.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("naming", "assets", "workcell", "scaling"),  # names, files, world frame, job executors
+    ("naming", "assets", "workcell", "scaling", "heap"),  # names, files, world frame, jobs, heap
     ("robots",),  # arms, hands, embodiments (MjSpec composition)
     ("tasks",),  # objects, resets, success checkers
     ("envs", "reference"),  # the gym env; reference models for tests and benchmarks
