@@ -63,8 +63,10 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
     common: dict[str, Any] = {"fps": fps, "width": width, "height": height}
     try:
         if kind == "opencv":
-            source: int | Path = int(target) if target.isdigit() else Path(target)
-            return name, OpenCVCameraConfig(index_or_path=source, **common)
+            if target.isdigit():
+                return name, OpenCVCameraConfig(index_or_path=int(target), **common)
+            # A video file plays at its own rate; OpenCV cannot set a file's fps.
+            return name, OpenCVCameraConfig(index_or_path=Path(target), **{**common, "fps": None})
         if kind == "realsense":
             return name, RealSenseCameraConfig(serial_number_or_name=target, **common)
         host, _, port = target.rpartition(":")
