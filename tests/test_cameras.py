@@ -131,7 +131,8 @@ def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
 # --- capture through LeRobot's cameras -------------------------------------------------------
 
 def test_opencv_video_file_delivers_then_dies_at_end(tmp_path):
-    _, cfg = parse_camera_arg(f"front=opencv:{_video(tmp_path / 'v.avi', 30)}")
+    cfg = parse_camera_table("front", {"type": "opencv", "fps": None, "warmup_s": 0,
+                                       "index_or_path": str(_video(tmp_path / "v.avi", 300))})
     cams = CameraSet({"front": cfg}, control_period_s=0.05, dead_after_s=0.5)
     cams.connect()
     try:

@@ -23,7 +23,7 @@ from lerobot.cameras.utils import make_cameras_from_configs
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
 DEAD_AFTER_S = 1.0
-FIRST_FRAME_TIMEOUT_MS = 5000.0
+FIRST_FRAME_TIMEOUT_S = 5.0
 
 
 class CameraError(RuntimeError):
@@ -94,13 +94,23 @@ class CameraSet:
                 camera = make_cameras_from_configs({name: config})[name]
                 camera.connect()
                 self._cameras[name] = camera
-                camera.async_read(timeout_ms=FIRST_FRAME_TIMEOUT_MS)
+                self._wait_first_frame(camera)
             except Exception as exc:  # noqa: BLE001 - any failure to open is reported the same way
                 self.close()
                 first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 raise CameraError(f"camera {name!r} ({config.type}) failed to start: {first}; "
                                   f"{_what_to_check(config)}") from None
         self.start_episode()
+
+    @staticmethod
+    def _wait_first_frame(camera: Camera) -> None:
+        deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+        while time.monotonic() < deadline:
+            with camera.frame_lock:
+                if camera.latest_frame is not None:
+                    return
+            time.sleep(0.01)
+        raise TimeoutError(f"no frame within {FIRST_FRAME_TIMEOUT_S:.0f} s")
 
     def frame_shape(self, name: str) -> tuple[int, int, int]:
         """(height, width, 3) of a connected camera's frames."""
