@@ -16,7 +16,7 @@ import zmq
 from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
-from beavr_sim.cameras import CameraError, CameraSet, CameraSpecError, parse_camera_arg, parse_camera_table
+from beavr_sim.cameras import CameraError, RealCameras, CameraSpecError, parse_camera_arg, parse_camera_table
 from beavr_sim.cameras.spec import merge_cameras
 
 WAIT_S = 20.0  # generous readiness deadline, never a pass/fail timing bound
@@ -68,10 +68,10 @@ def server():
     srv.close()
 
 
-def _zmq_set(port: int, period_s: float = 0.05, dead_after_s: float = 1.0) -> CameraSet:
+def _zmq_set(port: int, period_s: float = 0.05, dead_after_s: float = 1.0) -> RealCameras:
     config = parse_camera_table("front", {"type": "zmq", "server_address": "127.0.0.1", "port": port,
                                           "warmup_s": 0, "timeout_ms": 200})
-    return CameraSet({"front": config}, control_period_s=period_s, dead_after_s=dead_after_s)
+    return RealCameras({"front": config}, control_period_s=period_s, dead_after_s=dead_after_s)
 
 
 def _video(path: Path, frames: int) -> Path:
@@ -123,7 +123,7 @@ def test_rig_table_errors_list_valid_choices():
 
 def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
     _, cfg = parse_camera_arg(f"front=opencv:{tmp_path / 'missing.avi'}")
-    cams = CameraSet({"front": cfg}, control_period_s=0.05)
+    cams = RealCameras({"front": cfg}, control_period_s=0.05)
     with pytest.raises(CameraError, match=r"camera 'front' \(opencv\) failed to start: .*check that .*missing.avi"):
         cams.connect()
 
@@ -133,7 +133,7 @@ def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
 def test_opencv_video_file_delivers_then_dies_at_end(tmp_path):
     cfg = parse_camera_table("front", {"type": "opencv", "fps": None, "warmup_s": 0,
                                        "index_or_path": str(_video(tmp_path / "v.avi", 300))})
-    cams = CameraSet({"front": cfg}, control_period_s=0.05, dead_after_s=0.5)
+    cams = RealCameras({"front": cfg}, control_period_s=0.05, dead_after_s=0.5)
     cams.connect()
     try:
         assert cams.frame_shape("front") == (24, 32, 3)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -112,3 +113,23 @@ def merge_cameras(
     if both:
         raise CameraSpecError(f"camera {both[0]!r} is named both in the rig file and by --camera")
     return {**rig, **cli}
+
+
+def rig_cameras(path: str | Path) -> dict[str, CameraConfig]:
+    """The `[cameras.NAME]` tables of a rig file (none: {})."""
+    with open(path, "rb") as f:
+        tables = tomllib.load(f).get("cameras", {})
+    if not isinstance(tables, dict) or not all(isinstance(t, dict) for t in tables.values()):
+        raise CameraSpecError(f"{path}: [cameras] must hold one [cameras.NAME] table per camera")
+    return {name: parse_camera_table(name, table) for name, table in tables.items()}
+
+
+def session_cameras(
+    camera_args: tuple[str, ...], rig_file: str | Path | None, fps: int
+) -> dict[str, CameraConfig]:
+    """A session's real cameras: the rig file's (when mirroring) plus `--camera` ones."""
+    cli = dict(parse_camera_arg(arg, fps) for arg in camera_args)
+    if len(cli) != len(camera_args):
+        raise CameraSpecError("--camera: the same camera NAME given twice")
+    rig = rig_cameras(rig_file) if rig_file is not None else {}
+    return merge_cameras(rig, cli)

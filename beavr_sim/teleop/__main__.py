@@ -181,6 +181,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rec = p.add_argument_group("recording a LeRobot dataset")
     rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")
+    rec.add_argument(
+        "--camera",
+        action="append",
+        metavar="NAME=SPEC",
+        help="record a real camera as observation.images.NAME (repeatable) through LeRobot's "
+        "cameras; SPEC opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally "
+        "@WIDTHxHEIGHT (docs/cameras.md)",
+    )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()
     start.add_argument(

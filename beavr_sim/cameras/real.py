@@ -1,4 +1,4 @@
-"""CameraSet: owns the session's LeRobot cameras and hands the control thread their newest frames.
+"""RealCameras: owns the session's LeRobot cameras and hands the control thread their newest frames.
 
 Capture runs on LeRobot's own background read threads (started by `connect()`; `async_read` /
 `read_latest` are the reads); this module never captures. `grab()` is non-blocking and never
@@ -32,7 +32,7 @@ class CameraError(RuntimeError):
 
 @dataclass
 class CameraStats:
-    """Per-camera counts for one episode (reset by `CameraSet.start_episode`)."""
+    """Per-camera counts for one episode (reset by `RealCameras.start_episode`)."""
 
     frames: int = 0
     stale: int = 0
@@ -69,7 +69,7 @@ def _what_to_check(config: CameraConfig) -> str:
     return "check the camera's config"
 
 
-class CameraSet:
+class RealCameras:
     """The session's real cameras; one instance per session, `close()` when done."""
 
     def __init__(self, configs: dict[str, CameraConfig], control_period_s: float,
