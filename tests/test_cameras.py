@@ -16,8 +16,9 @@ import zmq
 from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
-from beavr_sim.cameras import CameraError, RealCameras, CameraSpecError, parse_camera_arg, parse_camera_table
-from beavr_sim.cameras.spec import merge_cameras
+from beavr_sim.cameras.errors import CameraError, CameraSpecError
+from beavr_sim.cameras.real import RealCameras
+from beavr_sim.cameras.spec import merge_cameras, parse_camera_arg, parse_camera_table
 
 WAIT_S = 20.0  # generous readiness deadline, never a pass/fail timing bound
 
@@ -192,3 +193,68 @@ def test_camera_dying_mid_episode_is_reported_dead(server):
         _wait_for(lambda: cams.grab().dead == ("front",), "the silent camera to be reported dead")
     finally:
         cams.close()
+
+
+# --- recorded sessions -----------------------------------------------------------------------
+
+def _record(tmp_path, port: int, episode_s: float, listener=None):
+    from beavr_sim.datasets.features import RecordingConfig
+    from beavr_sim.teleop.session import ProgressLine, SessionOptions, build_loop, record_episodes
+
+    options = SessionOptions(
+        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
+        progress=False, record=tmp_path / "rec", repo_id="local/cams", episodes=1,
+        recording=RecordingConfig(cameras=(), episode_seconds=episode_s, use_videos=False),
+        auto_start=True, real_cameras=(f"front=zmq:127.0.0.1:{port}",),
+    )
+    loop = build_loop(options)
+    if listener is not None:
+        loop.listeners.append(listener)
+    record_episodes(options, loop, ProgressLine(loop, enabled=False))
+    lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
+    return [json.loads(x) for x in lines]
+
+
+def test_recorded_frames_are_live_camera_frames(tmp_path, server):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    (record,) = _record(tmp_path, server.port, episode_s=1.0)
+    assert record["kept"] and record["hardware_fault"] is None
+    cams = record["cameras"]["front"]
+    assert cams["frames"] >= record["frames"] and cams["repeats"] < cams["frames"] / 2
+    assert "stale" in cams and "age_p99_ms" in cams
+    ds = LeRobotDataset("local/cams", root=tmp_path / "rec")
+    assert ds.features["observation.images.front"]["shape"] == (24, 32, 3)
+    levels = {round(float(ds[i]["observation.images.front"].mean()), 3) for i in range(ds.num_frames)}
+    assert len(levels) > ds.num_frames / 2  # the server's frames move on: not a frozen image
+
+
+def test_camera_dying_mid_episode_ends_it_as_a_hardware_fault(tmp_path, server):
+    ticks = []
+
+    def stop_camera(tick):
+        ticks.append(tick)
+        if len(ticks) == 10:
+            server.stop.set()
+
+    records = _record(tmp_path, server.port, episode_s=30.0, listener=stop_camera)
+    assert not any(r["kept"] for r in records)  # a trace's spoilt episode is retried, never saved
+    record = records[0]
+    assert not record["success"]
+    assert record["hardware_fault"] == "camera front stopped delivering frames"
+    assert record["ended_by"] == "hardware_fault"
+    assert record["frames"] < 30 * 30  # ended at the fault, not at the time limit
+
+
+def test_camera_flag_errors():
+    from beavr_sim.teleop.session import SessionOptions
+
+    with pytest.raises(ValueError, match="add --record"):
+        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                       real_cameras=("front=opencv:0",))
+    with pytest.raises(ValueError, match="leave out --multiprocess"):
+        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                       multiprocess=True, record=Path("x"), real_cameras=("front=opencv:0",))
+    with pytest.raises(CameraSpecError, match="opencv:INDEX_OR_PATH"):
+        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                       record=Path("x"), real_cameras=("front=usb:0",))

@@ -1,14 +1,7 @@
-"""Real cameras through LeRobot's camera classes: spec parsing and a RealCameras that owns them."""
+"""Real cameras through LeRobot's camera classes.
 
-from beavr_sim.cameras.real import CameraError, RealCameras, CameraStats, Grab
-from beavr_sim.cameras.spec import CameraSpecError, parse_camera_arg, parse_camera_table
-
-__all__ = [
-    "CameraError",
-    "RealCameras",
-    "CameraSpecError",
-    "CameraStats",
-    "Grab",
-    "parse_camera_arg",
-    "parse_camera_table",
-]
+``spec``: ``--camera NAME=SPEC`` and rig ``[cameras.NAME]`` tables -> LeRobot camera configs;
+``real``: :class:`~beavr_sim.cameras.real.RealCameras`, owning the LeRobot cameras and handing
+the recorder their newest frames with capture ages; ``errors``: their one-line errors.
+Submodules are imported where used (LeRobot is a heavy import).
+"""

@@ -22,12 +22,10 @@ from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraCon
 from lerobot.cameras.utils import make_cameras_from_configs
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
+from beavr_sim.cameras.errors import CameraError
+
 DEAD_AFTER_S = 1.0
 FIRST_FRAME_TIMEOUT_S = 5.0
-
-
-class CameraError(RuntimeError):
-    """A camera that cannot be opened or stopped delivering."""
 
 
 @dataclass
@@ -152,6 +150,11 @@ class RealCameras:
             return None, None
         with camera.frame_lock:
             return camera.latest_frame, camera.latest_timestamp
+
+    def failed_for_good(self) -> list[str]:
+        """Cameras whose LeRobot read thread has stopped (they will not come back)."""
+        return [name for name, camera in self._cameras.items()
+                if getattr(camera, "thread", None) is None or not camera.thread.is_alive()]
 
     def summary(self) -> dict[str, dict[str, float | int]]:
         return {name: stats.summary() for name, stats in self.stats.items()}

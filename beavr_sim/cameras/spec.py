@@ -22,6 +22,8 @@ from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
 from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraConfig
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
+from beavr_sim.cameras.errors import CameraSpecError
+
 DEFAULT_FPS = 30
 _NAME = re.compile(r"^[A-Za-z0-9_]+$")
 _SIZE = re.compile(r"^(\d+)x(\d+)$")
@@ -34,10 +36,6 @@ CONFIG_TYPES: dict[str, type[CameraConfig]] = {
     "zmq": ZMQCameraConfig,
 }
 _SPEC_FORMS = "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally @WIDTHxHEIGHT"
-
-
-class CameraSpecError(ValueError):
-    """A camera spec or rig table that cannot become a LeRobot camera config."""
 
 
 def _check_name(name: str, source: str) -> None:
@@ -73,7 +71,12 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
         host, _, port = target.rpartition(":")
         if not host or not port.isdigit():
             raise CameraSpecError(f"camera {name!r}: zmq spec {target!r} is not HOST:PORT")
-        return name, ZMQCameraConfig(server_address=host, port=int(port), camera_name=name, **common)
+        # The image server's camera is already warm; a second without a message is a dead
+        # server (RealCameras reports it), so LeRobot's read need not block longer.
+        return name, ZMQCameraConfig(
+            server_address=host, port=int(port), camera_name=name, warmup_s=0, timeout_ms=1000,
+            **common,
+        )
     except CameraSpecError:
         raise
     except (ValueError, TypeError) as exc:

@@ -277,6 +277,7 @@ def explain(report: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.debug)
+    from beavr_sim.cameras.errors import CameraError
     from beavr_sim.hardware.device import MirrorError
     from beavr_sim.teleop.session import SessionOptions, run_session
 
@@ -296,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
             logging.exception("session failed")
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except MirrorError as exc:
+    except (MirrorError, CameraError) as exc:
         if args.debug:
             logging.exception("rig failed")
         print(f"error: {exc}", file=sys.stderr)

@@ -744,7 +744,7 @@ class _EpisodeRequests:
 def _real_cameras(options: SessionOptions, fps: int):
     """The session's real cameras, connected (None when there are none); a camera that does
     not open fails here with one line naming it."""
-    from beavr_sim.cameras import RealCameras
+    from beavr_sim.cameras.real import RealCameras
     from beavr_sim.cameras.spec import session_cameras
 
     rig = options.hardware_config if options.mirror_hardware else None
@@ -923,6 +923,9 @@ def record_episodes(
                 break
             if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
                 stopped = f"{name}: {fault or episode_fault(mirror)}"
+                break
+            if real is not None and real.failed_for_good():
+                stopped = f"{name}: camera {', '.join(real.failed_for_good())} stopped for good"
                 break
             if in_a_row >= MAX_FAULTS_IN_A_ROW:
                 stopped = f"{in_a_row} episodes in a row spoilt by the hardware; the last: {fault}"
