@@ -33,7 +33,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("headset",),  # stage 1: detector
     ("operator",),  # stage 2: hands -> joint commands
     ("twin",),  # stage 3: twin and collision guard
-    ("hardware",),  # stage 4: drivers, emulators, mirroring
+    ("hardware", "cameras"),  # stage 4: drivers, emulators, mirroring; real cameras (LeRobot)
     ("datasets", "viz"),  # beside the runners: recorder, browser view, rerun log
     ("teleop",),  # the runners
     ("synthetic", "eval"),  # what drives the runners: synthetic operator, policy evaluation

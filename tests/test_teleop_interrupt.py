@@ -63,7 +63,9 @@ class Session:
             pytest.fail(f"the session never printed {text!r}; stderr:\n{self.err[-2000:]}")
 
     def finish(self) -> tuple[int, dict]:
-        out, _ = self.proc.communicate(timeout=HANG_S)
+        # stdout only: communicate() would also read stderr, racing the reader thread for it
+        out = self.proc.stdout.read()
+        self.proc.wait(timeout=HANG_S)
         self._reader.join(HANG_S)
         lines = out.strip().splitlines()
         assert lines, f"no summary on stdout; stderr:\n{self.err[-2000:]}"

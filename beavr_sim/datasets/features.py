@@ -17,7 +17,7 @@ Features (``docs/formats.md`` lists them with shapes):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from beavr_sim.envs.scene import ALL_CAMERA_NAMES
@@ -78,9 +78,11 @@ def lerobot_features(
     embodiment: Embodiment,
     config: RecordingConfig,
     environment_state_names: Sequence[str] = (),
+    real_cameras: Mapping[str, tuple[int, int, int]] | None = None,
 ) -> dict[str, dict]:
     """LeRobot feature dict (``LeRobotDataset.create(features=...)``) for this embodiment;
-    ``environment_state_names`` (the env's) are needed when the config records that state."""
+    ``environment_state_names`` (the env's) are needed when the config records that state;
+    ``real_cameras``: real cameras' frame shapes by name, recorded next to the twin's renders."""
     joints = list(embodiment.joint_names)
     features: dict[str, dict] = {
         STATE: {"dtype": "float32", "shape": (len(joints),), "names": joints},
@@ -98,6 +100,14 @@ def lerobot_features(
         features[IMAGE_PREFIX + camera] = {
             "dtype": "video" if config.use_videos else "image",
             "shape": (config.image_height, config.image_width, 3),
+            "names": ["height", "width", "channels"],
+        }
+    for camera, shape in (real_cameras or {}).items():
+        if IMAGE_PREFIX + camera in features:
+            raise ValueError(f"camera {camera!r} is both a twin camera (--cameras) and a real one")
+        features[IMAGE_PREFIX + camera] = {
+            "dtype": "video" if config.use_videos else "image",
+            "shape": tuple(shape),
             "names": ["height", "width", "channels"],
         }
     if config.hand_keypoints:

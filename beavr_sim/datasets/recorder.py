@@ -16,6 +16,11 @@ checks every frame that every device is live and that the measured joints follow
 :attr:`EpisodeRecorder.fault` (the session ends the episode on it) and written as the episode's
 ``hardware_fault`` in ``meta/beavr_episodes.jsonl``: an episode whose state was frozen or stale
 is never recorded as if it were live.
+
+Real cameras (:class:`~beavr_sim.cameras.RealCameras`, capturing on LeRobot's read threads):
+each observation takes every camera's newest frame as ``observation.images.NAME``; frames older
+than 1.5 control periods are counted per camera (``cameras`` in ``meta/beavr_episodes.jsonl``),
+and a camera that stops delivering is the episode's hardware fault (its frame is not written).
 """
 
 from __future__ import annotations
@@ -178,6 +183,7 @@ class EpisodeRecorder:
         config: RecordingConfig,
         state_source: Callable[[], np.ndarray] | None = None,
         watch: HardwareWatch | None = None,
+        real_cameras=None,
     ):
         self.writer = writer
         self.env = env
@@ -187,6 +193,9 @@ class EpisodeRecorder:
         self.state_source = state_source
         #: Mirrored hardware: the per-frame check that the measured state is true.
         self.watch = watch
+        #: Real cameras (:class:`~beavr_sim.cameras.RealCameras`), already connected, or None.
+        self.real_cameras = real_cameras
+        self._camera_fault = ""
         self.task_text = env.task.instruction or env.task.name
         self.sides = hand_sides(env.embodiment)
         self.cameras = CameraSet.of_env(
@@ -205,6 +214,9 @@ class EpisodeRecorder:
         self.writer.discard_episode()
         self._keypoints[:] = 0.0
         self._tracked[:] = 0.0
+        self._camera_fault = ""
+        if self.real_cameras is not None:
+            self.real_cameras.start_episode()
         self._observation = self._observe()
         self.recording = True
         self.frames = 0
@@ -214,8 +226,10 @@ class EpisodeRecorder:
 
     @property
     def fault(self) -> str:
-        """The episode's first hardware fault ("" when none, or no hardware)."""
-        return self.watch.fault if self.watch is not None else ""
+        """The episode's first hardware fault ("" when none, or no hardware): a device's,
+        or a real camera that stopped delivering."""
+        watched = self.watch.fault if self.watch is not None else ""
+        return watched or self._camera_fault
 
     def end(self, keep: bool, **info) -> bool:
         """End the episode: write it (``keep``) or drop it. Returns whether it was written."""
@@ -235,6 +249,9 @@ class EpisodeRecorder:
         if self.watch is not None:
             record["hardware_fault"] = self.watch.fault or None
             record["max_state_gap_rad"] = round(self.watch.max_gap_rad, 4)
+        if self.real_cameras is not None:
+            record["hardware_fault"] = self.fault or None
+            record["cameras"] = self.real_cameras.summary()
         log_path = Path(self.writer.root) / "meta" / "beavr_episodes.jsonl"
         log_path.parent.mkdir(parents=True, exist_ok=True)
         with log_path.open("a") as f:
@@ -255,11 +272,17 @@ class EpisodeRecorder:
             obs[ENV_STATE] = self.env.environment_state
         for camera, image in self.cameras.render_env(self.env).items():
             obs[IMAGE_PREFIX + camera] = image
+        if self.real_cameras is not None:
+            grab = self.real_cameras.grab()
+            if grab.dead and not self._camera_fault:
+                self._camera_fault = f"camera {', '.join(grab.dead)} stopped delivering frames"
+            for camera, image in grab.frames.items():
+                obs[IMAGE_PREFIX + camera] = image
         return obs
 
     def __call__(self, tick: Tick) -> None:
-        if not self.recording or self._observation is None:
-            return
+        if not self.recording or self._observation is None or self._camera_fault:
+            return  # a dead camera's frame is never written (the episode ends on the fault)
         for frame in tick.frames:
             i = self.sides.index(frame.side) if frame.side in self.sides else None
             if i is None:

@@ -197,9 +197,12 @@ class RigConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str = "") -> RigConfig:
-        unknown = sorted(set(data) - {"mirror", "devices"})
+        # [cameras.NAME] tables are read by beavr_sim.cameras.spec (LeRobot's camera configs).
+        unknown = sorted(set(data) - {"mirror", "devices", "cameras"})
         if unknown:
-            raise ValueError(f"{source}: unknown tables {unknown}; valid: ['devices', 'mirror']")
+            raise ValueError(
+                f"{source}: unknown tables {unknown}; valid: ['cameras', 'devices', 'mirror']"
+            )
         mirror_data = data.get("mirror", {})
         valid = [f.name for f in dataclasses.fields(MirrorConfig)]
         for key in mirror_data:

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.cameras.errors import CameraError
 from beavr_sim.datasets.cli import add_recording_args
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
@@ -192,6 +193,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rec = p.add_argument_group("recording a LeRobot dataset")
     rec.add_argument("--record", type=Path, default=None, help="dataset folder to record into")
+    rec.add_argument(
+        "--camera",
+        action="append",
+        metavar="NAME=SPEC",
+        help="record a real camera as observation.images.NAME (repeatable) through LeRobot's "
+        "cameras; SPEC opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally "
+        "@WIDTHxHEIGHT (docs/cameras.md)",
+    )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()
     start.add_argument(
@@ -310,7 +319,7 @@ def _run(args: argparse.Namespace, options, stop: StopSignal) -> int:
             logging.exception("session failed")
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except MirrorError as exc:
+    except (MirrorError, CameraError) as exc:
         if args.debug:
             logging.exception("rig failed")
         print(f"error: {exc}", file=sys.stderr)

@@ -118,8 +118,22 @@ class SessionOptions:
     #: ``--hardware-config emulated``: faults the emulators inject, in their spec language
     #: (``hardware.rig.parse_fault_specs``); None: none.
     emulate_faults: str | None = None
+    #: ``--camera NAME=SPEC`` (``beavr_sim.cameras.spec``): real cameras recorded next to the
+    #: twin's renders (plus a mirrored rig file's ``[cameras.NAME]`` tables).
+    real_cameras: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        if self.real_cameras:
+            from beavr_sim.cameras.spec import parse_camera_arg
+
+            for arg in self.real_cameras:
+                parse_camera_arg(arg)  # a bad spec fails here, before anything starts
+            if self.multiprocess:
+                raise ValueError(
+                    "--camera runs in one process for now; leave out --multiprocess"
+                )
+            if self.record is None:
+                raise ValueError("--camera records real cameras into a dataset; add --record")
         if self.transport is None:
             self.transport = TransportConfig(headset_host=self.headset_host)
         from beavr_sim.tasks.registry import canonical_task_name
@@ -301,6 +315,7 @@ class SessionOptions:
             keep_faulty_episodes=getattr(args, "keep_faulty_episodes", False),
             sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
+            real_cameras=tuple(getattr(args, "camera", None) or ()),
         )
 
 
@@ -742,6 +757,21 @@ class _EpisodeRequests:
         return stop_when
 
 
+def _real_cameras(options: SessionOptions, fps: int):
+    """The session's real cameras, connected (None when there are none); a camera that does
+    not open fails here with one line naming it."""
+    from beavr_sim.cameras.real import RealCameras
+    from beavr_sim.cameras.spec import session_cameras
+
+    rig = options.hardware_config if options.mirror_hardware else None
+    configs = session_cameras(options.real_cameras, None if rig == "emulated" else rig, fps)
+    if not configs:
+        return None
+    cameras = RealCameras(configs, control_period_s=1.0 / fps)
+    cameras.connect()
+    return cameras
+
+
 def record_episodes(
     options: SessionOptions,
     loop: TeleopLoop,
@@ -791,11 +821,16 @@ def record_episodes(
     note = repeated_trace_note(options, loop.seed)
     if note:
         print(note, file=sys.stderr)
-
+    real = _real_cameras(options, config.fps)
     writer = EpisodeWriter(
         options.record,
         options.repo_id,
-        lerobot_features(env.embodiment, config, env.environment_state_names),
+        lerobot_features(
+            env.embodiment,
+            config,
+            env.environment_state_names,
+            real_cameras={n: real.frame_shape(n) for n in real.names} if real else None,
+        ),
         config.fps,
         robot_type=env.embodiment.name,
         use_videos=config.use_videos,
@@ -809,7 +844,9 @@ def record_episodes(
     watch = None
     if mirror is not None:
         watch = HardwareWatch(mirror.health, follow_limits(mirror, env), config.fps)
-    recorder = EpisodeRecorder(writer, env, config, state_source=state_source, watch=watch)
+    recorder = EpisodeRecorder(
+        writer, env, config, state_source=state_source, watch=watch, real_cameras=real
+    )
     summary = None
     attempts = saved = 0
     records = RunTally()
@@ -940,12 +977,17 @@ def record_episodes(
             if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
                 stopped = f"{name}: {fault or episode_fault(mirror)}"
                 break
+            if real is not None and real.failed_for_good():
+                stopped = f"{name}: camera {', '.join(real.failed_for_good())} stopped for good"
+                break
             if in_a_row >= MAX_FAULTS_IN_A_ROW:
                 stopped = f"{in_a_row} episodes in a row spoilt by the hardware; the last: {fault}"
                 break
     finally:
         recorder.close()
         writer.close()
+        if real is not None:
+            real.close()
     if summary is None:
         summary = loop.summary(False)
     summary.count_runs(records)

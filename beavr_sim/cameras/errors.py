@@ -1,0 +1,9 @@
+"""The camera package's errors, importable without LeRobot (the CLI catches them)."""
+
+
+class CameraSpecError(ValueError):
+    """A camera spec or rig table that cannot become a LeRobot camera config."""
+
+
+class CameraError(RuntimeError):
+    """A camera that cannot be opened."""

@@ -1,0 +1,169 @@
+"""RealCameras: owns the session's LeRobot cameras and hands the control thread their newest frames.
+
+Capture runs on LeRobot's own background read threads (started by `connect()`; `async_read` /
+`read_latest` are the reads); this module never captures. `grab()` is non-blocking and never
+raises: per camera it returns the newest frame and its capture age, counts frames older than
+`stale_after_s` (1.5 control periods) and repeats of an already-returned frame, and reports a
+camera as dead once its newest frame is older than `dead_after_s` or its read thread has stopped.
+A dead camera yields no frame: the caller ends the episode as a hardware fault.
+`connect()` fails with a one-line `CameraError` naming the camera and what to check.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from lerobot.cameras.camera import Camera
+from lerobot.cameras.configs import CameraConfig
+from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
+from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraConfig
+from lerobot.cameras.utils import make_cameras_from_configs
+from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
+
+from beavr_sim.cameras.errors import CameraError
+
+DEAD_AFTER_S = 1.0
+FIRST_FRAME_TIMEOUT_S = 5.0
+
+
+@dataclass
+class CameraStats:
+    """Per-camera counts for one episode (reset by `RealCameras.start_episode`)."""
+
+    frames: int = 0
+    stale: int = 0
+    repeats: int = 0
+    ages_s: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, float | int]:
+        ages = np.asarray(self.ages_s) if self.ages_s else np.zeros(1)
+        return {
+            "frames": self.frames,
+            "stale": self.stale,
+            "repeats": self.repeats,
+            "age_p50_ms": round(float(np.percentile(ages, 50)) * 1e3, 2),
+            "age_p99_ms": round(float(np.percentile(ages, 99)) * 1e3, 2),
+        }
+
+
+@dataclass(frozen=True)
+class Grab:
+    """One grab across all cameras: frames (live cameras only) and the names of dead ones."""
+
+    frames: dict[str, np.ndarray]
+    ages_s: dict[str, float]
+    dead: tuple[str, ...]
+
+
+def _what_to_check(config: CameraConfig) -> str:
+    if isinstance(config, OpenCVCameraConfig):
+        return f"check that {config.index_or_path} exists and is readable (lerobot-find-cameras opencv)"
+    if isinstance(config, RealSenseCameraConfig):
+        return f"check that RealSense {config.serial_number_or_name} is plugged in (lerobot-find-cameras realsense)"
+    if isinstance(config, ZMQCameraConfig):
+        return f"check that an image server answers on {config.server_address}:{config.port}"
+    return "check the camera's config"
+
+
+class RealCameras:
+    """The session's real cameras; one instance per session, `close()` when done."""
+
+    def __init__(self, configs: dict[str, CameraConfig], control_period_s: float,
+                 dead_after_s: float = DEAD_AFTER_S) -> None:
+        if control_period_s <= 0:
+            raise ValueError(f"control_period_s must be > 0, got {control_period_s}")
+        self.configs = dict(configs)
+        self.stale_after_s = 1.5 * control_period_s
+        self.dead_after_s = dead_after_s
+        self._cameras: dict[str, Camera] = {}
+        self._last_stamp: dict[str, float | None] = {}
+        self.stats: dict[str, CameraStats] = {}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.configs)
+
+    def connect(self) -> None:
+        """Open every camera and wait for its first frame; one-line `CameraError` otherwise."""
+        for name, config in self.configs.items():
+            try:
+                camera = make_cameras_from_configs({name: config})[name]
+                camera.connect()
+                self._cameras[name] = camera
+                self._wait_first_frame(camera)
+            except Exception as exc:
+                self.close()
+                first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise CameraError(f"camera {name!r} ({config.type}) failed to start: {first}; "
+                                  f"{_what_to_check(config)}") from None
+        self.start_episode()
+
+    @staticmethod
+    def _wait_first_frame(camera: Camera) -> None:
+        deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+        while time.monotonic() < deadline:
+            with camera.frame_lock:
+                if camera.latest_frame is not None:
+                    return
+            time.sleep(0.01)
+        raise TimeoutError(f"no frame within {FIRST_FRAME_TIMEOUT_S:.0f} s")
+
+    def frame_shape(self, name: str) -> tuple[int, int, int]:
+        """(height, width, 3) of a connected camera's frames."""
+        camera = self._cameras[name]
+        return (int(camera.height), int(camera.width), 3)
+
+    def start_episode(self) -> None:
+        self.stats = {name: CameraStats() for name in self.configs}
+        self._last_stamp = {name: None for name in self.configs}
+
+    def grab(self) -> Grab:
+        """Newest frame of each camera, non-blocking; never raises."""
+        frames: dict[str, np.ndarray] = {}
+        ages: dict[str, float] = {}
+        dead: list[str] = []
+        now = time.perf_counter()
+        for name, camera in self._cameras.items():
+            frame, stamp = self._newest(camera)
+            if frame is None or stamp is None or now - stamp > self.dead_after_s:
+                dead.append(name)
+                continue
+            age = max(0.0, now - stamp)
+            stats = self.stats[name]
+            stats.frames += 1
+            stats.ages_s.append(age)
+            if age > self.stale_after_s:
+                stats.stale += 1
+            if stamp == self._last_stamp[name]:
+                stats.repeats += 1
+            self._last_stamp[name] = stamp
+            frames[name] = frame
+            ages[name] = age
+        return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
+
+    @staticmethod
+    def _newest(camera: Camera) -> tuple[np.ndarray | None, float | None]:
+        thread = getattr(camera, "thread", None)
+        if thread is None or not thread.is_alive():
+            return None, None
+        with camera.frame_lock:
+            return camera.latest_frame, camera.latest_timestamp
+
+    def failed_for_good(self) -> list[str]:
+        """Cameras whose LeRobot read thread has stopped (they will not come back)."""
+        return [name for name, camera in self._cameras.items()
+                if getattr(camera, "thread", None) is None or not camera.thread.is_alive()]
+
+    def summary(self) -> dict[str, dict[str, float | int]]:
+        return {name: stats.summary() for name, stats in self.stats.items()}
+
+    def close(self) -> None:
+        for camera in self._cameras.values():
+            try:
+                if camera.is_connected:
+                    camera.disconnect()
+            except Exception:
+                pass
+        self._cameras.clear()

@@ -1,0 +1,138 @@
+"""Camera specs -> LeRobot camera configs.
+
+Two sources, one result (`dict[name, lerobot CameraConfig]`):
+- CLI `--camera NAME=SPEC`, SPEC `opencv:INDEX_OR_PATH`, `realsense:SERIAL` or `zmq:HOST:PORT`,
+  optionally suffixed `@WIDTHxHEIGHT`;
+- a rig file's `[cameras.NAME]` table with LeRobot's config keys (`type`, `fps`, `width`,
+  `height`, plus the type's own keys such as `index_or_path`, `serial_number_or_name`,
+  `server_address`, `port`).
+Every error is a `CameraSpecError` with one line naming the camera and listing the valid choices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from lerobot.cameras.configs import CameraConfig
+from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
+from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraConfig
+from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
+
+from beavr_sim.cameras.errors import CameraSpecError
+
+DEFAULT_FPS = 30
+_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+_SIZE = re.compile(r"^(\d+)x(\d+)$")
+
+# SPEC prefix / rig `type` -> LeRobot config class.
+CONFIG_TYPES: dict[str, type[CameraConfig]] = {
+    "opencv": OpenCVCameraConfig,
+    "realsense": RealSenseCameraConfig,
+    "intelrealsense": RealSenseCameraConfig,
+    "zmq": ZMQCameraConfig,
+}
+_SPEC_FORMS = "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally @WIDTHxHEIGHT"
+
+
+def _check_name(name: str, source: str) -> None:
+    if not _NAME.match(name):
+        raise CameraSpecError(f"camera {name!r} ({source}): name must be letters, digits or _")
+
+
+def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfig]:
+    """`NAME=SPEC` from the command line -> (name, LeRobot config)."""
+    name, sep, spec = arg.partition("=")
+    if not sep or not name or not spec:
+        raise CameraSpecError(f"--camera {arg!r}: expected NAME=SPEC with SPEC {_SPEC_FORMS}")
+    _check_name(name, "--camera")
+    spec, at, size = spec.partition("@")
+    width = height = None
+    if at:
+        match = _SIZE.match(size)
+        if match is None:
+            raise CameraSpecError(f"camera {name!r}: size {size!r} is not WIDTHxHEIGHT (e.g. 640x480)")
+        width, height = int(match.group(1)), int(match.group(2))
+    kind, colon, target = spec.partition(":")
+    if kind not in ("opencv", "realsense", "zmq") or not colon or not target:
+        raise CameraSpecError(f"camera {name!r}: spec {spec!r} is not one of {_SPEC_FORMS}")
+    common: dict[str, Any] = {"fps": fps, "width": width, "height": height}
+    try:
+        if kind == "opencv":
+            if target.isdigit():
+                return name, OpenCVCameraConfig(index_or_path=int(target), **common)
+            # A video file plays at its own rate; OpenCV cannot set a file's fps.
+            return name, OpenCVCameraConfig(index_or_path=Path(target), **{**common, "fps": None})
+        if kind == "realsense":
+            return name, RealSenseCameraConfig(serial_number_or_name=target, **common)
+        host, _, port = target.rpartition(":")
+        if not host or not port.isdigit():
+            raise CameraSpecError(f"camera {name!r}: zmq spec {target!r} is not HOST:PORT")
+        # The image server's camera is already warm; a second without a message is a dead
+        # server (RealCameras reports it), so LeRobot's read need not block longer.
+        return name, ZMQCameraConfig(
+            server_address=host, port=int(port), camera_name=name, warmup_s=0, timeout_ms=1000,
+            **common,
+        )
+    except CameraSpecError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise CameraSpecError(f"camera {name!r}: {exc}") from None
+
+
+def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
+    """A rig file's `[cameras.NAME]` table -> LeRobot config (keys are LeRobot's)."""
+    _check_name(name, "rig [cameras]")
+    values = dict(table)
+    kind = values.pop("type", None)
+    if kind not in CONFIG_TYPES:
+        raise CameraSpecError(
+            f"camera {name!r}: type {kind!r} is not one of {sorted(CONFIG_TYPES)}"
+        )
+    cls = CONFIG_TYPES[kind]
+    valid = sorted(f.name for f in dataclasses.fields(cls))
+    unknown = sorted(set(values) - set(valid))
+    if unknown:
+        raise CameraSpecError(f"camera {name!r}: unknown keys {unknown} for type {kind!r}; valid: {valid}")
+    values.setdefault("fps", DEFAULT_FPS)
+    if cls is ZMQCameraConfig:
+        values.setdefault("camera_name", name)
+    if cls is OpenCVCameraConfig and isinstance(values.get("index_or_path"), str):
+        values["index_or_path"] = Path(values["index_or_path"])
+    try:
+        return cls(**values)
+    except (ValueError, TypeError) as exc:
+        raise CameraSpecError(f"camera {name!r}: {exc}") from None
+
+
+def merge_cameras(
+    rig: dict[str, CameraConfig], cli: dict[str, CameraConfig]
+) -> dict[str, CameraConfig]:
+    """Rig cameras plus CLI ones; a name given twice is an error, not a silent override."""
+    both = sorted(set(rig) & set(cli))
+    if both:
+        raise CameraSpecError(f"camera {both[0]!r} is named both in the rig file and by --camera")
+    return {**rig, **cli}
+
+
+def rig_cameras(path: str | Path) -> dict[str, CameraConfig]:
+    """The `[cameras.NAME]` tables of a rig file (none: {})."""
+    with open(path, "rb") as f:
+        tables = tomllib.load(f).get("cameras", {})
+    if not isinstance(tables, dict) or not all(isinstance(t, dict) for t in tables.values()):
+        raise CameraSpecError(f"{path}: [cameras] must hold one [cameras.NAME] table per camera")
+    return {name: parse_camera_table(name, table) for name, table in tables.items()}
+
+
+def session_cameras(
+    camera_args: tuple[str, ...], rig_file: str | Path | None, fps: int
+) -> dict[str, CameraConfig]:
+    """A session's real cameras: the rig file's (when mirroring) plus `--camera` ones."""
+    cli = dict(parse_camera_arg(arg, fps) for arg in camera_args)
+    if len(cli) != len(camera_args):
+        raise CameraSpecError("--camera: the same camera NAME given twice")
+    rig = rig_cameras(rig_file) if rig_file is not None else {}
+    return merge_cameras(rig, cli)

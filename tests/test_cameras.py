@@ -1,0 +1,260 @@
+"""Real-camera support through LeRobot's camera classes, with no camera attached: an OpenCV
+camera reading a generated video file and a ZMQ camera fed by a test image server on 127.0.0.1."""
+
+from __future__ import annotations
+
+import base64
+import json
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import zmq
+from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
+from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
+
+from beavr_sim.cameras.errors import CameraError, CameraSpecError
+from beavr_sim.cameras.real import RealCameras
+from beavr_sim.cameras.spec import merge_cameras, parse_camera_arg, parse_camera_table
+
+WAIT_S = 20.0  # generous readiness deadline, never a pass/fail timing bound
+
+
+def _wait_for(predicate, what: str) -> None:
+    deadline = time.monotonic() + WAIT_S
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+class _ImageServer:
+    """LeRobot's ZMQ image-server protocol: JSON {timestamps, images: {name: base64 jpeg}} on PUB."""
+
+    def __init__(self, name: str = "front") -> None:
+        self.context = zmq.Context()
+        self.socket = self.context.socket(zmq.PUB)
+        self.port = self.socket.bind_to_random_port("tcp://127.0.0.1")
+        self.name = name
+        self.sent = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            image = np.full((24, 32, 3), self.sent % 250, np.uint8)
+            ok, buf = cv2.imencode(".jpg", image)
+            assert ok
+            message = {"timestamps": {self.name: time.time()},
+                       "images": {self.name: base64.b64encode(buf.tobytes()).decode()}}
+            self.socket.send_string(json.dumps(message))
+            self.sent += 1
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.socket.close(linger=0)
+        self.context.term()
+
+
+@pytest.fixture
+def server():
+    srv = _ImageServer()
+    yield srv
+    srv.close()
+
+
+def _zmq_set(port: int, period_s: float = 0.05, dead_after_s: float = 1.0) -> RealCameras:
+    config = parse_camera_table("front", {"type": "zmq", "server_address": "127.0.0.1", "port": port,
+                                          "warmup_s": 0, "timeout_ms": 200})
+    return RealCameras({"front": config}, control_period_s=period_s, dead_after_s=dead_after_s)
+
+
+def _video(path: Path, frames: int) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (32, 24))
+    for i in range(frames):
+        writer.write(np.full((24, 32, 3), i % 250, np.uint8))
+    writer.release()
+    return path
+
+
+# --- specs -----------------------------------------------------------------------------------
+
+def test_cli_specs_become_lerobot_configs():
+    name, cfg = parse_camera_arg("wrist=opencv:0@640x480")
+    assert name == "wrist" and isinstance(cfg, OpenCVCameraConfig)
+    assert (cfg.index_or_path, cfg.width, cfg.height, cfg.fps) == (0, 640, 480, 30)
+    _, cfg = parse_camera_arg("top=opencv:/tmp/x.avi")
+    assert cfg.index_or_path == Path("/tmp/x.avi") and cfg.width is None
+    _, cfg = parse_camera_arg("top=zmq:10.0.0.2:5555")
+    assert isinstance(cfg, ZMQCameraConfig) and (cfg.server_address, cfg.port) == ("10.0.0.2", 5555)
+    _, cfg = parse_camera_arg("d=realsense:1234@640x480")
+    assert cfg.serial_number_or_name == "1234"
+
+
+@pytest.mark.parametrize("arg, fragment", [
+    ("front", "NAME=SPEC"),
+    ("front=usb:0", "opencv:INDEX_OR_PATH"),
+    ("front=opencv:0@640", "WIDTHxHEIGHT"),
+    ("front=zmq:host", "HOST:PORT"),
+    ("fr-ont=opencv:0", "letters"),
+])
+def test_cli_spec_errors_name_the_camera_and_the_choices(arg, fragment):
+    with pytest.raises(CameraSpecError, match=fragment) as info:
+        parse_camera_arg(arg)
+    assert "\n" not in str(info.value)
+
+
+def test_rig_table_errors_list_valid_choices():
+    with pytest.raises(CameraSpecError, match=r"'front'.*not one of \['intelrealsense', 'opencv'"):
+        parse_camera_table("front", {"type": "usb"})
+    with pytest.raises(CameraSpecError, match=r"unknown keys \['exposur'\].*valid: .*index_or_path"):
+        parse_camera_table("front", {"type": "opencv", "index_or_path": 0, "exposur": 3})
+    with pytest.raises(CameraSpecError, match="'front'"):
+        parse_camera_table("front", {"type": "opencv"})
+    with pytest.raises(CameraSpecError, match="both in the rig file and by --camera"):
+        merge_cameras({"front": parse_camera_table("front", {"type": "opencv", "index_or_path": 0})},
+                      dict([parse_camera_arg("front=opencv:1")]))
+
+
+def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
+    _, cfg = parse_camera_arg(f"front=opencv:{tmp_path / 'missing.avi'}")
+    cams = RealCameras({"front": cfg}, control_period_s=0.05)
+    with pytest.raises(CameraError, match=r"camera 'front' \(opencv\) failed to start: .*check that .*missing.avi"):
+        cams.connect()
+
+
+# --- capture through LeRobot's cameras -------------------------------------------------------
+
+def test_opencv_video_file_delivers_then_dies_at_end(tmp_path):
+    cfg = parse_camera_table("front", {"type": "opencv", "fps": None, "warmup_s": 0,
+                                       "index_or_path": str(_video(tmp_path / "v.avi", 300))})
+    cams = RealCameras({"front": cfg}, control_period_s=0.05, dead_after_s=0.5)
+    cams.connect()
+    try:
+        assert cams.frame_shape("front") == (24, 32, 3)
+        # The file ends, LeRobot's read thread gives up: the camera is reported dead, no frame.
+        _wait_for(lambda: cams.grab().dead == ("front",), "the video's end to be reported dead")
+        assert "front" not in cams.grab().frames
+    finally:
+        cams.close()
+
+
+def test_zmq_frames_are_the_newest_and_live(server):
+    cams = _zmq_set(server.port)
+    cams.connect()
+    try:
+        stamps = []
+        for _ in range(5):
+            sent = server.sent
+            _wait_for(lambda: server.sent >= sent + 3, "the server to publish")
+            grab = cams.grab()
+            assert grab.dead == () and grab.frames["front"].shape == (24, 32, 3)
+            stamps.append(cams._last_stamp["front"])
+        assert len(set(stamps)) >= 4  # newest frame each time, not a frozen one
+        summary = cams.summary()["front"]
+        assert summary["frames"] == 5 and summary["repeats"] <= 1
+    finally:
+        cams.close()
+
+
+def test_stale_frames_are_counted_against_the_control_period(server):
+    fast = _zmq_set(server.port, period_s=1e-7)  # 1.5 periods is far below any real capture age
+    fast.connect()
+    try:
+        for _ in range(3):
+            fast.grab()
+        assert fast.summary()["front"]["stale"] == 3
+        fast.start_episode()
+        assert fast.summary()["front"]["stale"] == 0
+    finally:
+        fast.close()
+    slow = _zmq_set(server.port, period_s=100.0)
+    slow.connect()
+    try:
+        for _ in range(3):
+            slow.grab()
+        assert slow.summary()["front"]["stale"] == 0
+    finally:
+        slow.close()
+
+
+def test_camera_dying_mid_episode_is_reported_dead(server):
+    cams = _zmq_set(server.port, dead_after_s=0.3)
+    cams.connect()
+    try:
+        assert cams.grab().dead == ()
+        server.stop.set()
+        _wait_for(lambda: cams.grab().dead == ("front",), "the silent camera to be reported dead")
+    finally:
+        cams.close()
+
+
+# --- recorded sessions -----------------------------------------------------------------------
+
+def _record(tmp_path, port: int, episode_s: float, listener=None):
+    from beavr_sim.datasets.features import RecordingConfig
+    from beavr_sim.teleop.session import ProgressLine, SessionOptions, build_loop, record_episodes
+
+    options = SessionOptions(
+        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
+        progress=False, record=tmp_path / "rec", repo_id="local/cams", episodes=1,
+        recording=RecordingConfig(cameras=(), episode_seconds=episode_s, use_videos=False),
+        auto_start=True, real_cameras=(f"front=zmq:127.0.0.1:{port}",),
+    )
+    loop = build_loop(options)
+    if listener is not None:
+        loop.listeners.append(listener)
+    record_episodes(options, loop, ProgressLine(loop, enabled=False))
+    lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
+    return [json.loads(x) for x in lines]
+
+
+def test_recorded_frames_are_live_camera_frames(tmp_path, server):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    (record,) = _record(tmp_path, server.port, episode_s=1.0)
+    assert record["kept"] and record["hardware_fault"] is None
+    cams = record["cameras"]["front"]
+    assert cams["frames"] >= record["frames"] and cams["repeats"] < cams["frames"] / 2
+    assert "stale" in cams and "age_p99_ms" in cams
+    ds = LeRobotDataset("local/cams", root=tmp_path / "rec")
+    assert ds.features["observation.images.front"]["shape"] == (24, 32, 3)
+    levels = {round(float(ds[i]["observation.images.front"].mean()), 3) for i in range(ds.num_frames)}
+    assert len(levels) > ds.num_frames / 2  # the server's frames move on: not a frozen image
+
+
+def test_camera_dying_mid_episode_ends_it_as_a_hardware_fault(tmp_path, server):
+    ticks = []
+
+    def stop_camera(tick):
+        ticks.append(tick)
+        if len(ticks) == 10:
+            server.stop.set()
+
+    records = _record(tmp_path, server.port, episode_s=30.0, listener=stop_camera)
+    assert not any(r["kept"] for r in records)  # a trace's spoilt episode is retried, never saved
+    record = records[0]
+    assert not record["success"]
+    assert record["hardware_fault"] == "camera front stopped delivering frames"
+    assert record["ended_by"] == "hardware_fault"
+    assert record["frames"] < 30 * 30  # ended at the fault, not at the time limit
+
+
+def test_camera_flag_errors():
+    from beavr_sim.teleop.session import SessionOptions
+
+    with pytest.raises(ValueError, match="add --record"):
+        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                       real_cameras=("front=opencv:0",))
+    with pytest.raises(ValueError, match="leave out --multiprocess"):
+        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                       multiprocess=True, record=Path("x"), real_cameras=("front=opencv:0",))
+    with pytest.raises(CameraSpecError, match="opencv:INDEX_OR_PATH"):
+        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
+                       record=Path("x"), real_cameras=("front=usb:0",))
