@@ -91,7 +91,7 @@ class WebXRConfig:
     max_buffered_bytes: int = 256 * 1024
     #: The session token WebSockets must present (``None``: the loopback rule for ``host``
     #: with a fresh token, see :class:`beavr_sim.wire.access.SessionToken`).
-    token: SessionToken | None = None
+    token: SessionToken | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.host == "*":
