@@ -246,8 +246,14 @@ def test_teleop_options_for_the_webxr_source():
     args = build_parser().parse_args(
         ["--task", "pour", "--source", "webxr", "--webxr-host", "0.0.0.0", "--webxr-port", "9443"]
     )
-    config = SessionOptions.from_args(args).webxr_config()
+    options = SessionOptions.from_args(args)
+    config = options.webxr_config()
     assert (config.host, config.port, config.use_tls) == ("0.0.0.0", 9443, True)
+    assert config.token.required and config.token == options.webxr_config().token  # one token
+    given = build_parser().parse_args(["--task", "pour", "--source", "webxr", "--token", "T0k"])
+    assert SessionOptions.from_args(given).webxr_config().token == SessionToken("T0k", True)
+    with pytest.raises(ValueError, match="may not contain"):
+        SessionOptions(task="pour", source="webxr", token="a b")
     with pytest.raises(ValueError, match="multiprocess"):
         SessionOptions(task="pour", source="webxr", multiprocess=True)
     with pytest.raises(ValueError, match="IPv4"):

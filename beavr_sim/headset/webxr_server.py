@@ -48,8 +48,8 @@ from beavr_sim.headset.webxr_protocol import (
     parse_message,
 )
 from beavr_sim.headset.webxr_tls import ensure_certificate, is_loopback, server_ssl_context
-from beavr_sim.wire.access import NO_TOKEN, SessionToken
 from beavr_sim.naming import check_name
+from beavr_sim.wire.access import NO_TOKEN, SessionToken
 from beavr_sim.wire.hand import HandFrame
 from beavr_sim.wire.ports import PortConfig
 

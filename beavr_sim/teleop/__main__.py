@@ -113,6 +113,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--webxr-port", type=int, default=None, help="--source webxr: port (default 8443)"
     )
+    p.add_argument(
+        "--token",
+        default=None,
+        help="session token the WebXR page must present (default: a fresh one, required on any "
+        "address but loopback; given: required everywhere)",
+    )
     p.add_argument("--headset-image-hz", type=float, default=10.0, help="twin images to headset")
     p.add_argument("--headset-image-size", default="640x360", help="WxH of headset images")
     p.add_argument(

@@ -33,6 +33,7 @@ from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import RunRecord, TeleopLoop, TeleopSummary, ThreadedListener
+from beavr_sim.wire.access import SessionToken, new_token_value
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
 
@@ -101,6 +102,9 @@ class SessionOptions:
     #: then HTTPS, self-signed) and its port (default ``PortConfig.webxr``).
     webxr_host: str = "127.0.0.1"
     webxr_port: int | None = None
+    #: ``--token``: the session token, required on every address; None: a fresh one, required
+    #: off loopback only (``beavr_sim.wire.access``).
+    token: str | None = None
     #: Recording on a mirrored rig: keep an episode the hardware spoilt (a device held, failed
     #: or diverged) in the dataset, marked ``hardware_fault`` in ``meta/beavr_episodes.jsonl``
     #: (default: discard it).
@@ -114,6 +118,7 @@ class SessionOptions:
     emulate_faults: str | None = None
 
     def __post_init__(self) -> None:
+        self._token_value = self.token or new_token_value()  # one per session
         if self.transport is None:
             self.transport = TransportConfig(headset_host=self.headset_host)
         from beavr_sim.tasks.registry import canonical_task_name
@@ -225,7 +230,13 @@ class SessionOptions:
         from beavr_sim.headset.webxr_server import WebXRConfig
 
         port = self.transport.ports.webxr if self.webxr_port is None else self.webxr_port
-        return WebXRConfig(host=self.webxr_host, port=port)
+        return WebXRConfig(
+            host=self.webxr_host, port=port, token=self.session_token(self.webxr_host)
+        )
+
+    def session_token(self, host: str) -> SessionToken:
+        """This session's token for a server bound to ``host`` (the loopback rule)."""
+        return SessionToken.for_host(host, self.token, value=self._token_value)
 
     def _twin_leap_variant(self) -> str:
         """The twin's LEAP variant: the mirrored rig's hands', else the chosen one, else full."""
@@ -292,6 +303,7 @@ class SessionOptions:
             dry_run=getattr(args, "dry_run", False),
             webxr_host=getattr(args, "webxr_host", "127.0.0.1"),
             webxr_port=getattr(args, "webxr_port", None),
+            token=getattr(args, "token", None),
             keep_faulty_episodes=getattr(args, "keep_faulty_episodes", False),
             sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
@@ -596,6 +608,7 @@ def run_session(
         if options.source == "webxr":
             url = loop.source.url
             print(f"WebXR page (open it in the headset's browser): {url}", file=sys.stderr)
+            print(options.webxr_config().token.describe(), file=sys.stderr)
             if not options.headless:  # the twin drawn in the headset
                 env = loop.twin.env
                 info = {"task": env.task.name, "embodiment": env.embodiment.name}

@@ -21,6 +21,11 @@ BAD_TOKEN = "bad_token"
 TOKEN_QUERY = "token"
 
 
+def new_token_value() -> str:
+    """A fresh random token (URL-safe, 32 characters)."""
+    return secrets.token_urlsafe(24)
+
+
 @dataclass(frozen=True)
 class SessionToken:
     """The token clients must present; ``required`` False means every client is let in."""
@@ -35,11 +40,14 @@ class SessionToken:
             raise ValueError("session token may not contain spaces or any of '&?#/%'")
 
     @classmethod
-    def for_host(cls, host: str, given: str | None = None) -> SessionToken:
-        """Token for a server bound to ``host``: ``given`` forces it on; else on off-loopback."""
+    def for_host(
+        cls, host: str, given: str | None = None, *, value: str | None = None
+    ) -> SessionToken:
+        """Token for a server bound to ``host``: ``given`` (``--token``) forces it on; else it
+        is on off loopback, with ``value`` (one per session) or a fresh one."""
         if given is not None:
             return cls(given, True)
-        return cls(secrets.token_urlsafe(24), not is_loopback(host))
+        return cls(value or new_token_value(), not is_loopback(host))
 
     def check(self, presented: str | None) -> str | None:
         """``None`` when ``presented`` is acceptable, else the refusal reason."""
