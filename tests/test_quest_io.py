@@ -255,3 +255,15 @@ def test_allow_list_parsing():
     assert parse_allow_list("10.0.0.5, 10.0.0.6") == {"10.0.0.5", "10.0.0.6"}
     with pytest.raises(ValueError, match="not an IP address"):
         parse_allow_list("quest.local")
+
+
+def test_teleop_refuses_an_open_lan_headset_bind_that_mirrors_hardware():
+    from beavr_sim.teleop.__main__ import build_parser
+    from beavr_sim.teleop.session import SessionOptions
+
+    argv = ["--task", "pour", "--headset-host", "0.0.0.0", "--mirror-hardware"]
+    with pytest.raises(ValueError, match="--headset-allow HEADSET_IP"):
+        SessionOptions.from_args(build_parser().parse_args(argv))
+    listed = SessionOptions(task="pour", headset_host="0.0.0.0", headset_allow="10.0.0.5")
+    assert listed.transport.headset_allow == {"10.0.0.5"}
+    assert SessionOptions(task="pour").transport.headset_allow is None

@@ -105,6 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="address the headset sockets bind (a LAN address or 0.0.0.0 for a real headset)",
     )
     p.add_argument(
+        "--headset-allow",
+        default=None,
+        help="IP[,IP] the Quest app's sockets accept (others refused and counted), or 'any'; "
+        "needed with --mirror-hardware on a non-loopback --headset-host",
+    )
+    p.add_argument(
         "--webxr-host",
         default="127.0.0.1",
         help="--source webxr: address the page is served on (a LAN address or 0.0.0.0 for a "

@@ -25,7 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from beavr_sim.hardware.mirror import Fixtures
+from beavr_sim.headset.address_gate import parse_allow_list
 from beavr_sim.headset.sources import HandSource
+from beavr_sim.headset.webxr_tls import is_loopback
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.console import CONSOLE
@@ -105,6 +107,9 @@ class SessionOptions:
     #: ``--token``: the session token, required on every address; None: a fresh one, required
     #: off loopback only (``beavr_sim.wire.access``).
     token: str | None = None
+    #: ``--headset-allow``: "IP[,IP]" the Quest app's sockets accept, or "any"; None: any, but
+    #: refused with ``mirror_hardware`` on a non-loopback ``headset_host``.
+    headset_allow: str | None = None
     #: Recording on a mirrored rig: keep an episode the hardware spoilt (a device held, failed
     #: or diverged) in the dataset, marked ``hardware_fault`` in ``meta/beavr_episodes.jsonl``
     #: (default: discard it).
@@ -120,7 +125,9 @@ class SessionOptions:
     def __post_init__(self) -> None:
         self._token_value = self.token or new_token_value()  # one per session
         if self.transport is None:
-            self.transport = TransportConfig(headset_host=self.headset_host)
+            self.transport = TransportConfig(
+                headset_host=self.headset_host, headset_allow=self._headset_allow()
+            )
         from beavr_sim.tasks.registry import canonical_task_name
 
         self.task = canonical_task_name(self.task)
@@ -234,6 +241,24 @@ class SessionOptions:
             host=self.webxr_host, port=port, token=self.session_token(self.webxr_host)
         )
 
+    def _headset_allow(self) -> frozenset[str] | None:
+        """The Quest sockets' allow-list; refuses an open LAN bind that could move hardware."""
+        allowed = None if self.headset_allow is None else parse_allow_list(self.headset_allow)
+        if self.mirror_hardware and not is_loopback(self.headset_host):
+            if self.headset_allow is None:
+                raise ValueError(
+                    f"--headset-host {self.headset_host} with --mirror-hardware: anyone on the "
+                    "network could move the robot; give --headset-allow HEADSET_IP "
+                    "(or --headset-allow any)"
+                )
+            if allowed is None:
+                print(
+                    "warning: --headset-allow any: the Quest sockets take hands from any host "
+                    "on the network and the robot is mirrored",
+                    file=sys.stderr,
+                )
+        return allowed
+
     def session_token(self, host: str) -> SessionToken:
         """This session's token for a server bound to ``host`` (the loopback rule)."""
         return SessionToken.for_host(host, self.token, value=self._token_value)
@@ -304,6 +329,7 @@ class SessionOptions:
             webxr_host=getattr(args, "webxr_host", "127.0.0.1"),
             webxr_port=getattr(args, "webxr_port", None),
             token=getattr(args, "token", None),
+            headset_allow=getattr(args, "headset_allow", None),
             keep_faulty_episodes=getattr(args, "keep_faulty_episodes", False),
             sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
