@@ -214,3 +214,23 @@ def test_view_is_rate_limited_and_estop_only_when_mirroring(loop):
     assert episode_line("episode 2/5: REC") == "episode **2** of **5** · **recording**"
     assert episode_line("episode 1/3: idle (start: Enter)") == "episode **1** of **3** · idle"
     assert episode_line("") == "idle"
+
+
+def test_view_access_lets_anyone_stop_but_only_token_holders_move():
+    from beavr_sim.viz.view_access import ViewAccess
+    from beavr_sim.wire.access import SessionToken
+
+    access = ViewAccess(SessionToken("view-T0ken", True))
+    for action in ("estop", "pause"):
+        assert access.permits(action, 1)
+    for action in ("resume", "reset", "record", "discard", "release"):
+        assert not access.permits(action, 1)
+    assert sum(access.refused.values()) == 5
+    assert not access.enter(1, "view-T0kem") and not access.permits("reset", 1)
+    assert access.enter(1, "view-T0ken") and access.permits("reset", 1)
+    assert not access.permits("release", 2)  # another client did not enter it
+    access.forget(1)
+    assert not access.permits("record", 1)
+    assert ViewAccess(SessionToken("x", False)).permits("release", None)  # loopback: open
+    with pytest.raises(ValueError, match="estop"):
+        access.permits("resett", 1)
