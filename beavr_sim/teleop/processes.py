@@ -79,6 +79,7 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
 from beavr_sim.twin.twin import CommandOutcome
+from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.messages import (
     JointCommandMsg,
     OperatorEventMsg,
@@ -118,6 +119,8 @@ class ViewConfig:
     port: int = 8080
     rate_hz: float = 30.0
     show_collision: bool = False
+    #: The session token for the controls that move the robot (None: everyone may press).
+    token: SessionToken | None = None
 
 
 @dataclass(frozen=True)
@@ -675,6 +678,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     view = None
     if config.view is not None:
         from beavr_sim.viz.twin_view import TwinView, subtree_bodies
+        from beavr_sim.viz.view_access import ViewAccess
 
         joints = env.joints
         view = TwinView(
@@ -689,6 +693,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             rate_hz=config.view.rate_hz,
             show_collision=config.view.show_collision,
             mirroring=mirror is not None,
+            access=None if config.view.token is None else ViewAccess(config.view.token),
         )
         print(f"browser view: {view.url}", file=sys.stderr, flush=True)
     browser_estop = None
@@ -1204,6 +1209,7 @@ def process_configs(
             port=options.viser_port,
             rate_hz=options.viser_rate_hz,
             show_collision=options.show_collision,
+            token=options.session_token(options.viser_host),
         )
     operator = OperatorProcessConfig(
         stage=stage,

@@ -624,6 +624,7 @@ def run_session(
                 rate_hz=options.viser_rate_hz,
                 show_collision=options.show_collision,
                 on_reset=sync.start if sync is not None else None,
+                token=options.session_token(options.viser_host),
             )
             if mirror is not None:
                 from beavr_sim.teleop.mirroring import BrowserEstop
