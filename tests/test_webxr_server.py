@@ -293,3 +293,17 @@ def test_websocket_without_the_session_token_is_refused_at_the_handshake():
             assert len(_take(server, 2)) == 2
     finally:
         server.close()
+
+
+def test_announce_prints_the_tokened_url_and_a_qr_code_only_with_a_token():
+    import io
+
+    from beavr_sim.teleop.announce import announce_webxr
+
+    out = io.StringIO()
+    announce_webxr("https://10.0.0.2:8443/?token=abc", SessionToken("abc", True), out)
+    text = out.getvalue()
+    assert "?token=abc" in text and "token is required" in text and text.count("\n") > 10
+    out = io.StringIO()
+    announce_webxr("http://127.0.0.1:8443/", SessionToken("abc", False), out)
+    assert "no token on a loopback" in out.getvalue() and out.getvalue().count("\n") == 2

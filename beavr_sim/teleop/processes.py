@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import zmq
 
+from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import (
@@ -270,7 +271,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         source = TraceSource(config.trace, real_time=not config.lockstep)
     elif config.source == "webxr":
         source = WebXRSourceType(config.webxr, validator)
-        print(f"WebXR page (open it in the headset's browser): {source.url}", file=sys.stderr)
+        announce_webxr(source.url, config.webxr.token)
     else:
         source = QuestSource(context, transport, validator, latest_only=False)
     # A trace starts playing when the supervisor says every process is ready ("resume"), so
@@ -695,7 +696,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             mirroring=mirror is not None,
             access=None if config.view.token is None else ViewAccess(config.view.token),
         )
-        print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+        announce_view(view.url, config.view.token or SessionToken("-", False))
     browser_estop = None
     if view is not None and mirror is not None:
         from beavr_sim.teleop.mirroring import BrowserEstop

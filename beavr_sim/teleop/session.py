@@ -30,6 +30,7 @@ from beavr_sim.headset.sources import HandSource
 from beavr_sim.headset.webxr_tls import is_loopback
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
@@ -631,11 +632,10 @@ def run_session(
 
                 loop.listeners.append(BrowserEstop(view, mirror))
             closers.append(view.close)
-            print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+            announce_view(view.url, options.session_token(options.viser_host))
         if options.source == "webxr":
             url = loop.source.url
-            print(f"WebXR page (open it in the headset's browser): {url}", file=sys.stderr)
-            print(options.webxr_config().token.describe(), file=sys.stderr)
+            announce_webxr(url, options.webxr_config().token)
             if not options.headless:  # the twin drawn in the headset
                 env = loop.twin.env
                 info = {"task": env.task.name, "embodiment": env.embodiment.name}
