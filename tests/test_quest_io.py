@@ -11,6 +11,7 @@ import pytest
 import zmq
 from PIL import Image
 
+from beavr_sim.headset.address_gate import AddressGate, parse_allow_list
 from beavr_sim.headset.quest_io import HeadsetImagePublisher, QuestReceiver, encode_jpeg
 from beavr_sim.headset.quest_protocol import format_keypoints
 from beavr_sim.headset.validation import StreamValidator
@@ -220,3 +221,49 @@ def test_camera_stream_sends_decodable_jpegs_rate_limited(context, config):
         encode_jpeg(image.astype(np.float32))
     with pytest.raises(ValueError, match="jpeg_quality"):
         HeadsetImagePublisher(context, config, jpeg_quality=0)
+
+
+def test_address_gate_drops_peers_not_on_the_allow_list(context, config):
+    gate = AddressGate(context, parse_allow_list("127.0.0.1"))
+    try:
+        with QuestReceiver(context, config, gate=gate) as receiver:
+            stranger = context.socket(zmq.PUSH)  # 127.0.0.2 stands in for another host
+            stranger.setsockopt(zmq.LINGER, 0)
+            port = config.ports.quest_pause
+            stranger.connect(f"tcp://127.0.0.2:0;127.0.0.1:{port}")
+            stranger.send(b"Low")
+            deadline = time.monotonic() + 3.0
+            while gate.refused["not_allowed"] < 1:
+                assert time.monotonic() < deadline, "the gate never saw the stranger"
+                receiver.poll(timeout_s=0.05)
+            headset = FakeHeadset(context, config)  # from 127.0.0.1: on the list
+            headset.send("pause", "Low")
+            while receiver.received["pause"] < 1:
+                assert time.monotonic() < deadline + 3.0, "the listed headset was not heard"
+                receiver.poll(timeout_s=0.05)
+            receiver.poll(timeout_s=0.05)
+            assert receiver.received["pause"] == 1 and gate.accepted >= 1
+            stranger.close()
+            for s in headset.sockets.values():
+                s.close()
+    finally:
+        gate.close()
+
+
+def test_allow_list_parsing():
+    assert parse_allow_list("any") is None
+    assert parse_allow_list("10.0.0.5, 10.0.0.6") == {"10.0.0.5", "10.0.0.6"}
+    with pytest.raises(ValueError, match="not an IP address"):
+        parse_allow_list("quest.local")
+
+
+def test_teleop_refuses_an_open_lan_headset_bind_that_mirrors_hardware():
+    from beavr_sim.teleop.__main__ import build_parser
+    from beavr_sim.teleop.session import SessionOptions
+
+    argv = ["--task", "pour", "--headset-host", "0.0.0.0", "--mirror-hardware"]
+    with pytest.raises(ValueError, match="--headset-allow HEADSET_IP"):
+        SessionOptions.from_args(build_parser().parse_args(argv))
+    listed = SessionOptions(task="pour", headset_host="0.0.0.0", headset_allow="10.0.0.5")
+    assert listed.transport.headset_allow == {"10.0.0.5"}
+    assert SessionOptions(task="pour").transport.headset_allow is None

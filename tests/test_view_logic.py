@@ -214,3 +214,53 @@ def test_view_is_rate_limited_and_estop_only_when_mirroring(loop):
     assert episode_line("episode 2/5: REC") == "episode **2** of **5** · **recording**"
     assert episode_line("episode 1/3: idle (start: Enter)") == "episode **1** of **3** · idle"
     assert episode_line("") == "idle"
+
+
+def test_view_access_lets_anyone_stop_but_only_token_holders_move():
+    from beavr_sim.viz.view_access import ViewAccess
+    from beavr_sim.wire.access import SessionToken
+
+    access = ViewAccess(SessionToken("view-T0ken", True))
+    for action in ("estop", "pause"):
+        assert access.permits(action, 1)
+    for action in ("resume", "reset", "record", "discard", "release"):
+        assert not access.permits(action, 1)
+    assert sum(access.refused.values()) == 5
+    assert not access.enter(1, "view-T0kem") and not access.permits("reset", 1)
+    assert access.enter(1, "view-T0ken") and access.permits("reset", 1)
+    assert not access.permits("release", 2)  # another client did not enter it
+    access.forget(1)
+    assert not access.permits("record", 1)
+    assert ViewAccess(SessionToken("x", False)).permits("release", None)  # loopback: open
+    with pytest.raises(ValueError, match="estop"):
+        access.permits("resett", 1)
+
+
+def test_view_buttons_need_the_token_except_stop_and_pause(loop):
+    from types import SimpleNamespace
+
+    from beavr_sim.teleop.view import attach_view
+    from beavr_sim.wire.access import SessionToken
+
+    def press(button, client_id: int) -> None:  # as viser calls a click handler
+        for callback in button._impl.update_cb:
+            callback(SimpleNamespace(client=None, client_id=client_id, target=button))
+
+    token = SessionToken("view-T0ken", True)
+    view = attach_view(loop, "127.0.0.1", 0, mirroring=True, token=token)
+    try:
+        press(view.estop_button, 7)  # anyone may stop
+        press(view.pause_button, 7)
+        assert view.estop_requested and view.paused
+        press(view.estop_button, 7)  # release, resume, reset: refused without the token
+        press(view.pause_button, 7)
+        press(view.reset_button, 7)
+        assert view.estop_requested and view.paused and not view.take_reset()
+        assert view.refused == 3 and "refused" in view.access_note.content
+        view.access.enter(7, "view-T0ken")
+        press(view.estop_button, 7)
+        press(view.pause_button, 7)
+        press(view.reset_button, 7)
+        assert not view.estop_requested and not view.paused and view.take_reset()
+    finally:
+        view.close()

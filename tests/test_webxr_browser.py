@@ -98,7 +98,12 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
 
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     options = SessionOptions(
-        task="pour", source="webxr", viser=False, progress=False, webxr_port=free_tcp_ports(1)[0]
+        task="pour",
+        source="webxr",
+        viser=False,
+        progress=False,
+        webxr_port=free_tcp_ports(1)[0],
+        token="browser-T0ken",  # required: the page must pass the printed URL's token on
     )
     assert options.webxr_config().host == "127.0.0.1" and not options.webxr_config().use_tls
     sess = SessionThread(options)
@@ -110,6 +115,7 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
         with _page() as (page, errors):
             page.add_init_script(path=str(iwer_bundle))
             page.add_init_script(script=IWER_SETUP)
+            assert server.url.endswith("/?token=browser-T0ken")
             page.goto(server.url)
 
             # (a) The page loads, connects and gets the twin with every mesh; Start opens

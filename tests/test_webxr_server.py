@@ -12,9 +12,11 @@ import subprocess
 import time
 import urllib.error
 import urllib.request
+from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 import pytest
+from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from beavr_sim.headset.layouts import LAYOUTS
@@ -24,6 +26,7 @@ from beavr_sim.headset.webxr_protocol import encode_hands
 from beavr_sim.headset.webxr_server import WebXRConfig, WebXRServer
 from beavr_sim.headset.webxr_tls import ensure_certificate
 from beavr_sim.naming import UnknownNameError
+from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.hand import N_JOINTS
 from beavr_sim.wire.ports import PortConfig
 
@@ -37,7 +40,9 @@ def _hand() -> np.ndarray:
 
 
 def _ws_url(server: WebXRServer) -> str:
-    return server.url.replace("http", "ws", 1) + "ws"
+    """The WebSocket URL the page opens from the printed URL (its ``?token=`` carried over)."""
+    parts = urlsplit(server.url)
+    return urlunsplit((parts.scheme.replace("http", "ws", 1), parts.netloc, "/ws", parts.query, ""))
 
 
 def _take(server: WebXRServer, n: int, timeout_s: float = 5.0) -> list:
@@ -241,11 +246,64 @@ def test_teleop_options_for_the_webxr_source():
     args = build_parser().parse_args(
         ["--task", "pour", "--source", "webxr", "--webxr-host", "0.0.0.0", "--webxr-port", "9443"]
     )
-    config = SessionOptions.from_args(args).webxr_config()
+    options = SessionOptions.from_args(args)
+    config = options.webxr_config()
     assert (config.host, config.port, config.use_tls) == ("0.0.0.0", 9443, True)
+    assert config.token.required and config.token == options.webxr_config().token  # one token
+    given = build_parser().parse_args(["--task", "pour", "--source", "webxr", "--token", "T0k"])
+    assert SessionOptions.from_args(given).webxr_config().token == SessionToken("T0k", True)
+    with pytest.raises(ValueError, match="may not contain"):
+        SessionOptions(task="pour", source="webxr", token="a b")
     with pytest.raises(ValueError, match="multiprocess"):
         SessionOptions(task="pour", source="webxr", multiprocess=True)
     with pytest.raises(ValueError, match="IPv4"):
         SessionOptions(task="pour", source="webxr", webxr_host="1.2.3.999")
     with pytest.raises(UnknownNameError, match="webxr"):
         SessionOptions(task="pour", source="webxrr")
+
+
+def test_token_is_off_on_loopback_and_on_elsewhere_or_when_given():
+    assert not WebXRConfig().token.required
+    assert WebXRConfig(host="0.0.0.0", port=0).token.required
+    assert WebXRConfig(host="192.168.1.20", port=0).token.required
+    forced = SessionToken.for_host("127.0.0.1", "given-token")
+    assert forced.required and forced.check("given-token") is None
+    assert forced.check("given-tokeN") == "bad_token" and forced.check(None) == "no_token"
+    with pytest.raises(ValueError, match="may not contain"):
+        SessionToken("a&b", True)
+
+
+def test_websocket_without_the_session_token_is_refused_at_the_handshake():
+    token = SessionToken.for_host("127.0.0.1", "s3cret-T0ken")
+    server = WebXRServer(WebXRConfig(port=0, token=token), validator=StreamValidator())
+    try:
+        assert server.url.endswith("/?token=s3cret-T0ken")
+        bare = _ws_url(server).split("?")[0]
+        with pytest.raises(InvalidStatus) as no_token:
+            connect(bare)
+        assert no_token.value.response.status_code == 401
+        with pytest.raises(InvalidStatus) as bad_token:
+            connect(bare + "?token=s3cret-T0kem")
+        assert bad_token.value.response.status_code == 403
+        assert dict(server.stats.rejected) == {"no_token": 1, "bad_token": 1}
+        assert server.take(0.0) == [] and not server.driving
+        with connect(_ws_url(server)) as ws:  # the printed URL's token: frames drive the twin
+            assert json.loads(ws.recv())["type"] == "welcome"
+            ws.send(encode_hands(T_MS, {"right": _hand(), "left": None}, seq=0))
+            assert len(_take(server, 2)) == 2
+    finally:
+        server.close()
+
+
+def test_announce_prints_the_tokened_url_and_a_qr_code_only_with_a_token():
+    import io
+
+    from beavr_sim.teleop.announce import announce_webxr
+
+    out = io.StringIO()
+    announce_webxr("https://10.0.0.2:8443/?token=abc", SessionToken("abc", True), out)
+    text = out.getvalue()
+    assert "?token=abc" in text and "token is required" in text and text.count("\n") > 10
+    out = io.StringIO()
+    announce_webxr("http://127.0.0.1:8443/", SessionToken("abc", False), out)
+    assert "no token on a loopback" in out.getvalue() and out.getvalue().count("\n") == 2

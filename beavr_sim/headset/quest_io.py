@@ -19,6 +19,7 @@ from typing import Protocol
 import numpy as np
 import zmq
 
+from beavr_sim.headset.address_gate import AddressGate
 from beavr_sim.naming import check_name
 from beavr_sim.wire.hand import SIDES, HandFrame
 from beavr_sim.wire.ports import TransportConfig
@@ -77,6 +78,7 @@ class QuestReceiver:
         latest_only: bool = True,
         liveness_timeout_s: float = 0.5,
         rcvhwm: int = 100,
+        gate: AddressGate | None = None,
     ):
         self.config = config
         self.latest_only = latest_only
@@ -97,6 +99,8 @@ class QuestReceiver:
                 self._sockets[stream] = socket
                 socket.setsockopt(zmq.LINGER, 0)
                 socket.setsockopt(zmq.RCVHWM, rcvhwm)
+                if gate is not None:  # peers not on the allow-list are refused at connect
+                    gate.guard(socket)
                 endpoint = config.endpoint(port_name, bind=True)
                 try:
                     bind_socket(socket, endpoint)

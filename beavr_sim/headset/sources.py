@@ -165,9 +165,19 @@ class QuestSource(HandSource):
 
     def __init__(self, context, config, validator=None, latest_only: bool = True):
         self.validates = validator is not None
+        from beavr_sim.headset.address_gate import AddressGate  # local: heavy (zmq)
         from beavr_sim.headset.quest_io import QuestReceiver  # local: heavy (zmq)
 
-        self.receiver = QuestReceiver(context, config, validator=validator, latest_only=latest_only)
+        allowed = config.headset_allow
+        self.gate = None if allowed is None else AddressGate(context, allowed)
+        try:
+            self.receiver = QuestReceiver(
+                context, config, validator=validator, latest_only=latest_only, gate=self.gate
+            )
+        except BaseException:
+            if self.gate is not None:
+                self.gate.close()
+            raise
 
     def poll(self, now: float) -> list[HandFrame]:
         return self.receiver.poll(0.0)
@@ -182,6 +192,8 @@ class QuestSource(HandSource):
 
     def close(self) -> None:
         self.receiver.close()
+        if self.gate is not None:
+            self.gate.close()
 
 
 class WebXRSource(HandSource):

@@ -47,8 +47,9 @@ from beavr_sim.headset.webxr_protocol import (
     hand_frames,
     parse_message,
 )
-from beavr_sim.headset.webxr_tls import ensure_certificate, is_loopback, server_ssl_context
+from beavr_sim.headset.webxr_tls import ensure_certificate, server_ssl_context
 from beavr_sim.naming import check_name
+from beavr_sim.wire.access import NO_TOKEN, SessionToken, is_loopback
 from beavr_sim.wire.hand import HandFrame
 from beavr_sim.wire.ports import PortConfig
 
@@ -88,6 +89,9 @@ class WebXRConfig:
     twin_rate_hz: float = 15.0
     #: A page whose unsent data exceeds this many bytes skips twin updates until it catches up.
     max_buffered_bytes: int = 256 * 1024
+    #: The session token WebSockets must present (``None``: the loopback rule for ``host``
+    #: with a fresh token, see :class:`beavr_sim.wire.access.SessionToken`).
+    token: SessionToken | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.host == "*":
@@ -108,6 +112,8 @@ class WebXRConfig:
         check_name("webxr tls mode", self.tls, TLS_MODES)
         if not self.twin_rate_hz > 0:
             raise ValueError(f"twin_rate_hz must be positive, got {self.twin_rate_hz!r}")
+        if self.token is None:
+            object.__setattr__(self, "token", SessionToken.for_host(self.host))
         for name in ("max_message_bytes", "max_buffered_bytes"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
@@ -216,7 +222,7 @@ class WebXRServer:
             from beavr_sim.headset.webxr_tls import local_ipv4_addresses
 
             host = next(iter(local_ipv4_addresses()), "127.0.0.1")
-        return f"{scheme}://{host}:{self.port}/"
+        return f"{scheme}://{host}:{self.port}/{self.config.token.url_suffix()}"
 
     @property
     def driving(self) -> bool:
@@ -347,6 +353,11 @@ class WebXRServer:
             if origin is not None and urlsplit(origin).netloc != request.headers.get("Host"):
                 self.stats.rejected["cross_origin"] += 1
                 return connection.respond(403, "cross-origin WebSocket refused\n")
+            refused = self.config.token.check_path(request.path)
+            if refused is not None:
+                self.stats.rejected[refused] += 1
+                status = 401 if refused == NO_TOKEN else 403
+                return connection.respond(status, f"WebSocket refused: {refused}\n")
             return None  # the WebSocket handshake goes on
         name = "index.html" if path == "/" else path.lstrip("/")
         found = self._files.get(name)

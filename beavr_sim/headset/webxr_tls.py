@@ -29,15 +29,6 @@ def default_cert_dir() -> Path:
     return Path(cache) / "beavr_sim" / "webxr-tls"
 
 
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def local_ipv4_addresses() -> list[str]:
     """This machine's IPv4 addresses as far as they can be found without a network request:
     the host name's addresses and the one the default route leaves from."""

@@ -106,6 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="address the headset sockets bind (a LAN address or 0.0.0.0 for a real headset)",
     )
     p.add_argument(
+        "--headset-allow",
+        default=None,
+        help="IP[,IP] the Quest app's sockets accept (others refused and counted), or 'any'; "
+        "needed with --mirror-hardware on a non-loopback --headset-host",
+    )
+    p.add_argument(
         "--webxr-host",
         default="127.0.0.1",
         help="--source webxr: address the page is served on (a LAN address or 0.0.0.0 for a "
@@ -113,6 +119,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--webxr-port", type=int, default=None, help="--source webxr: port (default 8443)"
+    )
+    p.add_argument(
+        "--token",
+        default=None,
+        help="session token the WebXR page must present (default: a fresh one, required on any "
+        "address but loopback; given: required everywhere)",
     )
     p.add_argument("--headset-image-hz", type=float, default=10.0, help="twin images to headset")
     p.add_argument("--headset-image-size", default="640x360", help="WxH of headset images")

@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import zmq
 
+from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.mirroring import hardware_summary
 from beavr_sim.teleop.pipeline import (
@@ -79,6 +80,7 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
 from beavr_sim.twin.twin import CommandOutcome
+from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.messages import (
     JointCommandMsg,
     OperatorEventMsg,
@@ -118,6 +120,8 @@ class ViewConfig:
     port: int = 8080
     rate_hz: float = 30.0
     show_collision: bool = False
+    #: The session token for the controls that move the robot (None: everyone may press).
+    token: SessionToken | None = None
 
 
 @dataclass(frozen=True)
@@ -267,7 +271,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         source = TraceSource(config.trace, real_time=not config.lockstep)
     elif config.source == "webxr":
         source = WebXRSourceType(config.webxr, validator)
-        print(f"WebXR page (open it in the headset's browser): {source.url}", file=sys.stderr)
+        announce_webxr(source.url, config.webxr.token)
     else:
         source = QuestSource(context, transport, validator, latest_only=False)
     # A trace starts playing when the supervisor says every process is ready ("resume"), so
@@ -675,6 +679,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     view = None
     if config.view is not None:
         from beavr_sim.viz.twin_view import TwinView, subtree_bodies
+        from beavr_sim.viz.view_access import ViewAccess
 
         joints = env.joints
         view = TwinView(
@@ -689,8 +694,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             rate_hz=config.view.rate_hz,
             show_collision=config.view.show_collision,
             mirroring=mirror is not None,
+            access=None if config.view.token is None else ViewAccess(config.view.token),
         )
-        print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+        announce_view(view.url, config.view.token or SessionToken("-", False))
     browser_estop = None
     if view is not None and mirror is not None:
         from beavr_sim.teleop.mirroring import BrowserEstop
@@ -1204,6 +1210,7 @@ def process_configs(
             port=options.viser_port,
             rate_hz=options.viser_rate_hz,
             show_collision=options.show_collision,
+            token=options.session_token(options.viser_host),
         )
     operator = OperatorProcessConfig(
         stage=stage,

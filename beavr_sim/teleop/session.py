@@ -25,9 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from beavr_sim.hardware.mirror import Fixtures
+from beavr_sim.headset.address_gate import parse_allow_list
 from beavr_sim.headset.sources import HandSource
 from beavr_sim.naming import check_name
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
@@ -39,6 +41,7 @@ from beavr_sim.teleop.pipeline import (
     TeleopSummary,
     ThreadedListener,
 )
+from beavr_sim.wire.access import SessionToken, is_loopback, new_token_value
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
 
@@ -107,6 +110,12 @@ class SessionOptions:
     #: then HTTPS, self-signed) and its port (default ``PortConfig.webxr``).
     webxr_host: str = "127.0.0.1"
     webxr_port: int | None = None
+    #: ``--token``: the session token, required on every address; None: a fresh one, required
+    #: off loopback only (``beavr_sim.wire.access``).
+    token: str | None = None
+    #: ``--headset-allow``: "IP[,IP]" the Quest app's sockets accept, or "any"; None: any, but
+    #: refused with ``mirror_hardware`` on a non-loopback ``headset_host``.
+    headset_allow: str | None = None
     #: Recording on a mirrored rig: keep an episode the hardware spoilt (a device held, failed
     #: or diverged) in the dataset, marked ``hardware_fault`` in ``meta/beavr_episodes.jsonl``
     #: (default: discard it).
@@ -129,13 +138,14 @@ class SessionOptions:
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
             if self.multiprocess:
-                raise ValueError(
-                    "--camera runs in one process for now; leave out --multiprocess"
-                )
+                raise ValueError("--camera runs in one process for now; leave out --multiprocess")
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
+        self._token_value = self.token or new_token_value()  # one per session
         if self.transport is None:
-            self.transport = TransportConfig(headset_host=self.headset_host)
+            self.transport = TransportConfig(
+                headset_host=self.headset_host, headset_allow=self._headset_allow()
+            )
         from beavr_sim.tasks.registry import canonical_task_name
 
         self.task = canonical_task_name(self.task)
@@ -245,7 +255,31 @@ class SessionOptions:
         from beavr_sim.headset.webxr_server import WebXRConfig
 
         port = self.transport.ports.webxr if self.webxr_port is None else self.webxr_port
-        return WebXRConfig(host=self.webxr_host, port=port)
+        return WebXRConfig(
+            host=self.webxr_host, port=port, token=self.session_token(self.webxr_host)
+        )
+
+    def _headset_allow(self) -> frozenset[str] | None:
+        """The Quest sockets' allow-list; refuses an open LAN bind that could move hardware."""
+        allowed = None if self.headset_allow is None else parse_allow_list(self.headset_allow)
+        if self.mirror_hardware and not is_loopback(self.headset_host):
+            if self.headset_allow is None:
+                raise ValueError(
+                    f"--headset-host {self.headset_host} with --mirror-hardware: anyone on the "
+                    "network could move the robot; give --headset-allow HEADSET_IP "
+                    "(or --headset-allow any)"
+                )
+            if allowed is None:
+                print(
+                    "warning: --headset-allow any: the Quest sockets take hands from any host "
+                    "on the network and the robot is mirrored",
+                    file=sys.stderr,
+                )
+        return allowed
+
+    def session_token(self, host: str) -> SessionToken:
+        """This session's token for a server bound to ``host`` (the loopback rule)."""
+        return SessionToken.for_host(host, self.token, value=self._token_value)
 
     def _twin_leap_variant(self) -> str:
         """The twin's LEAP variant: the mirrored rig's hands', else the chosen one, else full."""
@@ -312,6 +346,8 @@ class SessionOptions:
             dry_run=getattr(args, "dry_run", False),
             webxr_host=getattr(args, "webxr_host", "127.0.0.1"),
             webxr_port=getattr(args, "webxr_port", None),
+            token=getattr(args, "token", None),
+            headset_allow=getattr(args, "headset_allow", None),
             keep_faulty_episodes=getattr(args, "keep_faulty_episodes", False),
             sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
@@ -607,16 +643,17 @@ def run_session(
                 rate_hz=options.viser_rate_hz,
                 show_collision=options.show_collision,
                 on_reset=sync.start if sync is not None else None,
+                token=options.session_token(options.viser_host),
             )
             if mirror is not None:
                 from beavr_sim.teleop.mirroring import BrowserEstop
 
                 loop.listeners.append(BrowserEstop(view, mirror))
             closers.append(view.close)
-            print(f"browser view: {view.url}", file=sys.stderr, flush=True)
+            announce_view(view.url, options.session_token(options.viser_host))
         if options.source == "webxr":
             url = loop.source.url
-            print(f"WebXR page (open it in the headset's browser): {url}", file=sys.stderr)
+            announce_webxr(url, options.webxr_config().token)
             if not options.headless:  # the twin drawn in the headset
                 env = loop.twin.env
                 info = {"task": env.task.name, "embodiment": env.embodiment.name}

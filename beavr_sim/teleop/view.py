@@ -16,6 +16,8 @@ import time
 
 from beavr_sim.teleop.pipeline import TeleopLoop
 from beavr_sim.viz.twin_view import DEFAULT_RATE_HZ, RateMeter, TwinView, recent_p50, subtree_bodies
+from beavr_sim.viz.view_access import ViewAccess
+from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.records import Tick
 
 _EPISODE = re.compile(r"episode (\d+)/(\d+): (REC|idle)")
@@ -108,12 +110,14 @@ def attach_view(
     rate_hz: float = DEFAULT_RATE_HZ,
     show_collision: bool = False,
     on_reset=None,
+    token: SessionToken | None = None,
 ) -> TwinView:
     """A :class:`TwinView` of ``loop``'s twin, driven by a :class:`ViewListener` appended to
     the loop's listeners. ``mirroring``: the session drives hardware; the view gets an
     emergency-stop button whose state (``view.estop_requested``) the session follows.
     ``show_collision``: the robots' collision geometry drawn too (a panel checkbox toggles it).
-    ``on_reset``: called after the Reset button reset the loop (the mirrored rig's sync)."""
+    ``on_reset``: called after the Reset button reset the loop (the mirrored rig's sync).
+    ``token``: the session token clients enter for the controls that move the robot."""
     env = loop.twin.env
     joints = env.joints
     by_effector = {name: joints.names[sl] for name, sl in joints.slices.items()}
@@ -130,6 +134,7 @@ def attach_view(
         mirroring=mirroring,
         rate_hz=rate_hz,
         show_collision=show_collision,
+        access=None if token is None else ViewAccess(token),
     )
     loop.listeners.append(ViewListener(view, loop, progress, control, on_reset))
     return view

@@ -22,13 +22,14 @@ import contextlib
 import sys
 import time
 from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from itertools import pairwise
 
 import mujoco
 import numpy as np
 
 from beavr_sim.robots.visuals import COLLISION_GROUP, RENDER_GEOM_GROUPS
+from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.hand import FINGERS, JOINT_INDEX, JOINT_NAMES
 
 DEFAULT_HOST = "127.0.0.1"
@@ -293,6 +294,7 @@ class TwinView:
         mirroring: bool = False,
         rate_hz: float = DEFAULT_RATE_HZ,
         show_collision: bool = False,
+        access: ViewAccess | None = None,
     ):
         import viser  # optional dependency (extra "viz")
 
@@ -349,25 +351,47 @@ class TwinView:
         self._paused = False
         self.reset_requested = False
         self.estop_requested = False
+        #: Who may press which control (None: everyone everything).
+        self.access = access
+        self.access_note = None
+        if access is not None and access.token.required:
+            with gui.add_folder("Access"):
+                self.access_note = gui.add_markdown(
+                    "anyone may stop; enter the session token to resume, reset or record"
+                )
+            self.server.on_client_connect(self._add_token_field)
+            self.server.on_client_disconnect(lambda client: access.forget(client.client_id))
         with gui.add_folder("Session"):
             self.pause_button = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE)
-            self.pause_button.on_click(lambda _: self._toggle_pause())
+            self.pause_button.on_click(
+                self._guarded(lambda: "resume" if self._paused else "pause", self._toggle_pause)
+            )
             self.reset_button = gui.add_button("Reset", icon=viser.Icon.REFRESH)
-            self.reset_button.on_click(lambda _: setattr(self, "reset_requested", True))
+            self.reset_button.on_click(
+                self._guarded("reset", lambda: setattr(self, "reset_requested", True))
+            )
             self.estop_button = None
             if mirroring:
                 self.estop_button = gui.add_button(
                     "EMERGENCY STOP", color="red", icon=viser.Icon.HAND_STOP
                 )
-                self.estop_button.on_click(lambda _: self._estop())
+                self.estop_button.on_click(
+                    self._guarded(
+                        lambda: "release" if self.estop_requested else "estop", self._estop
+                    )
+                )
         self.episode = None
         if episode_control is not None:  # recording: start / stop and discard episodes
             with gui.add_folder("Recording"):
                 self.episode = gui.add_markdown("episode: idle")
                 record = gui.add_button("Record: start / stop episode", color="red")
-                record.on_click(lambda _: episode_control.request("toggle", "browser"))
+                record.on_click(
+                    self._guarded("record", lambda: episode_control.request("toggle", "browser"))
+                )
                 discard = gui.add_button("Discard episode")
-                discard.on_click(lambda _: episode_control.request("discard", "browser"))
+                discard.on_click(
+                    self._guarded("discard", lambda: episode_control.request("discard", "browser"))
+                )
         with gui.add_folder("View"):
             self.collision_checkbox = gui.add_checkbox("Show collision geometry", show_collision)
             self.collision_checkbox.on_update(
@@ -399,6 +423,36 @@ class TwinView:
     def paused(self) -> bool:
         """The operator pressed Pause (and not Resume since)."""
         return self._paused
+
+    @property
+    def refused(self) -> int:
+        """Presses refused for want of the session token."""
+        return 0 if self.access is None else sum(self.access.refused.values())
+
+    def _guarded(self, action: str | Callable[[], str], press: Callable[[], None]):
+        """An ``on_click`` handler running ``press`` when the clicking client may ``action``."""
+
+        def on_click(event) -> None:
+            name = action() if callable(action) else action
+            client_id = getattr(event, "client_id", None)
+            if self.access is None or self.access.permits(name, client_id):
+                press()
+            elif self.access_note is not None:
+                self.access_note.content = (
+                    f"**{name} refused**: enter the session token ({self.refused} refused)"
+                )
+
+        return on_click
+
+    def _add_token_field(self, client) -> None:
+        """A per-client token field (never shared with the other clients)."""
+        field = client.gui.add_text("Session token", initial_value="")
+
+        def entered(_) -> None:
+            ok = self.access.enter(client.client_id, field.value)
+            field.label = "Session token ✓" if ok else "Session token (wrong)"
+
+        field.on_update(entered)
 
     def _toggle_pause(self) -> None:
         self._paused = not self._paused

@@ -130,6 +130,9 @@ class TransportConfig:
     host: str = "127.0.0.1"
     headset_host: str = "127.0.0.1"
     ports: PortConfig = field(default_factory=PortConfig)
+    #: IP addresses the Quest app's sockets accept peers from (``--headset-allow``, checked by
+    #: ``headset.address_gate``); None: any host.
+    headset_allow: frozenset[str] | None = None
 
     def __post_init__(self) -> None:
         _check_host("host", self.host)

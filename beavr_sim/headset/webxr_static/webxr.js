@@ -50,7 +50,9 @@ function send(message) {
 
 function connect() {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(`${scheme}://${location.host}/ws`);
+  const token = new URLSearchParams(location.search).get("token");
+  const query = token ? `?token=${encodeURIComponent(token)}` : "";
+  const ws = new WebSocket(`${scheme}://${location.host}/ws${query}`);
   state.ws = ws;
   ws.onopen = () => {
     send({ v: PROTOCOL_VERSION, type: "hello", agent: navigator.userAgent, page: PAGE_VERSION });
