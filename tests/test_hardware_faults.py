@@ -331,3 +331,39 @@ def test_the_emulator_process_keeps_only_recent_logs():
         assert len(log) < 20
     assert log[-1] == 94 and len(log) >= 10 and log.dropped == 95 - len(log)
     assert list(log) == list(range(95 - len(log), 95))
+
+
+def test_the_emulator_process_bounds_every_log_that_grows():
+    """Every list an emulator (or one of its motors) appends to while it runs is bounded in the
+    ``--hardware-config emulated`` child: each motor's record of register writes grew ~470 MB an
+    hour in a mirrored soak when only the emulators' own logs were bounded."""
+    from beavr_sim.hardware.emulators import RecentLog, _bound_logs, _motors
+    from beavr_sim.hardware.feetech.emulator import FeetechEmulator
+    from beavr_sim.hardware.leap.emulator import DynamixelEmulator
+    from beavr_sim.hardware.xarm.emulator import XArmEmulator
+
+    #: plain lists that do not grow with running time, and why
+    fixed = {"_conns": "one per client connection", "crc_errors": "cleared every packet"}
+    emulators = [
+        DynamixelEmulator(initial_position=dict.fromkeys(range(16), 2048)),
+        FeetechEmulator([1, 2]),
+        XArmEmulator(),
+    ]
+    unbounded = []
+    try:
+        for emulator in emulators:
+            _bound_logs(emulator)
+            owners = [emulator, *_motors(emulator)]
+            owners += [p for p in (getattr(emulator, "parser", None),) if p is not None]
+            assert len(owners) > 1 or isinstance(emulator, XArmEmulator)
+            for owner in owners:
+                for name, value in vars(owner).items():
+                    if isinstance(value, list) and not isinstance(value, RecentLog):
+                        if name not in fixed:
+                            unbounded.append(f"{type(owner).__name__}.{name}")
+    finally:
+        for emulator in emulators:
+            close = getattr(emulator, "close", None)
+            if close is not None:
+                close()
+    assert not unbounded, f"unbounded in the emulator child: {unbounded}"

@@ -20,9 +20,9 @@ of an arm, per goal write of a hand (``{motor id: model rad}``) and per sync wri
 group (``{servo id: model rad}``, through the RX-1 servo table), then one JSON line of what the
 faults did, ``{name: {"lost": requests, "dropped": replies, "corrupted": replies}}``, and exits.
 
-What an emulator received is kept for its last :data:`LOG_LIMIT` entries at least (at most
-twice that): a rehearsal of hours stays within a few tens of MB per device (kept whole, the
-logs of an emulated xArm + LEAP grew about 530 MB an hour).
+Every log an emulator appends to while it runs (:data:`GROWING_LOGS`, and each motor's
+:data:`MOTOR_LOGS`) is kept for its last entries only (:class:`RecentLog`): a rehearsal of
+hours stays within a few tens of MB per device.
 """
 
 from __future__ import annotations
@@ -66,12 +66,39 @@ class RecentLog(list):
             self.dropped += n
 
 
+#: What each emulator appends to for as long as it runs: its own logs, and each motor's
+#: (servo's) record of register writes. Every one is bounded in the child process.
+GROWING_LOGS = (
+    "servo_log",
+    "goal_log",
+    "packet_log",
+    "request_log",
+    "set_state_log",
+    "unknown_registers",
+    "faults",
+)
+MOTOR_LOGS = ("writes",)
+
+
 def _bound_logs(emulator) -> None:
     """Replace the emulator's whole-run logs by :class:`RecentLog` (before any client talks
     to it: the drivers connect only after the addresses line)."""
-    for attr in ("servo_log", "goal_log", "packet_log"):
+    for attr in GROWING_LOGS:
         if isinstance(getattr(emulator, attr, None), list):
             setattr(emulator, attr, RecentLog(LOG_LIMIT))
+    for motor in _motors(emulator):
+        for attr in MOTOR_LOGS:
+            if isinstance(getattr(motor, attr, None), list):
+                setattr(motor, attr, RecentLog(LOG_LIMIT // 100))
+
+
+def _motors(emulator) -> list:
+    """The per-motor states of a serial-bus emulator (none for the xArm)."""
+    for attr in ("motors", "servos"):
+        table = getattr(emulator, attr, None)
+        if isinstance(table, dict):
+            return list(table.values())
+    return []
 
 
 EXAMPLE = (
