@@ -111,6 +111,9 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"teleop --task pour --source trace --mirror-hardware --hardware-config emulated",
          extra="--max-seconds 1"),
     Spec(r"--hardware-config rig\.toml", why="a real rig: its rig.toml names real devices"),
+    Spec(r"teleop --record data/rec --camera ",
+         why="real cameras (a webcam, a LAN ZMQ server, a RealSense); test_cameras.py runs the "
+             "same path through LeRobot's OpenCV (a video file) and ZMQ cameras"),
     Spec(r"traces info assets/traces/pour\.mcap"),
     Spec(r"traces record --out my\.mcap", extra="--seconds 0.5", check="my.mcap"),
     Spec(r"traces synth --task pour --seed 0 --out pour\.mcap", extra="--no-verify",
