@@ -49,8 +49,10 @@ class _ImageServer:
             image = np.full((24, 32, 3), self.sent % 250, np.uint8)
             ok, buf = cv2.imencode(".jpg", image)
             assert ok
-            message = {"timestamps": {self.name: time.time()},
-                       "images": {self.name: base64.b64encode(buf.tobytes()).decode()}}
+            message = {
+                "timestamps": {self.name: time.time()},
+                "images": {self.name: base64.b64encode(buf.tobytes()).decode()},
+            }
             self.socket.send_string(json.dumps(message))
             self.sent += 1
             time.sleep(0.01)
@@ -70,8 +72,16 @@ def server():
 
 
 def _zmq_set(port: int, period_s: float = 0.05, dead_after_s: float = 1.0) -> RealCameras:
-    config = parse_camera_table("front", {"type": "zmq", "server_address": "127.0.0.1", "port": port,
-                                          "warmup_s": 0, "timeout_ms": 200})
+    config = parse_camera_table(
+        "front",
+        {
+            "type": "zmq",
+            "server_address": "127.0.0.1",
+            "port": port,
+            "warmup_s": 0,
+            "timeout_ms": 200,
+        },
+    )
     return RealCameras({"front": config}, control_period_s=period_s, dead_after_s=dead_after_s)
 
 
@@ -85,6 +95,7 @@ def _video(path: Path, frames: int) -> Path:
 
 # --- specs -----------------------------------------------------------------------------------
 
+
 def test_cli_specs_become_lerobot_configs():
     name, cfg = parse_camera_arg("wrist=opencv:0@640x480")
     assert name == "wrist" and isinstance(cfg, OpenCVCameraConfig)
@@ -97,13 +108,16 @@ def test_cli_specs_become_lerobot_configs():
     assert cfg.serial_number_or_name == "1234"
 
 
-@pytest.mark.parametrize("arg, fragment", [
-    ("front", "NAME=SPEC"),
-    ("front=usb:0", "opencv:INDEX_OR_PATH"),
-    ("front=opencv:0@640", "WIDTHxHEIGHT"),
-    ("front=zmq:host", "HOST:PORT"),
-    ("fr-ont=opencv:0", "letters"),
-])
+@pytest.mark.parametrize(
+    "arg, fragment",
+    [
+        ("front", "NAME=SPEC"),
+        ("front=usb:0", "opencv:INDEX_OR_PATH"),
+        ("front=opencv:0@640", "WIDTHxHEIGHT"),
+        ("front=zmq:host", "HOST:PORT"),
+        ("fr-ont=opencv:0", "letters"),
+    ],
+)
 def test_cli_spec_errors_name_the_camera_and_the_choices(arg, fragment):
     with pytest.raises(CameraSpecError, match=fragment) as info:
         parse_camera_arg(arg)
@@ -113,27 +127,41 @@ def test_cli_spec_errors_name_the_camera_and_the_choices(arg, fragment):
 def test_rig_table_errors_list_valid_choices():
     with pytest.raises(CameraSpecError, match=r"'front'.*not one of \['intelrealsense', 'opencv'"):
         parse_camera_table("front", {"type": "usb"})
-    with pytest.raises(CameraSpecError, match=r"unknown keys \['exposur'\].*valid: .*index_or_path"):
+    with pytest.raises(
+        CameraSpecError, match=r"unknown keys \['exposur'\].*valid: .*index_or_path"
+    ):
         parse_camera_table("front", {"type": "opencv", "index_or_path": 0, "exposur": 3})
     with pytest.raises(CameraSpecError, match="'front'"):
         parse_camera_table("front", {"type": "opencv"})
     with pytest.raises(CameraSpecError, match="both in the rig file and by --camera"):
-        merge_cameras({"front": parse_camera_table("front", {"type": "opencv", "index_or_path": 0})},
-                      dict([parse_camera_arg("front=opencv:1")]))
+        merge_cameras(
+            {"front": parse_camera_table("front", {"type": "opencv", "index_or_path": 0})},
+            dict([parse_camera_arg("front=opencv:1")]),
+        )
 
 
 def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
     _, cfg = parse_camera_arg(f"front=opencv:{tmp_path / 'missing.avi'}")
     cams = RealCameras({"front": cfg}, control_period_s=0.05)
-    with pytest.raises(CameraError, match=r"camera 'front' \(opencv\) failed to start: .*check that .*missing.avi"):
+    with pytest.raises(
+        CameraError, match=r"camera 'front' \(opencv\) failed to start: .*check that .*missing.avi"
+    ):
         cams.connect()
 
 
 # --- capture through LeRobot's cameras -------------------------------------------------------
 
+
 def test_opencv_video_file_delivers_then_dies_at_end(tmp_path):
-    cfg = parse_camera_table("front", {"type": "opencv", "fps": None, "warmup_s": 0,
-                                       "index_or_path": str(_video(tmp_path / "v.avi", 300))})
+    cfg = parse_camera_table(
+        "front",
+        {
+            "type": "opencv",
+            "fps": None,
+            "warmup_s": 0,
+            "index_or_path": str(_video(tmp_path / "v.avi", 300)),
+        },
+    )
     cams = RealCameras({"front": cfg}, control_period_s=0.05, dead_after_s=0.5)
     cams.connect()
     try:
@@ -152,7 +180,7 @@ def test_zmq_frames_are_the_newest_and_live(server):
         stamps = []
         for _ in range(5):
             sent = server.sent
-            _wait_for(lambda: server.sent >= sent + 3, "the server to publish")
+            _wait_for(lambda sent=sent: server.sent >= sent + 3, "the server to publish")
             grab = cams.grab()
             assert grab.dead == () and grab.frames["front"].shape == (24, 32, 3)
             stamps.append(cams._last_stamp["front"])
@@ -197,15 +225,24 @@ def test_camera_dying_mid_episode_is_reported_dead(server):
 
 # --- recorded sessions -----------------------------------------------------------------------
 
+
 def _record(tmp_path, port: int, episode_s: float, listener=None):
     from beavr_sim.datasets.features import RecordingConfig
     from beavr_sim.teleop.session import ProgressLine, SessionOptions, build_loop, record_episodes
 
     options = SessionOptions(
-        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
-        progress=False, record=tmp_path / "rec", repo_id="local/cams", episodes=1,
+        task="PickupBox",
+        source="trace",
+        clock="paced",
+        viser=False,
+        headless=True,
+        progress=False,
+        record=tmp_path / "rec",
+        repo_id="local/cams",
+        episodes=1,
         recording=RecordingConfig(cameras=(), episode_seconds=episode_s, use_videos=False),
-        auto_start=True, real_cameras=(f"front=zmq:127.0.0.1:{port}",),
+        auto_start=True,
+        real_cameras=(f"front=zmq:127.0.0.1:{port}",),
     )
     loop = build_loop(options)
     if listener is not None:
@@ -225,7 +262,9 @@ def test_recorded_frames_are_live_camera_frames(tmp_path, server):
     assert "stale" in cams and "age_p99_ms" in cams
     ds = LeRobotDataset("local/cams", root=tmp_path / "rec")
     assert ds.features["observation.images.front"]["shape"] == (24, 32, 3)
-    levels = {round(float(ds[i]["observation.images.front"].mean()), 3) for i in range(ds.num_frames)}
+    levels = {
+        round(float(ds[i]["observation.images.front"].mean()), 3) for i in range(ds.num_frames)
+    }
     assert len(levels) > ds.num_frames / 2  # the server's frames move on: not a frozen image
 
 
@@ -250,11 +289,29 @@ def test_camera_flag_errors():
     from beavr_sim.teleop.session import SessionOptions
 
     with pytest.raises(ValueError, match="add --record"):
-        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
-                       real_cameras=("front=opencv:0",))
+        SessionOptions(
+            task="PickupBox",
+            source="trace",
+            viser=False,
+            headless=True,
+            real_cameras=("front=opencv:0",),
+        )
     with pytest.raises(ValueError, match="leave out --multiprocess"):
-        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
-                       multiprocess=True, record=Path("x"), real_cameras=("front=opencv:0",))
+        SessionOptions(
+            task="PickupBox",
+            source="trace",
+            viser=False,
+            headless=True,
+            multiprocess=True,
+            record=Path("x"),
+            real_cameras=("front=opencv:0",),
+        )
     with pytest.raises(CameraSpecError, match="opencv:INDEX_OR_PATH"):
-        SessionOptions(task="PickupBox", source="trace", viser=False, headless=True,
-                       record=Path("x"), real_cameras=("front=usb:0",))
+        SessionOptions(
+            task="PickupBox",
+            source="trace",
+            viser=False,
+            headless=True,
+            record=Path("x"),
+            real_cameras=("front=usb:0",),
+        )

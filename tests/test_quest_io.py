@@ -232,14 +232,14 @@ def test_address_gate_drops_peers_not_on_the_allow_list(context, config):
             port = config.ports.quest_pause
             stranger.connect(f"tcp://127.0.0.2:0;127.0.0.1:{port}")
             stranger.send(b"Low")
-            deadline = time.monotonic() + 3.0
+            deadline = time.monotonic() + 30.0  # a hang guard only
             while gate.refused["not_allowed"] < 1:
                 assert time.monotonic() < deadline, "the gate never saw the stranger"
                 receiver.poll(timeout_s=0.05)
             headset = FakeHeadset(context, config)  # from 127.0.0.1: on the list
             headset.send("pause", "Low")
             while receiver.received["pause"] < 1:
-                assert time.monotonic() < deadline + 3.0, "the listed headset was not heard"
+                assert time.monotonic() < deadline + 30.0, "the listed headset was not heard"
                 receiver.poll(timeout_s=0.05)
             receiver.poll(timeout_s=0.05)
             assert receiver.received["pause"] == 1 and gate.accepted >= 1

@@ -286,6 +286,7 @@ def test_websocket_without_the_session_token_is_refused_at_the_handshake():
             connect(bare + "?token=s3cret-T0kem")
         assert bad_token.value.response.status_code == 403
         assert dict(server.stats.rejected) == {"no_token": 1, "bad_token": 1}
+        assert server.refused_connections() == {"no_token": 1, "bad_token": 1}
         assert server.take(0.0) == [] and not server.driving
         with connect(_ws_url(server)) as ws:  # the printed URL's token: frames drive the twin
             assert json.loads(ws.recv())["type"] == "welcome"
@@ -293,6 +294,29 @@ def test_websocket_without_the_session_token_is_refused_at_the_handshake():
             assert len(_take(server, 2)) == 2
     finally:
         server.close()
+
+
+def test_refused_handshakes_are_counted_in_the_session_summary():
+    """A WebSocket refused for its token shows in the teleop summary's ``rejected_by_reason``
+    (beside the frames' reasons); ``frames_rejected`` counts frames only."""
+    from beavr_sim.teleop.session import SessionOptions, build_loop
+
+    options = SessionOptions(
+        task="pour", source="webxr", viser=False, headless=True, progress=False,
+        webxr_port=0, token="s3cret-T0ken",
+    )  # fmt: skip
+    loop = build_loop(options)
+    try:
+        bare = _ws_url(loop.source.server).split("?")[0]
+        for url in (bare, bare + "?token=wrong"):
+            with pytest.raises(InvalidStatus):
+                connect(url)
+        summary = loop.summary(False)
+        assert summary.rejected_by_reason == {"no_token": 1, "bad_token": 1}
+        assert summary.frames_rejected == 0
+    finally:
+        loop.source.close()
+        loop.twin.env.close()
 
 
 def test_announce_prints_the_tokened_url_and_a_qr_code_only_with_a_token():

@@ -70,8 +70,12 @@ def _what_to_check(config: CameraConfig) -> str:
 class RealCameras:
     """The session's real cameras; one instance per session, `close()` when done."""
 
-    def __init__(self, configs: dict[str, CameraConfig], control_period_s: float,
-                 dead_after_s: float = DEAD_AFTER_S) -> None:
+    def __init__(
+        self,
+        configs: dict[str, CameraConfig],
+        control_period_s: float,
+        dead_after_s: float = DEAD_AFTER_S,
+    ) -> None:
         if control_period_s <= 0:
             raise ValueError(f"control_period_s must be > 0, got {control_period_s}")
         self.configs = dict(configs)
@@ -96,8 +100,10 @@ class RealCameras:
             except Exception as exc:
                 self.close()
                 first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-                raise CameraError(f"camera {name!r} ({config.type}) failed to start: {first}; "
-                                  f"{_what_to_check(config)}") from None
+                raise CameraError(
+                    f"camera {name!r} ({config.type}) failed to start: {first}; "
+                    f"{_what_to_check(config)}"
+                ) from None
         self.start_episode()
 
     @staticmethod
@@ -153,8 +159,11 @@ class RealCameras:
 
     def failed_for_good(self) -> list[str]:
         """Cameras whose LeRobot read thread has stopped (they will not come back)."""
-        return [name for name, camera in self._cameras.items()
-                if getattr(camera, "thread", None) is None or not camera.thread.is_alive()]
+        return [
+            name
+            for name, camera in self._cameras.items()
+            if getattr(camera, "thread", None) is None or not camera.thread.is_alive()
+        ]
 
     def summary(self) -> dict[str, dict[str, float | int]]:
         return {name: stats.summary() for name, stats in self.stats.items()}

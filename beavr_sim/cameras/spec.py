@@ -54,7 +54,9 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
     if at:
         match = _SIZE.match(size)
         if match is None:
-            raise CameraSpecError(f"camera {name!r}: size {size!r} is not WIDTHxHEIGHT (e.g. 640x480)")
+            raise CameraSpecError(
+                f"camera {name!r}: size {size!r} is not WIDTHxHEIGHT (e.g. 640x480)"
+            )
         width, height = int(match.group(1)), int(match.group(2))
     kind, colon, target = spec.partition(":")
     if kind not in ("opencv", "realsense", "zmq") or not colon or not target:
@@ -74,7 +76,11 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
         # The image server's camera is already warm; a second without a message is a dead
         # server (RealCameras reports it), so LeRobot's read need not block longer.
         return name, ZMQCameraConfig(
-            server_address=host, port=int(port), camera_name=name, warmup_s=0, timeout_ms=1000,
+            server_address=host,
+            port=int(port),
+            camera_name=name,
+            warmup_s=0,
+            timeout_ms=1000,
             **common,
         )
     except CameraSpecError:
@@ -96,7 +102,9 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
     valid = sorted(f.name for f in dataclasses.fields(cls))
     unknown = sorted(set(values) - set(valid))
     if unknown:
-        raise CameraSpecError(f"camera {name!r}: unknown keys {unknown} for type {kind!r}; valid: {valid}")
+        raise CameraSpecError(
+            f"camera {name!r}: unknown keys {unknown} for type {kind!r}; valid: {valid}"
+        )
     values.setdefault("fps", DEFAULT_FPS)
     if cls is ZMQCameraConfig:
         values.setdefault("camera_name", name)

@@ -68,6 +68,12 @@ class HandSource(ABC):
         """True when no frame will ever come again (end of a trace)."""
         return False
 
+    def refused_connections(self) -> dict[str, int]:
+        """Connections refused before any frame was read (a WebSocket without the session
+        token, a Quest app host not on ``--headset-allow``): reason -> count. The summary
+        adds them to ``rejected_by_reason``; ``frames_rejected`` counts frames only."""
+        return {}
+
     def close(self) -> None:
         """Release sockets or files."""
 
@@ -195,6 +201,9 @@ class QuestSource(HandSource):
         if self.gate is not None:
             self.gate.close()
 
+    def refused_connections(self) -> dict[str, int]:
+        return {} if self.gate is None else dict(self.gate.refused)
+
 
 class WebXRSource(HandSource):
     """A WebXR headset's browser: the page and WebSocket of ``webxr_server`` (own thread)."""
@@ -217,6 +226,9 @@ class WebXRSource(HandSource):
     def wait(self, timeout_s: float, clock=time.monotonic) -> list[HandFrame]:
         """Blocks until the server thread hands over a message's frames."""
         return self.server.take(timeout_s)
+
+    def refused_connections(self) -> dict[str, int]:
+        return self.server.refused_connections()
 
     def twin_feed(self, model, data, operator=None, info: dict | None = None):
         """A tick listener that shows the twin on the page (``webxr_scene.TwinFeed``)."""

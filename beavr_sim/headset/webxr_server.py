@@ -49,12 +49,15 @@ from beavr_sim.headset.webxr_protocol import (
 )
 from beavr_sim.headset.webxr_tls import ensure_certificate, server_ssl_context
 from beavr_sim.naming import check_name
-from beavr_sim.wire.access import NO_TOKEN, SessionToken, is_loopback
+from beavr_sim.wire.access import BAD_TOKEN, NO_TOKEN, SessionToken, is_loopback
 from beavr_sim.wire.hand import HandFrame
 from beavr_sim.wire.ports import PortConfig
 
 log = logging.getLogger(__name__)
 
+#: Why a WebSocket was refused before its first message (counted in the summary's
+#: ``rejected_by_reason`` beside the frames' reasons).
+HANDSHAKE_REFUSALS = ("cross_origin", NO_TOKEN, BAD_TOKEN)
 STATIC_DIR = Path(__file__).with_name("webxr_static")
 CONTENT_TYPES = {
     ".html": "text/html; charset=utf-8",
@@ -338,6 +341,11 @@ class WebXRServer:
                 pass
         self._events.append((kind, payload))
         self._arrived.set()
+
+    def refused_connections(self) -> dict[str, int]:
+        """WebSockets refused at the handshake (:data:`HANDSHAKE_REFUSALS`): reason -> count."""
+        counts = dict(self.stats.rejected)  # a copy first: the server thread adds to it
+        return {r: counts[r] for r in HANDSHAKE_REFUSALS if counts.get(r)}
 
     def _reject(self, reason: str, detail: str) -> None:
         self.stats.rejected[reason] += 1

@@ -732,7 +732,10 @@ class TeleopLoop:
             commands_applied=self.twin.commands_applied,
             duration_s=self.ticks * self.dt,
             latency_ms=self.latencies_ms.percentiles(),
-            rejected_by_reason=self.validator.rejected_by_reason,
+            rejected_by_reason={
+                **self.validator.rejected_by_reason,
+                **self.source.refused_connections(),
+            },
             holds=holds,
             operator={name: asdict(op.stats) for name, op in self.operator.effectors.items()},
             ticks=self.ticks,

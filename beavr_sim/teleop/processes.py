@@ -445,7 +445,10 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
-                        "rejected_by_reason": validator.rejected_by_reason,
+                        "rejected_by_reason": {
+                            **validator.rejected_by_reason,
+                            **source.refused_connections(),
+                        },
                         # Quest source: payloads per stream, and frames replaced by a newer
                         # one in the same poll (0: every frame is passed on)
                         "quest_received": dict(receiver.received) if receiver else {},
