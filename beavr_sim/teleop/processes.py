@@ -35,7 +35,11 @@ twin process a :class:`~beavr_sim.teleop.stages.TwinStage`, whose hooks the mirr
 :class:`TwinProcessConfig`) passed whole to the spawned process. The operator forwards the
 both-hands-pinch e-stop to the twin (:class:`~beavr_sim.wire.messages.OperatorEventMsg`, which
 latches the mirror); the twin's states carry whether the operator holds paused (the browser
-view's Pause or e-stop, the mirror's latched e-stop).
+view's Pause or e-stop, the mirror's latched e-stop). Mirrored, the twin brings the rig to the
+episode's start pose before the episode (and after a reset) with the session's
+:class:`~beavr_sim.teleop.mirroring.RigSync`, holding the start and dropping the operator's
+commands meanwhile (lockstep: its states ask no tick); a rig that does not sync ends the
+session (a ``done`` state; ``stopped_early`` in its report).
 
 On the virtual and paced clocks (a trace) the processes run in lockstep: the twin publishes
 the state of tick k, the operator answers it as one process's tick k (the frames up to k * dt,
