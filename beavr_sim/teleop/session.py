@@ -207,7 +207,10 @@ class SessionOptions:
             self.record = Path(self.record)
             self.recording = self.recording or RecordingConfig()
             if self.multiprocess:
-                raise ValueError("--record runs in one process; leave out --multiprocess")
+                raise ValueError(
+                    "--record runs in one process for now (the recorder and its per-frame "
+                    "checks follow the one-process loop); leave out --multiprocess"
+                )
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
@@ -223,7 +226,10 @@ class SessionOptions:
 
             self.rerun = check_rrd_path(self.rerun)
             if self.multiprocess:
-                raise ValueError("--rerun runs in one process; leave out --multiprocess")
+                raise ValueError(
+                    "--rerun runs in one process for now (the logger follows the one-process "
+                    "loop); leave out --multiprocess"
+                )
         if not 0 <= self.rerun_image_hz < float("inf"):
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
         if not 0 <= self.rerun_twin_hz < float("inf"):
