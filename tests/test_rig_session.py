@@ -341,16 +341,21 @@ def test_session_options_check_the_new_rig_options():
     assert ok.emulate_faults == "right_arm:freeze=2@5"
 
 
-def test_emulated_faults_are_rehearsed_through_the_cli(capsys):
+@pytest.mark.parametrize(
+    "layout", [[], ["--multiprocess", "--clock", "paced"]], ids=["one_process", "multiprocess"],
+)  # fmt: skip
+def test_emulated_faults_are_rehearsed_through_the_cli(capsys, layout):
     """``--emulate-faults``: the hand's bus stops answering for 2 s, 3 s into the session; the
     rig holds, the hand comes back within ``reconnect_s`` and the session goes on. The run is
-    reported as one with a hardware fault, the device's outage as recovered; nothing failed."""
+    reported as one with a hardware fault, the device's outage as recovered; nothing failed.
+    In both layouts (main refused it with --multiprocess), the run starting from a synced rig."""
     code = teleop_main(
         ["--task", "pour", "--source", "trace", *MIRRORED, "--quiet",
-         "--emulate-faults", "right_hand:freeze=2@3"]
+         "--emulate-faults", "right_hand:freeze=2@3", *layout]
     )  # fmt: skip
     summary = _summary(capsys)
     assert code == 0, summary
+    assert summary["per_run"][0]["sync_s"] >= 0, summary["per_run"]
     hand = summary["hardware"]["right_hand"]
     assert hand["outages"] >= 1 and hand["recovered"] >= 1, hand
     assert summary["failed_devices"] == []

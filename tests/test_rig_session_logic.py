@@ -15,6 +15,7 @@ from beavr_sim.bench.soak import rss_mb
 from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
 from beavr_sim.hardware.mirror import WriteLog
 from beavr_sim.teleop.__main__ import hardware_outcome
+from beavr_sim.teleop.mirroring import RigSync
 from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, RunTally, TeleopSummary
 from beavr_sim.teleop.session import HardwareSync, ProgressLine, SessionOptions, build_loop
 
@@ -171,6 +172,24 @@ def test_sync_times_out_or_ends_on_a_failed_device(loop):
     sync = HardwareSync(loop, dead, ProgressLine(loop, enabled=False), 30.0)
     loop.listeners.append(sync)
     assert sync.run().startswith("right_hand failed and was not re-armed")
+
+
+def test_rig_sync_alone_is_what_both_layouts_poll():
+    """``RigSync`` (the multiprocess twin polls it without a loop): None until it ends, then
+    "" once in sync (counted) or the fault; a timeout that is not positive is refused."""
+    clock = [0.0]
+    mirror = FakeMirror(sync_after=2)
+    sync = RigSync(mirror, 1.0, clock=lambda: clock[0])
+    assert sync.poll() is None and not sync.syncing  # nothing begun
+    sync.begin(np.zeros(3), fixtures=None)
+    assert sync.poll() is None and sync.poll() is None and sync.syncing
+    clock[0] = 0.25
+    assert sync.poll() == "" and sync.synced == 1 and sync.last_sync_s == 0.25
+    sync.begin(np.zeros(3), fixtures=None)
+    clock[0] = 2.0
+    assert "within 1 s" in sync.poll() and not sync.syncing and sync.synced == 1
+    with pytest.raises(ValueError, match="positive"):
+        RigSync(mirror, 0.0)
 
 
 def test_latency_log_is_bounded_and_reads_like_a_list():

@@ -229,7 +229,9 @@ FEATURES = (
     "rerun",
     "headset_images",
     "sync_timeout",
+    "emulate_faults",
 )
+MIRRORED_FEATURES = ("mirror", "estop_inputs", "sync_timeout", "emulate_faults")
 
 
 def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
@@ -242,10 +244,12 @@ def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
         progress=False,
         multiprocess=multiprocess,
     )
-    if feature in ("mirror", "estop_inputs", "sync_timeout"):  # e-stop: keys, button, gesture
+    if feature in MIRRORED_FEATURES:  # e-stop: keys, button, gesture
         kwargs.update(mirror_hardware=True, hardware_config="emulated")
     if feature == "sync_timeout":
         kwargs["sync_timeout_s"] = 5.0
+    if feature == "emulate_faults":
+        kwargs["emulate_faults"] = "right_hand:freeze=2@3"
     if feature == "record":
         kwargs["record"] = tmp_path / "dataset"
     if feature == "rerun":
@@ -257,10 +261,8 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
     """What the combination is refused for (words one of which the error names; any one
     applies); empty: it must work."""
     reasons = []
-    if feature in ("mirror", "estop_inputs", "sync_timeout") and clock == "virtual":
+    if feature in MIRRORED_FEATURES and clock == "virtual":
         reasons.append("real control rate")
-    if multiprocess and feature == "sync_timeout":
-        reasons.append("--sync-timeout")
     if clock in ("virtual", "paced") and source != "trace":
         reasons.append("recorded source")
     if multiprocess and feature == "record":
@@ -303,7 +305,9 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "source": op.source == source and (op.webxr is not None) == (source == "webxr"),
             "clock": (twin.lockstep, twin.paced)
             == (options.clock in ("virtual", "paced"), options.clock == "paced"),
-            "mirror": twin.mirror_hardware == (feature in ("mirror", "estop_inputs")),
+            "mirror": twin.mirror_hardware == (feature in MIRRORED_FEATURES),
+            "sync_timeout": twin.sync_timeout_s == options.sync_timeout_s,
+            "emulate_faults": twin.emulate_faults == options.emulate_faults,
             "rig": twin.hardware_config == options.hardware_config,
             "view": (twin.view is not None) == (feature in ("view", "estop_inputs")),
             "headset_images": (twin.headset_images is not None)

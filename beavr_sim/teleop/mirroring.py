@@ -6,6 +6,8 @@ gesture) that latch it. Used by the single-process session and the multiprocess 
 from __future__ import annotations
 
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from beavr_sim.hardware.faults import parse_fault_specs
@@ -135,6 +137,100 @@ class MirrorListener:
         if self.mirror.estopped != self._estopped:
             self._estopped = self.mirror.estopped
             self.loop.operator.set_paused(self._estopped)
+
+
+def episode_fault(mirror) -> str:
+    """The mirror's first fault of the episode ("" when none): what a run's line reports."""
+    health = mirror.health()
+    faults = tuple(health.episode_faults)
+    if faults:
+        return faults[0]
+    failed = list(mirror.failed_devices)
+    return f"{', '.join(failed)} failed" if failed else ""
+
+
+def failed_for_good(mirror) -> list[str]:
+    """Devices that failed and stay out until re-armed (``FAILED``; a device in an outage
+    is still being reconnected and may come back by itself)."""
+    return [d.name for d in mirror.health().devices if d.state.name == "FAILED"]
+
+
+class RigSync:
+    """Whether a mirrored rig reached an episode's start pose: :meth:`begin` tells the mirror
+    the twin's start (its guarded catch-up brings every device there), then :meth:`poll`
+    (once per tick) says when the rig is in sync, or why it will not be: a device failed and
+    nobody can re-arm it (not ``interactive``), or ``timeout_s`` (wall) passed. The one
+    sync of both layouts: the session's :class:`~beavr_sim.teleop.session.HardwareSync` and
+    the multiprocess twin."""
+
+    def __init__(
+        self,
+        mirror,
+        timeout_s: float,
+        interactive: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        if not 0 < timeout_s < float("inf"):
+            raise ValueError(f"sync timeout must be positive, got {timeout_s}")
+        self.mirror = mirror
+        self.timeout_s = float(timeout_s)
+        self.interactive = interactive
+        self.clock = clock
+        self.syncing = False
+        #: Why the last sync did not complete ("" when it did, or none ran).
+        self.fault = ""
+        #: Completed syncs, and how long (wall s) the last one took (or ran until its fault).
+        self.synced = 0
+        self.last_sync_s = 0.0
+        self._started = 0.0
+        self._deadline = 0.0
+
+    def begin(self, action, fixtures) -> None:
+        """The twin was just reset to the episode's start (``action``, ``fixtures``): the
+        devices catch up with it from now on."""
+        self.mirror.begin_episode(action, fixtures=fixtures)
+        self.syncing = True
+        self.fault = ""
+        self._started = self.clock()
+        self._deadline = self._started + self.timeout_s
+
+    def poll(self) -> str | None:
+        """None while syncing (or when no sync runs); once it ends: "" in sync (counted), or
+        the fault."""
+        if not self.syncing:
+            return None
+        if self.mirror.in_sync():
+            self.synced += 1
+            return self.end("")
+        failed = failed_for_good(self.mirror)
+        if failed and not self.interactive:
+            return self.end(f"{', '.join(failed)} failed and was not re-armed: {self.why()}")
+        if self.clock() > self._deadline:
+            return self.end(
+                f"the hardware did not reach the episode's start pose within "
+                f"{self.timeout_s:g} s: {self.why()}"
+            )
+        return None
+
+    def end(self, fault: str) -> str:
+        """End the sync with ``fault`` ("" in sync); returns it."""
+        self.syncing = False
+        self.last_sync_s = self.clock() - self._started
+        self.fault = fault
+        return fault
+
+    def why(self) -> str:
+        """Which devices are not there and why, and the episode's last fault line."""
+        health = self.mirror.health()
+        parts = [
+            f"{d.name} {d.state.name.lower()}" + (f" ({d.detail})" if d.detail else "")
+            for d in health.devices
+            if d.state.name != "FOLLOWING"
+        ] or ["every device follows, but not yet within the sync tolerance of the twin"]
+        faults = tuple(health.episode_faults)
+        if faults:
+            parts.append(f"last fault: {faults[-1]}")
+        return "; ".join(parts)
 
 
 class BrowserEstop:

@@ -35,7 +35,11 @@ twin process a :class:`~beavr_sim.teleop.stages.TwinStage`, whose hooks the mirr
 :class:`TwinProcessConfig`) passed whole to the spawned process. The operator forwards the
 both-hands-pinch e-stop to the twin (:class:`~beavr_sim.wire.messages.OperatorEventMsg`, which
 latches the mirror); the twin's states carry whether the operator holds paused (the browser
-view's Pause or e-stop, the mirror's latched e-stop).
+view's Pause or e-stop, the mirror's latched e-stop). Mirrored, the twin brings the rig to the
+episode's start pose before the episode (and after a reset) with the session's
+:class:`~beavr_sim.teleop.mirroring.RigSync`, holding the start and dropping the operator's
+commands meanwhile (lockstep: its states ask no tick); a rig that does not sync ends the
+session (a ``done`` state; ``stopped_early`` in its report).
 
 On the virtual and paced clocks (a trace) the processes run in lockstep: the twin publishes
 the state of tick k, the operator answers it as one process's tick k (the frames up to k * dt,
@@ -70,9 +74,11 @@ import zmq
 
 from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
-from beavr_sim.teleop.mirroring import hardware_summary
+from beavr_sim.teleop.mirroring import episode_fault, hardware_summary
 from beavr_sim.teleop.pipeline import (
     LatencyLog,
+    RunRecord,
+    RunTally,
     TeleopSummary,
     ThreadedListener,
     TickSchedule,
@@ -173,7 +179,9 @@ class TwinProcessConfig:
     time limit), the episode's seed, the clock (``lockstep``: the twin steps only once the
     operator's commands for the tick arrived; ``paced``: lockstep ticks slept to the control
     rate), when a lockstep episode ends (as the single-process loop's ``run``), the mirrored
-    rig, the browser view, the headset images and the attachments."""
+    rig (each episode, and a browser Reset, starts once the rig is at its start pose:
+    :class:`~beavr_sim.teleop.mirroring.RigSync`), the browser view, the headset images and
+    the attachments."""
 
     task: str
     embodiment: str
@@ -189,6 +197,10 @@ class TwinProcessConfig:
     mirror_hardware: bool = False
     hardware_config: str | None = None
     dry_run: bool = False
+    #: Mirrored: how long (wall s) the rig may take to reach an episode's start pose (None:
+    #: the rig file's); ``hardware_config="emulated"``: the faults its emulators inject.
+    sync_timeout_s: float | None = None
+    emulate_faults: str | None = None
     view: ViewConfig | None = None
     headset_images: HeadsetImagesConfig | None = None
     attach: tuple[Attachment, ...] = ()
@@ -636,12 +648,18 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     episode_seed = config.seed
     positions = twin.reset(episode_seed)  # the twin's measured joints after its last step
     mirror = None
+    sync = None
     closers: list[Callable[[], None]] = []
     mirror_reset = None
     if config.mirror_hardware:
         from beavr_sim.hardware.device import MirrorError
         from beavr_sim.hardware.mirror import Fixtures
-        from beavr_sim.teleop.mirroring import MIRROR_SWITCH_INTERVAL_S, RigChoice, connect_mirror
+        from beavr_sim.teleop.mirroring import (
+            MIRROR_SWITCH_INTERVAL_S,
+            RigChoice,
+            RigSync,
+            connect_mirror,
+        )
 
         try:
             mirror, q_measured = connect_mirror(RigChoice.of(config), env, closers)
@@ -651,10 +669,13 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             conn.send_bytes(f"error: {exc}".encode())
             env.close()
             return
-        positions = twin.reset(episode_seed, q_measured)  # the twin starts where the robot is
+        twin.reset(episode_seed, q_measured)  # the mirror starts where the robot is
         sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)  # see teleop/mirroring.py
         mirror.start(twin.action)
-        mirror.begin_episode(twin.action.copy(), Fixtures.of(env.data))  # its guard: fixtures
+        # The episode's start; the devices catch up with it before the operator's commands
+        # are taken (as one process's HardwareSync).
+        sync = RigSync(mirror, config.sync_timeout_s or mirror.rig.mirror.sync_timeout_s)
+        positions = twin.reset(episode_seed)
         mirror_reset = follow_with_mirror(stage, mirror, positions)
     fixtures = fixtures_to_wire(env)
     subs = {
@@ -855,17 +876,44 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         return st
 
     def between_substeps() -> None:
-        # Commands that arrive while the physics steps are taken between its substeps.
-        if command_poller.poll(0):
+        # Commands that arrive while the physics steps are taken between its substeps (not
+        # while the rig syncs: the twin holds the episode's start).
+        if command_poller.poll(0) and not (sync is not None and sync.syncing):
             take_commands()
 
-    if not config.lockstep:
-        env.between_substeps = between_substeps
-    else:
+    def syncing_step() -> TwinState | None:
+        """While the rig syncs: the operator's commands dropped (computed before the
+        episode's start), the twin holds its start, one step a control period; None until
+        the next period is due."""
+        for name, sub in subs.items():
+            if sub.recv_latest(0.0) is not None:
+                held_for_sync[name] = held_for_sync.get(name, 0) + 1
+        now = time.monotonic()
+        if now < schedule.next:
+            return None
+        schedule.take(now)
+        return stage.step()
+
+    def start_episode() -> None:
+        """After a reset, or a sync that completed: the episode starts (lockstep: tick 0)."""
+        nonlocal tick, finished_at, done, success
+        tick, finished_at, done, success = 0, None, False, False
+        pending.clear()
         if config.paced:
             schedule.restart()
             schedule.wait()
         publish(state_message(None, tick=0))
+
+    held_for_sync: dict[str, int] = {}
+    sync_fault = ""
+    if sync is not None:  # its timeout runs from here, not from the processes' handshake
+        sync.begin(twin.action.copy(), Fixtures.of(env.data))
+    if not config.lockstep:
+        env.between_substeps = between_substeps
+    elif sync is None or not sync.syncing:
+        start_episode()
+    else:
+        publish(state_message(None))  # tick -1: the operator waits for the rig
     try:
         while True:
             if config.lockstep:
@@ -882,14 +930,12 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 positions = twin.reset(episode_seed)
                 epoch = max(epoch + 1, msg.epoch if reset else 0)
                 fixtures = fixtures_to_wire(env)
-                if mirror is not None:  # the devices catch up with the twin's start, guarded
-                    mirror.begin_episode(twin.action.copy(), Fixtures.of(env.data))
+                if sync is not None:  # the devices catch up with the twin's start, guarded
+                    sync.begin(twin.action.copy(), Fixtures.of(env.data))
                 if mirror_reset is not None:
                     mirror_reset(positions)
-                if config.lockstep:
-                    tick, finished_at, done, success = 0, None, False, False
-                    pending.clear()
-                    publish(state_message(None, tick=0))
+                if config.lockstep and sync is None:
+                    start_episode()
             if msg is not None and mirror is not None and msg.command == "estop":
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
@@ -899,6 +945,33 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 if event.event == "estop" and mirror is not None:
                     mirror.estop("headset gesture: both hands pinch")
                 event = events.recv(0.0)
+            if sync_fault:  # the session ends: the supervisor stops on the done state
+                if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
+                    publish(last_state)
+                continue
+            if sync is not None and sync.syncing:
+                st = syncing_step()
+                if st is None:
+                    continue
+                positions = st.positions
+                if browser_estop is not None:
+                    browser_estop(None)
+                result = sync.poll()
+                if result:
+                    sync_fault = result
+                    publish(state_message(st, done=True))
+                elif result == "":  # in sync: the seeded start again, a new epoch
+                    positions = twin.reset(episode_seed)
+                    epoch += 1
+                    fixtures = fixtures_to_wire(env)
+                    mirror_reset(positions)
+                    if config.lockstep:
+                        start_episode()
+                    else:
+                        success = False
+                else:
+                    publish(state_message(st))
+                continue
             if config.lockstep:
                 if done:
                     if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
@@ -970,6 +1043,11 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                         n: int(v) for n, v in getattr(twin, "step_limited", {}).items()
                     },
                     "stale_commands": stale,
+                    "held_for_sync": held_for_sync,
+                    "sync_s": sync.last_sync_s if sync is not None else None,
+                    "stopped_early": sync_fault,
+                    "hardware_fault": sync_fault or (episode_fault(mirror) if mirror else ""),
+                    "failed_devices": list(mirror.failed_devices) if mirror is not None else [],
                     "reset_epoch": epoch,
                     "overruns": schedule.overruns,
                     "missed_ticks": schedule.missed_ticks,
@@ -1118,8 +1196,8 @@ class MultiprocessSession:
                     self.send(requests.pop(0))
                 if state is not None:
                     success = success or state.success
-                    if self.lockstep and state.done:
-                        break  # the twin ended the episode as one process's loop would
+                    if state.done:  # the twin ended the episode as one process's loop would,
+                        break  # or its rig did not sync
                 for name in self.dead():
                     if name not in reported:
                         reported.add(name)
@@ -1145,7 +1223,7 @@ class MultiprocessSession:
         ``died``: processes that died while it ran."""
         op, twin = self.results.get("operator", {}), self.results.get("twin", {})
         det = op.get("detector", {})
-        return TeleopSummary(
+        summary = TeleopSummary(
             task=twin.get("task", self.twin_config.task),
             embodiment=twin.get("embodiment", self.twin_config.embodiment),
             success=bool(twin.get("success", success)),
@@ -1166,7 +1244,23 @@ class MultiprocessSession:
             missed_ticks=op.get("missed_ticks", 0) + twin.get("missed_ticks", 0),
             frames_superseded=sum(det.get("frames_superseded", {}).values())
             + sum(op.get("frames_superseded", {}).values()),
+            failed_devices=list(twin.get("failed_devices", [])),
+            stopped_early=twin.get("stopped_early", ""),
         )
+        if twin.get("sync_s") is not None:  # mirrored: the run's line, as one process's
+            tally = RunTally()
+            fault = twin.get("hardware_fault", "")
+            tally.add(
+                RunRecord(
+                    1,
+                    summary.success,
+                    0.0 if twin.get("stopped_early") else summary.duration_s,
+                    fault,
+                    sync_s=twin["sync_s"],
+                )
+            )
+            summary.count_runs(tally)
+        return summary
 
 
 def merged_holds(operator: dict, twin: dict) -> dict[str, dict[str, int]]:
@@ -1178,6 +1272,7 @@ def merged_holds(operator: dict, twin: dict) -> dict[str, dict[str, int]]:
         ("guard_blocks", "guard"),
         ("step_limited", "step_limit"),
         ("stale_commands", "stale_after_reset"),
+        ("held_for_sync", "syncing"),
     ):
         for name, n in twin.get(key, {}).items():
             if n:
@@ -1236,6 +1331,8 @@ def process_configs(
         mirror_hardware=options.mirror_hardware,
         hardware_config=options.hardware_config,
         dry_run=options.dry_run,
+        sync_timeout_s=options.sync_timeout_s,
+        emulate_faults=options.emulate_faults,
         view=view,
         headset_images=(
             HeadsetImagesConfig(options.headset_image_hz, tuple(options.headset_image_size))

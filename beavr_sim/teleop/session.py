@@ -33,7 +33,7 @@ from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
-from beavr_sim.teleop.mirroring import hardware_summary
+from beavr_sim.teleop.mirroring import RigSync, episode_fault, failed_for_good, hardware_summary
 from beavr_sim.teleop.pipeline import (
     RunRecord,
     RunTally,
@@ -207,7 +207,10 @@ class SessionOptions:
             self.record = Path(self.record)
             self.recording = self.recording or RecordingConfig()
             if self.multiprocess:
-                raise ValueError("--record runs in one process; leave out --multiprocess")
+                raise ValueError(
+                    "--record runs in one process for now (the recorder and its per-frame "
+                    "checks follow the one-process loop); leave out --multiprocess"
+                )
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
@@ -223,7 +226,10 @@ class SessionOptions:
 
             self.rerun = check_rrd_path(self.rerun)
             if self.multiprocess:
-                raise ValueError("--rerun runs in one process; leave out --multiprocess")
+                raise ValueError(
+                    "--rerun runs in one process for now (the logger follows the one-process "
+                    "loop); leave out --multiprocess"
+                )
         if not 0 <= self.rerun_image_hz < float("inf"):
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
         if not 0 <= self.rerun_twin_hz < float("inf"):
@@ -232,10 +238,6 @@ class SessionOptions:
             raise ValueError("--keep-faulty-episodes needs --record")
         if self.sync_timeout_s is not None and not 0 < self.sync_timeout_s < float("inf"):
             raise ValueError(f"--sync-timeout must be positive, got {self.sync_timeout_s}")
-        if self.multiprocess and (self.sync_timeout_s is not None or self.emulate_faults):
-            raise ValueError(
-                "--sync-timeout and --emulate-faults run in one process; leave out --multiprocess"
-            )
         if self.emulate_faults is not None:
             spec = self.emulate_faults.strip()
             if self.hardware_config != "emulated":
@@ -403,8 +405,10 @@ class _NoFrames(HandSource):
 
 class HardwareSync:
     """Brings a mirrored rig to an episode's start pose before the episode starts (see the
-    module docstring); a tick listener of the loop, so a browser Reset (:meth:`start` from
-    the view) syncs the same way as the session's own episode starts (:meth:`run`).
+    module docstring; the sync itself is :class:`~beavr_sim.teleop.mirroring.RigSync`, the
+    one the multiprocess twin runs); a tick listener of the loop, so a browser Reset
+    (:meth:`start` from the view) syncs the same way as the session's own episode starts
+    (:meth:`run`).
 
     ``interactive``: someone can re-arm a failed device meanwhile (keyboard, browser), so a
     failed device waits for the timeout instead of ending the sync at once."""
@@ -421,52 +425,48 @@ class HardwareSync:
         self.loop = loop
         self.mirror = mirror
         self.progress = progress
-        self.timeout_s = float(timeout_s)
-        self.interactive = interactive
-        self.clock = clock
-        self.syncing = False
-        #: Why the last sync did not complete ("" when it did, or none ran).
-        self.fault = ""
-        #: Completed syncs, and how long (wall s) the last one took (or ran until its fault).
-        self.synced = 0
-        self.last_sync_s = 0.0
+        self.rig = RigSync(mirror, timeout_s, interactive, clock)
         self._source: HandSource | None = None
-        self._started = 0.0
-        self._deadline = 0.0
+
+    @property
+    def interactive(self) -> bool:
+        return self.rig.interactive
+
+    @property
+    def syncing(self) -> bool:
+        return self.rig.syncing
+
+    @property
+    def fault(self) -> str:
+        """Why the last sync did not complete ("" when it did, or none ran)."""
+        return self.rig.fault
+
+    @property
+    def synced(self) -> int:
+        return self.rig.synced
+
+    @property
+    def last_sync_s(self) -> float:
+        return self.rig.last_sync_s
 
     def start(self) -> None:
         """The twin was just reset to the episode's start: tell the mirror, and hold the
         operator (no frames: it holds) until the devices are there. (Not by pausing it: a
         resume re-anchors the operator, and the episode after the sync would not be the one
         its simulation is.)"""
-        self.mirror.begin_episode(
-            self.loop.twin.action.copy(), fixtures=Fixtures.of(self.loop.twin.env.data)
-        )
+        self.rig.begin(self.loop.twin.action.copy(), Fixtures.of(self.loop.twin.env.data))
         if not isinstance(self.loop.source, _NoFrames):  # (a new one since a start: kept)
             self._source = self.loop.source
             self.loop.source = _NoFrames(self._source.real_time)
-        self.syncing = True
-        self.fault = ""
         self.progress.status = "syncing hardware"
-        self._started = self.clock()
-        self._deadline = self._started + self.timeout_s
 
     def __call__(self, tick: Tick) -> None:
-        if not self.syncing:
+        fault = self.rig.poll()
+        if fault is None:
             return
-        if self.mirror.in_sync():
-            self._finish("")
+        self._finish()
+        if not fault:
             self.loop.reset(self.loop.seed)  # the seeded start again: the simulated episode
-            self.synced += 1
-            return
-        failed = failed_for_good(self.mirror)
-        if failed and not self.interactive:
-            self._finish(f"{', '.join(failed)} failed and was not re-armed: {self._why()}")
-        elif self.clock() > self._deadline:
-            self._finish(
-                f"the hardware did not reach the episode's start pose within "
-                f"{self.timeout_s:g} s: {self._why()}"
-            )
 
     def run(self) -> str:
         """:meth:`start`, then tick until in sync; returns the fault ("" when in sync)."""
@@ -475,46 +475,16 @@ class HardwareSync:
             tick = self.loop.tick()
             self.progress(tick)
         if self.syncing:  # Ctrl-C / SIGTERM before the rig was in sync
-            self._finish("interrupted before the rig was in sync")
+            self.rig.end("interrupted before the rig was in sync")
+            self._finish()
         return self.fault
 
-    def _why(self) -> str:
-        """Which devices are not there and why, and the episode's last fault line."""
-        health = self.mirror.health()
-        parts = [
-            f"{d.name} {d.state.name.lower()}" + (f" ({d.detail})" if d.detail else "")
-            for d in health.devices
-            if d.state.name != "FOLLOWING"
-        ] or ["every device follows, but not yet within the sync tolerance of the twin"]
-        faults = tuple(health.episode_faults)
-        if faults:
-            parts.append(f"last fault: {faults[-1]}")
-        return "; ".join(parts)
-
-    def _finish(self, fault: str) -> None:
-        self.syncing = False
-        self.last_sync_s = self.clock() - self._started
-        self.fault = fault
+    def _finish(self) -> None:
         if self._source is not None:
             self.loop.source = self._source
             self._source = None
+        fault = self.rig.fault
         self.progress.status = f"HARDWARE FAULT: {fault}" if fault else ""
-
-
-def episode_fault(mirror) -> str:
-    """The mirror's first fault of the episode ("" when none): what a run's line reports."""
-    health = mirror.health()
-    faults = tuple(health.episode_faults)
-    if faults:
-        return faults[0]
-    failed = list(mirror.failed_devices)
-    return f"{', '.join(failed)} failed" if failed else ""
-
-
-def failed_for_good(mirror) -> list[str]:
-    """Devices that failed and stay out until re-armed (``FAILED``; a device in an outage
-    is still being reconnected and may come back by itself)."""
-    return [d.name for d in mirror.health().devices if d.state.name == "FAILED"]
 
 
 def build_loop(options: SessionOptions, context=None):
