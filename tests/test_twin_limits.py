@@ -59,6 +59,27 @@ def test_a_far_command_arrives_at_the_speed_cap(env, use_guard, joint, what):
     assert twin.step_limited == {"right": ticks - 1}
 
 
+def test_a_mirrored_twin_steps_no_faster_than_the_rigs_devices(env):
+    """``follow_speed_caps`` (a mirrored rig's device caps): a joint whose device is slower than
+    the twin's own cap moves at the device's speed, so the hardware can follow every step; a
+    faster device leaves the twin's cap as it was."""
+    twin = TwinInterface(env)
+    q0 = twin.reset(seed=0)
+    sl = twin.slices["right"]
+    i = sl.start  # the arm's first joint
+    own = twin.max_velocity.copy()
+    caps = own * 2.0  # faster devices: nothing changes ...
+    caps[i] = math.pi / 2  # ... but one servo at pi/2 rad/s
+    twin.follow_speed_caps(caps)
+    assert twin.max_velocity[i] == math.pi / 2
+    np.testing.assert_array_equal(np.delete(twin.max_velocity, i), np.delete(own, i))
+    sign = 1.0 if q0[i] + 0.5 <= env.unwrapped.joints.upper[i] else -1.0
+    goal = q0.copy()
+    goal[i] += sign * 0.5
+    state = twin.apply(_command("right", goal[sl]))
+    assert abs(state.action[i] - q0[i]) == pytest.approx(math.pi / 2 * twin.dt)
+
+
 def test_the_step_limit_leaves_corrupt_targets_to_the_guard(env):
     """A non-finite target, or one past the joint's range, is refused whole by the guard (the
     robot does not move towards it); with the guard off, the range is clamped like speed."""

@@ -776,6 +776,9 @@ class HardwareMirror:
                 vmax[link.index] = np.minimum(vmax[link.index], link.device.max_velocity)
         #: The speed caps, each joint on its own: a step beyond one period's reach is caught up.
         self._speed_limit = JointRateLimit.of(vmax)
+        #: Per action index, the speed (rad/s) the rig follows (the guard's cap, no faster than
+        #: a device's own): the twin steps no faster (``TwinInterface.follow_speed_caps``).
+        self.speed_caps = vmax.copy()
         #: The rate limit: a device's joints move together (its step shortened along its
         #: direction); joints no device drives are not limited.
         driven = np.zeros(joints.size, dtype=bool)

@@ -116,6 +116,7 @@ class BeavrSimRobot(Robot):
             if cfg.mirrors_hardware:
                 choice = RigChoice(cfg.hardware, cfg.dry_run)
                 self.mirror, q_measured = connect_mirror(choice, env, self._closers)
+                twin.follow_speed_caps(self.mirror.speed_caps)
             twin.reset(cfg.seed, robot_qpos=q_measured)
             if self.mirror is not None:
                 self.mirror.start(twin.action)

@@ -669,6 +669,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             conn.send_bytes(f"error: {exc}".encode())
             env.close()
             return
+        twin.follow_speed_caps(mirror.speed_caps)
         twin.reset(episode_seed, q_measured)  # the mirror starts where the robot is
         sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)  # see teleop/mirroring.py
         mirror.start(twin.action)

@@ -1065,6 +1065,7 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     )
 
     mirror, q_measured = connect_mirror(RigChoice.of(options), loop.twin.env, closers)
+    loop.twin.follow_speed_caps(mirror.speed_caps)
     loop.reset(loop.seed, robot_qpos=q_measured)
     mirror.start(loop.twin.action)
     previous = sys.getswitchinterval()

@@ -132,6 +132,15 @@ class TwinInterface:
                     n,
                 )
 
+    def follow_speed_caps(self, max_velocity: np.ndarray) -> None:
+        """Never step faster than ``max_velocity`` (rad/s per action index) either: a mirrored
+        rig's device caps, so the hardware can follow every step the twin takes (a twin that
+        outran a device left the mirror catching up behind it until its divergence check
+        ended the episode)."""
+        caps = np.minimum(self.max_velocity, np.asarray(max_velocity, dtype=np.float64))
+        self.max_velocity = caps
+        self.rate_limit = JointRateLimit.of(caps)
+
     def apply(self, commands: Mapping[str, JointCommand]) -> TwinState:
         """One control tick: :meth:`command` then :meth:`step` (the virtual-clock replay and
         the single-process loop at one command per tick)."""
