@@ -608,6 +608,14 @@ class TwinView:
             self.episode.content = episode
         self.updates += 1
 
+    def add_camera_panel(self, shapes: Mapping[str, tuple[int, int, int]]):
+        """A real-camera panel (``viz/camera_panel.py``) for cameras of frame ``shapes``: a
+        sink for a ``CameraStream``, fed on the stream's thread."""
+        from beavr_sim.viz.camera_panel import CameraPanel  # local: pulls in OpenCV
+
+        self.camera_panel = CameraPanel(self.server.gui, shapes)
+        return self.camera_panel
+
     def close(self) -> None:
         with contextlib.redirect_stdout(sys.stderr):
             self.server.stop()

@@ -80,10 +80,31 @@ function connect() {
     } else if (msg.type === "twin") {
       state.twin = msg;
       if (renderer) renderer.setPoses(msg.pose);
+    } else if (msg.type === "camera") {
+      showCamera(msg);
     }
     requestPreview();
     updateUi();
   };
+}
+
+// A real camera's panel: the streamed image with its capture age, or NO SIGNAL (never the last
+// image left showing as if live).
+function showCamera(msg) {
+  const root = byId("cameras");
+  if (!root || typeof msg.name !== "string") return;
+  const id = "camera-" + msg.name.replace(/[^A-Za-z0-9_-]/g, "_");
+  let panel = document.getElementById(id);
+  if (!panel) {
+    panel = document.createElement("div");
+    panel.id = id;
+    panel.append(document.createElement("img"), document.createElement("p"));
+    root.append(panel);
+  }
+  const [img, label] = panel.children;
+  img.src = "data:image/jpeg;base64," + msg.jpeg;
+  label.textContent = String(msg.label);
+  label.className = msg.state === "live" ? "small" : "small nosignal";
 }
 
 // One hand's joints in the session's reference space; a joint without a pose is null.

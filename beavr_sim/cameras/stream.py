@@ -1,0 +1,241 @@
+"""CameraStream: the live real cameras (and the twin's renders) streamed to viewers off the
+control thread, at a bounded rate.
+
+Contract: :meth:`CameraStream.offer` is the control thread's only call; it stores a reference
+to the newest :class:`~beavr_sim.cameras.real.Grab` in a one-slot mailbox and returns (never
+blocks, never raises, never copies). A worker thread wakes at most ``rate_hz`` times per
+second, takes the newest grab (older ones are dropped and counted, never queued), composes
+each camera's panel for the chosen view (``real``, ``twin``, ``both`` side by side, or
+``overlay``: the twin's render blended over the real frame) and hands a :class:`StreamFrame`
+to every sink (the viser panel, the Quest image PUB socket, the WebXR page). A slow sink slows
+only the worker. A camera that is dead, or whose newest frame is older than ``dead_after_s``
+when shown, is sent as a "no signal" frame (never its last image shown as live); every live
+frame carries its capture age.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: What a camera panel shows: the real frame, the twin's render, both side by side, or the
+#: twin's render blended over the real frame.
+VIEWS = ("real", "twin", "both", "overlay")
+#: Streamed frames per second by default: low, the stream is for a person watching.
+DEFAULT_RATE_HZ = 5.0
+NO_SIGNAL = "no signal"
+LIVE = "live"
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """``rate_hz``: panels per second at most (``0``: the stream is off); ``view``: one of
+    :data:`VIEWS`; ``blend``: the twin's weight in ``overlay`` (0..1); ``dead_after_s``: a
+    frame older than this when shown is "no signal"."""
+
+    rate_hz: float = DEFAULT_RATE_HZ
+    view: str = "real"
+    blend: float = 0.5
+    dead_after_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_view(self.view)
+        if not (0.0 <= self.rate_hz <= 120.0):
+            raise ValueError(f"camera stream rate_hz must be in 0..120, got {self.rate_hz}")
+        check_blend(self.blend)
+        if self.dead_after_s <= 0:
+            raise ValueError(f"dead_after_s must be > 0, got {self.dead_after_s}")
+
+
+def check_view(view: str) -> str:
+    if view not in VIEWS:
+        raise ValueError(f"unknown camera view {view!r}; choose one of {', '.join(VIEWS)}")
+    return view
+
+
+def check_blend(blend: float) -> float:
+    if not (0.0 <= float(blend) <= 1.0):
+        raise ValueError(f"blend must be in 0..1, got {blend}")
+    return float(blend)
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """One camera's panel as streamed: ``image`` (HxWx3 uint8 RGB), ``state`` (``"live"`` or
+    ``"no signal"``), ``age_s`` (capture age when composed; None without a signal)."""
+
+    name: str
+    image: np.ndarray
+    state: str
+    age_s: float | None
+    seq: int
+
+    @property
+    def label(self) -> str:
+        if self.state != LIVE or self.age_s is None:
+            return f"{self.name}: NO SIGNAL"
+        return f"{self.name}: live, age {self.age_s * 1e3:.0f} ms"
+
+
+Sink = Callable[[StreamFrame], None]
+
+
+def no_signal_image(shape: tuple[int, int, int], name: str) -> np.ndarray:
+    """A dark grey panel reading NO SIGNAL and the camera's name (never an old image)."""
+    h, w = int(shape[0]), int(shape[1])
+    image = np.full((h, w, 3), 40, np.uint8)
+    scale = max(0.4, w / 640.0)
+    for text, y in (("NO SIGNAL", 0.5), (name, 0.5 + 0.12)):
+        cv2.putText(
+            image, text, (int(0.08 * w), int(y * h)), cv2.FONT_HERSHEY_SIMPLEX, scale,
+            (230, 60, 60), max(1, int(2 * scale)), cv2.LINE_AA,
+        )  # fmt: skip
+    return image
+
+
+def compose(real: np.ndarray | None, twin: np.ndarray | None, view: str, blend: float) -> np.ndarray | None:
+    """The panel for ``view`` from a real frame and the twin's render (either may be None:
+    the view falls back to what there is). The twin's render is resized to the real frame."""
+    if real is None:
+        return None if twin is None else twin
+    if twin is None or view == "real":
+        return real
+    if twin.shape[:2] != real.shape[:2]:
+        twin = cv2.resize(twin, (real.shape[1], real.shape[0]), interpolation=cv2.INTER_AREA)
+    if view == "twin":
+        return twin
+    if view == "both":
+        return np.concatenate([real, twin], axis=1)
+    return cv2.addWeighted(twin, blend, real, 1.0 - blend, 0.0)
+
+
+class CameraStream:
+    """Streams the newest grab to ``sinks`` from its own thread; :meth:`close` when done."""
+
+    def __init__(
+        self,
+        config: StreamConfig,
+        sinks: Sequence[Sink],
+        shapes: Mapping[str, tuple[int, int, int]],
+        *,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.config = config
+        self.sinks = list(sinks)
+        self.shapes = dict(shapes)
+        self.view = config.view
+        self.blend = config.blend
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._slot: tuple[object, Mapping[str, np.ndarray] | None, float] | None = None
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        #: Grabs offered, dropped unseen (a newer one replaced them), and panels sent.
+        self.offered = 0
+        self.dropped = 0
+        self.sent = 0
+        self.no_signal = 0
+        self.sink_errors = 0
+        self._seq = 0
+        self._thread: threading.Thread | None = None
+        if config.rate_hz > 0 and self.sinks:
+            self._thread = threading.Thread(target=self._run, name="camera-stream", daemon=True)
+            self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def set_view(self, view: str) -> None:
+        self.view = check_view(view)
+
+    def set_blend(self, blend: float) -> None:
+        self.blend = check_blend(blend)
+
+    def offer(self, grab, twin: Mapping[str, np.ndarray] | None = None) -> None:
+        """The newest grab (and the twin's renders by camera name); control thread, O(1)."""
+        if self._thread is None:
+            return
+        with self._lock:
+            if self._slot is not None:
+                self.dropped += 1
+            self._slot = (grab, twin, self._clock())
+            self.offered += 1
+        self._wake.set()
+
+    def _take(self):
+        with self._lock:
+            slot, self._slot = self._slot, None
+            self._wake.clear()
+        return slot
+
+    def _run(self) -> None:
+        period = 1.0 / self.config.rate_hz
+        next_at = self._clock()
+        while not self._stop.is_set():
+            self._wake.wait(timeout=0.25)
+            wait = next_at - self._clock()
+            if wait > 0 and self._stop.wait(wait):
+                return
+            slot = self._take()
+            if slot is None:
+                continue
+            next_at = max(next_at + period, self._clock())
+            try:
+                frames = self.panels(*slot)
+            except Exception as exc:  # never let a bad frame end the stream
+                log.warning("camera stream: cannot compose a panel: %r", exc)
+                continue
+            for frame in frames:
+                for sink in self.sinks:
+                    try:
+                        sink(frame)
+                    except Exception as exc:  # a viewer going away never ends the stream
+                        self.sink_errors += 1
+                        log.debug("camera stream sink failed: %r", exc)
+                self.sent += 1
+
+    def panels(self, grab, twin, offered_at: float) -> list[StreamFrame]:
+        """Each camera's panel for a grab offered at ``offered_at`` (the worker's job)."""
+        waited = max(0.0, self._clock() - offered_at)
+        out = []
+        for name, shape in self.shapes.items():
+            self._seq += 1
+            real = grab.frames.get(name)
+            age = grab.ages_s.get(name)
+            live = (
+                real is not None
+                and name not in grab.dead
+                and age is not None
+                and age + waited <= self.config.dead_after_s
+            )
+            if not live:
+                self.no_signal += 1
+                out.append(StreamFrame(name, no_signal_image(shape, name), NO_SIGNAL, None, self._seq))
+                continue
+            image = compose(real, (twin or {}).get(name), self.view, self.blend)
+            out.append(StreamFrame(name, image, LIVE, age + waited, self._seq))
+        return out
+
+    def stats(self) -> dict[str, int]:
+        return {
+            "offered": self.offered,
+            "dropped": self.dropped,
+            "sent": self.sent,
+            "no_signal": self.no_signal,
+            "sink_errors": self.sink_errors,
+        }
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None and self._thread.is_alive():
+            self._thread.join(timeout=5.0)
