@@ -1,0 +1,230 @@
+"""The real-camera stream: panels reach a viser client, a WebXR page and the Quest image socket
+off the control thread; a slow viewer never holds the control loop (newest grab only, older
+ones dropped); a dead or too-old camera is shown as NO SIGNAL, never its last frame."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import socket
+import threading
+import time
+from urllib.parse import urlsplit, urlunsplit
+
+import numpy as np
+import pytest
+import zmq
+from PIL import Image
+
+from beavr_sim.cameras.real import Grab
+from beavr_sim.cameras.stream import (
+    LIVE,
+    NO_SIGNAL,
+    CameraStream,
+    StreamConfig,
+    compose,
+)
+
+WAIT_S = 20.0  # readiness deadline, never a pass/fail timing bound
+SHAPE = (48, 64, 3)
+
+
+def _real(value: int = 200) -> np.ndarray:
+    return np.full(SHAPE, value, np.uint8)
+
+
+def _live(value: int = 200, age_s: float = 0.01) -> Grab:
+    return Grab(frames={"front": _real(value)}, ages_s={"front": age_s}, dead=())
+
+
+DEAD = Grab(frames={}, ages_s={}, dead=("front",))
+
+
+class _Collect:
+    def __init__(self) -> None:
+        self.frames = []
+        self.arrived = threading.Event()
+
+    def __call__(self, frame) -> None:
+        self.frames.append(frame)
+        self.arrived.set()
+
+    def wait(self, n: int):
+        deadline = time.monotonic() + WAIT_S
+        while len(self.frames) < n:
+            assert time.monotonic() < deadline, f"fewer than {n} panels arrived"
+            self.arrived.wait(0.05)
+            self.arrived.clear()
+        return self.frames
+
+
+def _stream(*sinks, rate_hz: float = 100.0, **kw) -> CameraStream:
+    return CameraStream(StreamConfig(rate_hz=rate_hz, **kw), list(sinks), {"front": SHAPE})
+
+
+# --- composing and dead cameras ---------------------------------------------------------------
+
+
+def test_views_compose_real_twin_both_and_the_blend():
+    real, twin = _real(200), np.full((24, 32, 3), 100, np.uint8)  # the twin at half size
+    assert compose(real, twin, "real", 0.5) is real
+    assert compose(real, twin, "twin", 0.5).shape == SHAPE
+    assert compose(real, twin, "both", 0.5).shape == (48, 128, 3)
+    np.testing.assert_allclose(compose(real, twin, "overlay", 0.25), 175, atol=1)
+    assert compose(real, None, "overlay", 0.5) is real  # no twin render: the real frame
+    with pytest.raises(ValueError, match="real, twin, both, overlay"):
+        StreamConfig(view="side")
+    with pytest.raises(ValueError, match="blend"):
+        StreamConfig(blend=1.5)
+
+
+def test_a_dead_or_too_old_camera_is_no_signal_never_its_last_frame():
+    stream = _stream(rate_hz=0)  # off: panels composed by hand
+    live = stream.panels(_live(200), None, time.perf_counter())[0]
+    assert live.state == LIVE and live.age_s is not None and "age" in live.label
+    for grab in (DEAD, _live(200, age_s=5.0)):
+        panel = stream.panels(grab, None, time.perf_counter())[0]
+        assert panel.state == NO_SIGNAL and panel.age_s is None
+        assert "NO SIGNAL" in panel.label
+        assert not np.array_equal(panel.image, live.image)  # not the last live frame
+    assert stream.no_signal == 2
+
+
+def test_a_slow_viewer_never_holds_the_control_loop():
+    release = threading.Event()
+    shown = []
+
+    def slow_sink(frame) -> None:
+        shown.append(frame)
+        release.wait(WAIT_S)
+
+    stream = _stream(slow_sink)
+    ticks, n = [0], 2000
+
+    def control_loop() -> None:
+        for i in range(n):
+            stream.offer(_live(i % 250))
+            ticks[0] += 1
+
+    loop = threading.Thread(target=control_loop)
+    loop.start()
+    loop.join(WAIT_S)
+    try:
+        assert not loop.is_alive(), "the control loop waited on a slow viewer"
+        assert ticks[0] == n and stream.offered == n
+        assert stream.dropped >= n - 2  # one in the mailbox, maybe one taken: nothing queued
+    finally:
+        release.set()
+        stream.close()
+    assert len(shown) <= 3
+
+
+# --- the viewers ------------------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _viser_messages(ws):
+    """Decompressed msgpack parts of viser's wire messages (its hybrid zstd format)."""
+    import zstandard
+
+    raw = ws.recv(timeout=WAIT_S)
+    inner, size = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+    return zstandard.ZstdDecompressor().decompress(raw[16 : 16 + size], max_output_size=inner)
+
+
+def test_panels_reach_a_viser_client_and_a_dead_camera_reads_no_signal():
+    viser = pytest.importorskip("viser", reason="viser (extra 'viz') not installed")
+    from websockets.sync.client import connect
+
+    from beavr_sim.viz.camera_panel import CameraPanel
+
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    panel = CameraPanel(server.gui, {"front": SHAPE})
+    stream = _stream(panel, rate_hz=50.0)
+    panel.attach(stream)
+    try:
+        url = f"ws://127.0.0.1:{server.get_port()}"
+        with connect(url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None) as ws:
+
+            def until(text: bytes, grab) -> None:
+                deadline = time.monotonic() + WAIT_S
+                while time.monotonic() < deadline:
+                    stream.offer(grab)
+                    if text in _viser_messages(ws):
+                        return
+                raise AssertionError(f"{text!r} never reached the viser client")
+
+            until(b"front: live, age", _live())
+            until(b"front: NO SIGNAL**", DEAD)
+        panel.view.value = "overlay"  # the panel's control sets the stream's view
+        assert stream.view == "overlay"
+    finally:
+        stream.close()
+        server.stop()
+
+
+def test_panels_reach_a_webxr_page_with_their_age_or_no_signal():
+    from websockets.sync.client import connect
+
+    from beavr_sim.headset.camera_panels import WebXRCameraSink
+    from beavr_sim.headset.webxr_server import WebXRConfig, WebXRServer
+
+    server = WebXRServer(WebXRConfig(port=0))
+    stream = _stream(WebXRCameraSink(server), rate_hz=50.0)
+    parts = urlsplit(server.url)
+    url = urlunsplit(("ws", parts.netloc, "/ws", parts.query, ""))
+    try:
+        with connect(url, max_size=None) as ws:
+
+            def until(state: str, grab) -> dict:
+                deadline = time.monotonic() + WAIT_S
+                while time.monotonic() < deadline:
+                    stream.offer(grab)
+                    msg = json.loads(ws.recv(timeout=WAIT_S))
+                    if msg.get("type") == "camera" and msg["state"] == state:
+                        return msg
+                raise AssertionError(f"no {state} camera message reached the page")
+
+            live = until(LIVE, _live(200))
+            assert live["name"] == "front" and live["age_ms"] is not None
+            image = np.asarray(Image.open(io.BytesIO(base64.b64decode(live["jpeg"]))))
+            assert image.shape == SHAPE and abs(float(image.mean()) - 200) < 5
+            dead = until(NO_SIGNAL, DEAD)
+            assert dead["age_ms"] is None and "NO SIGNAL" in dead["label"]
+    finally:
+        stream.close()
+        server.close()
+
+
+def test_panels_reach_the_quest_camera_socket():
+    from beavr_sim.headset.camera_panels import QuestCameraSink
+    from beavr_sim.headset.quest_io import HeadsetImagePublisher
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+    context = zmq.Context()
+    config = TransportConfig(ports=PortConfig.free())
+    publisher = HeadsetImagePublisher(context, config, rate_hz=100.0)
+    stream = _stream(QuestCameraSink(publisher, "front"), rate_hz=50.0)
+    sub = context.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.connect(config.endpoint("headset_camera", bind=False))
+    try:
+        deadline, received = time.monotonic() + WAIT_S, None
+        while received is None and time.monotonic() < deadline:
+            stream.offer(_live(120))  # slow joiner: keep offering until subscribed
+            if sub.poll(20):
+                received = sub.recv()
+        assert received is not None and received[:2] == b"\xff\xd8"
+        assert np.asarray(Image.open(io.BytesIO(received))).shape == SHAPE
+    finally:
+        stream.close()
+        sub.close(linger=0)
+        publisher.close()
+        context.destroy(linger=0)
