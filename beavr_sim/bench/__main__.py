@@ -23,6 +23,11 @@ its own options: ``python -m beavr_sim.bench scaling --help``); JSON on the last
 bug per safety rule, each in a copy of the repository, against the tests that claim the rule
 (``bench/mutations.py``, its own options); a table and caught / total.
 
+``python -m beavr_sim.bench cameras [--source zmq|video] [--runs N] [--seconds S]``: two
+480x640 cameras at 30 fps recorded in lockstep: capture-to-record age, the recording's rate and
+the cameras' cost to the control tick, with and without (``bench/cameras.py``); JSON on the
+last line.
+
 ``python -m beavr_sim.bench soak --minutes N``: a looping trace mirrored to the emulated rig
 for N minutes; the resident memory's slope after warm-up in MB per hour (target <= 1;
 ``bench/soak.py``, its own options); JSON on the last line."""
@@ -35,6 +40,7 @@ import sys
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.bench.cameras import main as cameras_main
 from beavr_sim.bench.hardware import run as run_hardware
 from beavr_sim.bench.mutations import main as mutations_main
 from beavr_sim.bench.plots import write as write_plots
@@ -57,6 +63,7 @@ BENCHMARKS = (
     "scaling",
     "mutations",
     "soak",
+    "cameras",
 )
 
 
@@ -66,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
         return scaling_main(argv[1:])
     if argv[:1] == ["mutations"]:  # options of its own
         return mutations_main(argv[1:])
+    if argv[:1] == ["cameras"]:  # options of its own
+        return cameras_main(argv[1:])
     if argv[:1] == ["soak"]:  # options of its own
         return soak_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
