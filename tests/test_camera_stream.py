@@ -228,3 +228,15 @@ def test_panels_reach_the_quest_camera_socket():
         sub.close(linger=0)
         publisher.close()
         context.destroy(linger=0)
+
+
+def test_nothing_offered_for_a_while_turns_the_panel_to_no_signal():
+    seen = _Collect()
+    stream = _stream(seen, rate_hz=50.0, dead_after_s=0.05)
+    try:
+        stream.offer(_live())
+        frames = seen.wait(2)  # the live panel, then NO SIGNAL once nothing more arrives
+        assert frames[0].state == LIVE
+        assert frames[-1].state == NO_SIGNAL
+    finally:
+        stream.close()

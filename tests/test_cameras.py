@@ -315,3 +315,26 @@ def test_camera_flag_errors():
             record=Path("x"),
             real_cameras=("front=usb:0",),
         )
+
+
+def test_stream_reads_a_live_zmq_camera_and_shows_no_signal_once_it_dies(server):
+    from beavr_sim.cameras.stream import LIVE, NO_SIGNAL, CameraStream, StreamConfig
+
+    cams = _zmq_set(server.port, dead_after_s=0.3)
+    cams.connect()
+    panels = []
+    stream = CameraStream(
+        StreamConfig(rate_hz=50.0, dead_after_s=0.3),
+        [panels.append],
+        {"front": cams.frame_shape("front")},
+        source=cams.peek,
+    )
+    try:
+        _wait_for(lambda: any(p.state == LIVE for p in panels), "a live panel")
+        assert cams.stats["front"].frames == 0  # the viewer's reads count nothing
+        server.stop.set()  # the camera stops delivering
+        _wait_for(lambda: panels[-1].state == NO_SIGNAL, "the panel to read NO SIGNAL")
+        assert panels[-1].age_s is None
+    finally:
+        stream.close()
+        cams.close()

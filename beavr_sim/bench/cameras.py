@@ -8,7 +8,7 @@ control loop ticks at ``--fps``: one env step (the Playground twin) and, with ca
 of both cameras' newest frames copied as the recorder copies them. Three conditions run
 interleaved (``--runs`` rounds of ``--seconds`` each): ``none`` (no cameras connected),
 ``cameras`` and ``cameras+stream`` (the camera stream at ``--stream-hz`` encoding JPEG panels
-for a viewer, off the control thread). Reported per condition as ranges over the rounds:
+for a viewer, reading the cameras on its own thread as a session's does). Reported per condition as ranges over the rounds:
 the tick's work time p50 / p99 (ms), the loop's rate, the recording's achieved rate (frames with every
 camera live per second) and grabs with a camera dead, capture-to-record age p50 / p99 (ms), stale and repeated frames. JSON on the
 last stdout line. Figures: docs/benchmarks.md.
@@ -127,7 +127,9 @@ def _round(condition: str, args, env, action, ports, tmp: Path) -> dict:
                 sent[0] += 1
 
             shapes = {n: cameras.frame_shape(n) for n in names}
-            stream = CameraStream(StreamConfig(rate_hz=args.stream_hz), [viewer], shapes)
+            stream = CameraStream(
+                StreamConfig(rate_hz=args.stream_hz), [viewer], shapes, source=cameras.peek
+            )
     period = 1.0 / args.fps
     work, recorded, dead = [], 0, 0
     start = next_at = time.perf_counter()
@@ -143,8 +145,6 @@ def _round(condition: str, args, env, action, ports, tmp: Path) -> dict:
                 del frames
             else:
                 dead += 1
-            if stream is not None:
-                stream.offer(grab)
         else:
             recorded += 1
         work.append(time.perf_counter() - t0)

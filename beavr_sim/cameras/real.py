@@ -5,7 +5,8 @@ Capture runs on LeRobot's own background read threads (started by `connect()`; `
 raises: per camera it returns the newest frame and its capture age, counts frames older than
 `stale_after_s` (1.5 control periods) and repeats of an already-returned frame, and reports a
 camera as dead once its newest frame is older than `dead_after_s` or its read thread has stopped.
-A dead camera yields no frame: the caller ends the episode as a hardware fault.
+A dead camera yields no frame: the caller ends the episode as a hardware fault. `peek()` is
+the same read for a viewer's thread (the camera stream): it counts nothing.
 `connect()` fails with a one-line `CameraError` naming the camera and what to check.
 """
 
@@ -147,6 +148,23 @@ class RealCameras:
             self._last_stamp[name] = stamp
             frames[name] = frame
             ages[name] = age
+        return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
+
+    def peek(self) -> Grab:
+        """Newest frame of each camera for a viewer (any thread): counts nothing; never raises."""
+        frames: dict[str, np.ndarray] = {}
+        ages: dict[str, float] = {}
+        dead: list[str] = []
+        now = time.perf_counter()
+        for name, camera in list(self._cameras.items()):
+            try:
+                frame, stamp = self._newest(camera)
+            except Exception:
+                frame, stamp = None, None
+            if frame is None or stamp is None or now - stamp > self.dead_after_s:
+                dead.append(name)
+                continue
+            frames[name], ages[name] = frame, max(0.0, now - stamp)
         return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
 
     @staticmethod

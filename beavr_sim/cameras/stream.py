@@ -1,14 +1,17 @@
 """CameraStream: the live real cameras (and the twin's renders) streamed to viewers off the
 control thread, at a bounded rate.
 
-Contract: :meth:`CameraStream.offer` is the control thread's only call; it stores a reference
-to the newest :class:`~beavr_sim.cameras.real.Grab` in a one-slot mailbox and returns (never
-blocks, never raises, never copies). A worker thread wakes at most ``rate_hz`` times per
-second, takes the newest grab (older ones are dropped and counted, never queued), composes
+Contract: the control thread's only call, if any, is :meth:`CameraStream.offer`; it stores a
+reference to a :class:`~beavr_sim.cameras.real.Grab` (and the twin's renders) in a one-slot
+mailbox and returns (never blocks, never raises, never copies). Given a ``source`` (a
+``RealCameras.peek``), the stream reads the cameras' newest frames itself, on its own thread,
+whenever nothing was offered. A worker thread wakes at most ``rate_hz`` times per second,
+takes the newest grab (older ones are dropped and counted, never queued), composes
 each camera's panel for the chosen view (``real``, ``twin``, ``both`` side by side, or
 ``overlay``: the twin's render blended over the real frame) and hands a :class:`StreamFrame`
 to every sink (the viser panel, the Quest image PUB socket, the WebXR page). A slow sink slows
-only the worker. A camera that is dead, or whose newest frame is older than ``dead_after_s``
+only the worker. With nothing offered and no source for ``dead_after_s``, the panels turn to
+"no signal" (a viewer is never left showing a last frame as live). A camera that is dead, or whose newest frame is older than ``dead_after_s``
 when shown, is sent as a "no signal" frame (never its last image shown as live); every live
 frame carries its capture age.
 """
@@ -88,6 +91,15 @@ class StreamFrame:
 Sink = Callable[[StreamFrame], None]
 
 
+class _Silent:
+    """A grab in which every camera is dead (what is shown when nothing arrives)."""
+
+    def __init__(self, names: tuple[str, ...]) -> None:
+        self.dead = names
+        self.frames: dict[str, np.ndarray] = {}
+        self.ages_s: dict[str, float] = {}
+
+
 def no_signal_image(shape: tuple[int, int, int], name: str) -> np.ndarray:
     """A dark grey panel reading NO SIGNAL and the camera's name (never an old image)."""
     h, w = int(shape[0]), int(shape[1])
@@ -126,6 +138,7 @@ class CameraStream:
         sinks: Sequence[Sink],
         shapes: Mapping[str, tuple[int, int, int]],
         *,
+        source: Callable[[], object] | None = None,
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.config = config
@@ -133,7 +146,9 @@ class CameraStream:
         self.shapes = dict(shapes)
         self.view = config.view
         self.blend = config.blend
+        self.source = source
         self._clock = clock
+        self._twin: Mapping[str, np.ndarray] | None = None
         self._lock = threading.Lock()
         self._slot: tuple[object, Mapping[str, np.ndarray] | None, float] | None = None
         self._wake = threading.Event()
@@ -168,6 +183,8 @@ class CameraStream:
             if self._slot is not None:
                 self.dropped += 1
             self._slot = (grab, twin, self._clock())
+            if twin is not None:
+                self._twin = twin
             self.offered += 1
         self._wake.set()
 
@@ -179,16 +196,28 @@ class CameraStream:
 
     def _run(self) -> None:
         period = 1.0 / self.config.rate_hz
-        next_at = self._clock()
+        next_at = last_at = self._clock()
+        silent = _Silent(tuple(self.shapes))
         while not self._stop.is_set():
-            self._wake.wait(timeout=0.25)
+            if self.source is None:
+                self._wake.wait(timeout=min(period, 0.25))
             wait = next_at - self._clock()
             if wait > 0 and self._stop.wait(wait):
                 return
+            now = self._clock()
             slot = self._take()
+            if slot is None and self.source is not None:
+                try:
+                    slot = (self.source(), self._twin, now)
+                except Exception as exc:  # a camera closing under us: no signal this time
+                    log.debug("camera stream source failed: %r", exc)
+                    slot = (silent, None, now)
             if slot is None:
-                continue
-            next_at = max(next_at + period, self._clock())
+                if now - last_at <= self.config.dead_after_s:
+                    continue
+                slot = (silent, None, now)  # nothing offered for a while: no signal
+            last_at = now
+            next_at = max(next_at + period, now)
             try:
                 frames = self.panels(*slot)
             except Exception as exc:  # never let a bad frame end the stream

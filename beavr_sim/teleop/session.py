@@ -163,8 +163,13 @@ class SessionOptions:
     #: ``--camera NAME=SPEC`` (``beavr_sim.cameras.spec``): real cameras recorded next to the
     #: twin's renders (plus a mirrored rig file's ``[cameras.NAME]`` tables).
     real_cameras: tuple[str, ...] = ()
+    #: ``--camera-stream-hz``: real-camera panels per second to the viewers (0: off) and
+    #: ``--camera-view`` (``beavr_sim.cameras.stream.VIEWS``).
+    camera_stream_hz: float = 0.0
+    camera_view: str = "real"
 
     def __post_init__(self) -> None:
+        self.camera_stream_config()  # a bad rate or view fails here, before anything starts
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
@@ -282,6 +287,12 @@ class SessionOptions:
                 )
             self.emulate_faults = spec
 
+    def camera_stream_config(self):
+        """The real cameras' stream to the viewers (``CameraStream``'s config)."""
+        from beavr_sim.cameras.stream import StreamConfig  # local: OpenCV
+
+        return StreamConfig(rate_hz=self.camera_stream_hz, view=self.camera_view)
+
     def webxr_config(self):
         """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
 
@@ -378,6 +389,8 @@ class SessionOptions:
             sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
             real_cameras=tuple(getattr(args, "camera", None) or ()),
+            camera_stream_hz=getattr(args, "camera_stream_hz", 0.0),
+            camera_view=getattr(args, "camera_view", "real"),
         )
 
 
@@ -582,6 +595,7 @@ def run_session(
     if options.record is not None:
         control = EpisodeControl()
     sync = None
+    viewers: dict[str, object] = {}
     try:
         interactive = sys.stdin is not None and sys.stdin.isatty()
         if options.mirror_hardware:
@@ -626,10 +640,12 @@ def run_session(
             if mirror is not None:
                 loop.listeners.append(BrowserEstop(view, mirror))
             closers.append(view.close)
+            viewers["view"] = view
             announce_view(view.url, options.session_token(options.viser_host))
         if options.source == "webxr":
             url = loop.source.url
             announce_webxr(url, options.webxr_config().token)
+            viewers["webxr"] = loop.source.server
             if not options.headless:  # the twin drawn in the headset
                 env = loop.twin.env
                 info = {"task": env.task.name, "embodiment": env.embodiment.name}
@@ -643,6 +659,9 @@ def run_session(
                 rate_hz=options.headset_image_hz,
             )
             closers.append(publisher.close)
+        if not options.headless and options.source == "quest" and options.camera_stream_hz > 0:
+            viewers["quest"] = publisher  # the panel shows the first real camera, not the twin
+        elif not options.headless and options.source == "quest":
             images = headset_listener(
                 publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz
             )
@@ -657,6 +676,7 @@ def run_session(
                 state_source=mirror.latest_measured if mirror is not None else None,
                 mirror=mirror,
                 sync=sync,
+                viewers=CameraViewers(**viewers),
             )
         else:
             summary = _play_runs(options, loop, progress, mirror, sync)
@@ -792,6 +812,7 @@ def record_episodes(
     state_source=None,
     mirror=None,
     sync: HardwareSync | None = None,
+    viewers: CameraViewers | None = None,
 ) -> TeleopSummary:
     """``--record``: episodes saved to the dataset each as soon as it ends. ``state_source``:
     where ``observation.state`` comes from (the mirrored hardware's measured joints).
@@ -829,6 +850,7 @@ def record_episodes(
     if note:
         print(note, file=sys.stderr)
     real = _real_cameras(options, config.fps)
+    stream = start_camera_stream(real, options.camera_stream_config(), viewers or CameraViewers())
     writer = EpisodeWriter(
         options.record,
         options.repo_id,
@@ -993,6 +1015,8 @@ def record_episodes(
     finally:
         recorder.close()
         writer.close()
+        if stream is not None:
+            stream.close()
         if real is not None:
             real.close()
     if summary is None:
