@@ -226,7 +226,7 @@ def test_camera_dying_mid_episode_is_reported_dead(server):
 # --- recorded sessions -----------------------------------------------------------------------
 
 
-def _record(tmp_path, port: int, episode_s: float, listener=None):
+def _record(tmp_path, port: int, episode_s: float, listener=None, stream_hz=0.0, viewers=None):
     from beavr_sim.datasets.features import RecordingConfig
     from beavr_sim.teleop.session import ProgressLine, SessionOptions, build_loop, record_episodes
 
@@ -243,11 +243,12 @@ def _record(tmp_path, port: int, episode_s: float, listener=None):
         recording=RecordingConfig(cameras=(), episode_seconds=episode_s, use_videos=False),
         auto_start=True,
         real_cameras=(f"front=zmq:127.0.0.1:{port}",),
+        camera_stream_hz=stream_hz,
     )
     loop = build_loop(options)
     if listener is not None:
         loop.listeners.append(listener)
-    record_episodes(options, loop, ProgressLine(loop, enabled=False))
+    record_episodes(options, loop, ProgressLine(loop, enabled=False), viewers=viewers)
     lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
     return [json.loads(x) for x in lines]
 
@@ -338,3 +339,32 @@ def test_stream_reads_a_live_zmq_camera_and_shows_no_signal_once_it_dies(server)
     finally:
         stream.close()
         cams.close()
+
+
+def test_a_recording_session_streams_its_camera_to_the_viewers(tmp_path, server):
+    from beavr_sim.teleop.camera_viewers import CameraViewers
+
+    class _View:  # the browser view's part the stream uses
+        def __init__(self) -> None:
+            self.panels = []
+
+        def add_camera_panel(self, shapes):
+            assert shapes == {"front": (24, 32, 3)}
+            return _Panel(self.panels)
+
+    class _Panel(list):
+        def __init__(self, panels) -> None:
+            self.panels = panels
+            self.stream = None
+
+        def attach(self, stream) -> None:
+            self.stream = stream
+
+        def __call__(self, frame) -> None:
+            self.panels.append(frame)
+
+    view = _View()
+    (record,) = _record(tmp_path, server.port, 1.0, stream_hz=20.0, viewers=CameraViewers(view=view))
+    assert record["kept"] and record["hardware_fault"] is None
+    assert any(p.state == "live" and p.image.shape == (24, 32, 3) for p in view.panels)
+    assert record["cameras"]["front"]["frames"] >= record["frames"]  # the recorder's own grabs

@@ -214,6 +214,20 @@ def build_parser() -> argparse.ArgumentParser:
         "cameras; SPEC opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally "
         "@WIDTHxHEIGHT (docs/cameras.md)",
     )
+    rec.add_argument(
+        "--camera-stream-hz",
+        type=float,
+        default=0.0,
+        metavar="HZ",
+        help="stream the real cameras to the browser view, the WebXR page and the Quest's "
+        "camera panel at HZ panels per second (default 0: off; e.g. 5); off the control thread",
+    )
+    rec.add_argument(
+        "--camera-view",
+        choices=("real", "twin", "both", "overlay"),
+        default="real",
+        help="what a streamed camera panel shows first (the browser view's panel can change it)",
+    )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()
     start.add_argument(

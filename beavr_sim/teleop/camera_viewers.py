@@ -11,8 +11,10 @@ asked, dropping what its viewers cannot take; the control thread does nothing fo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from beavr_sim.cameras.stream import CameraStream, StreamConfig
+if TYPE_CHECKING:
+    from beavr_sim.cameras.stream import CameraStream, StreamConfig
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,7 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     the caller closes it before the cameras."""
     if real is None or config.rate_hz <= 0:
         return None
+    from beavr_sim.cameras.stream import CameraStream  # local: OpenCV
     from beavr_sim.headset.camera_panels import QuestCameraSink, WebXRCameraSink
 
     shapes = {name: real.frame_shape(name) for name in real.names}

@@ -48,6 +48,7 @@ from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.announce import announce_view, announce_webxr
+from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
 from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.episodes import EpisodeControl, KeyboardControl
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
