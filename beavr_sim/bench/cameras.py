@@ -101,11 +101,12 @@ def _configs(source: str, names, fps: float, ports, tmp: Path, seconds: float):
 
     configs = {}
     for i, name in enumerate(names):
-        table: dict = {"fps": int(fps), "width": WIDTH, "height": HEIGHT}
         if source == "zmq":
-            table |= {"type": "zmq", "server_address": "127.0.0.1", "port": ports[i]}
-        else:
-            table |= {"type": "opencv", "index_or_path": str(_video(tmp / f"{name}.avi", i, fps, seconds))}
+            table: dict = {"type": "zmq", "server_address": "127.0.0.1", "port": ports[i]}
+            table |= {"fps": int(fps), "width": WIDTH, "height": HEIGHT}
+        else:  # a file plays at its own size and rate
+            path = _video(tmp / f"{name}.avi", i, fps, seconds)
+            table = {"type": "opencv", "index_or_path": str(path)}
         configs[name] = parse_camera_table(name, table)
     return configs
 
