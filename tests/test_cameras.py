@@ -364,7 +364,9 @@ def test_a_recording_session_streams_its_camera_to_the_viewers(tmp_path, server)
             self.panels.append(frame)
 
     view = _View()
-    (record,) = _record(tmp_path, server.port, 1.0, stream_hz=20.0, viewers=CameraViewers(view=view))
+    (record,) = _record(
+        tmp_path, server.port, 1.0, stream_hz=20.0, viewers=CameraViewers(view=view)
+    )
     assert record["kept"] and record["hardware_fault"] is None
     assert any(p.state == "live" and p.image.shape == (24, 32, 3) for p in view.panels)
     assert record["cameras"]["front"]["frames"] >= record["frames"]  # the recorder's own grabs

@@ -23,7 +23,7 @@ its own options: ``python -m beavr_sim.bench scaling --help``); JSON on the last
 bug per safety rule, each in a copy of the repository, against the tests that claim the rule
 (``bench/mutations.py``, its own options); a table and caught / total.
 
-``python -m beavr_sim.bench cameras [--source zmq|video] [--runs N] [--seconds S]``: two
+``python -m beavr_sim.bench cameras [--runs N] [--seconds S]``: two
 480x640 cameras at 30 fps recorded in lockstep: capture-to-record age, the recording's rate and
 the cameras' cost to the control tick, with and without (``bench/cameras.py``); JSON on the
 last line.

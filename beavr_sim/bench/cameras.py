@@ -1,9 +1,9 @@
 """``python -m beavr_sim.bench cameras``: two real cameras recorded in lockstep, what they cost.
 
 The paper's set-up: two 480x640 cameras at 30 fps, recorded at 30 Hz. The cameras are LeRobot's
-own classes fed with synthetic frames: ``--source zmq`` (default) serves each from a local image
-server (LeRobot's ZMQ protocol, JPEG, in a child process as a camera host would be);
-``--source video`` has LeRobot's OpenCV camera read a generated MJPG file per camera. The
+own ZMQ camera class fed with synthetic frames, each from a local image server (LeRobot's ZMQ
+protocol, JPEG, in a child process as a camera host would be); not OpenCV video files: LeRobot's
+OpenCV camera reads a file as fast as it decodes, so a file is no 30 fps camera. The
 control loop ticks at ``--fps``: one env step (the Playground twin) and, with cameras, a grab
 of both cameras' newest frames copied as the recorder copies them. Three conditions run
 interleaved (``--runs`` rounds of ``--seconds`` each): ``none`` (no cameras connected),
@@ -21,9 +21,7 @@ import base64
 import json
 import multiprocessing as mp
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 import cv2
 import gymnasium as gym
@@ -33,7 +31,6 @@ import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.cameras.stream import CameraStream, StreamConfig, StreamFrame
 
 CONDITIONS = ("none", "cameras", "cameras+stream")
-SOURCES = ("zmq", "video")
 HEIGHT, WIDTH = 480, 640
 
 
@@ -88,36 +85,32 @@ class _Servers:
             p.join(timeout=5)
 
 
-def _video(path: Path, index: int, fps: float, seconds: float) -> Path:
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (WIDTH, HEIGHT))
-    for i in range(int(fps * seconds) + int(fps)):
-        writer.write(_frame(i, index))
-    writer.release()
-    return path
-
-
-def _configs(source: str, names, fps: float, ports, tmp: Path, seconds: float):
+def _configs(names, fps: float, ports):
     from beavr_sim.cameras.spec import parse_camera_table
 
-    configs = {}
-    for i, name in enumerate(names):
-        if source == "zmq":
-            table: dict = {"type": "zmq", "server_address": "127.0.0.1", "port": ports[i]}
-            table |= {"fps": int(fps), "width": WIDTH, "height": HEIGHT}
-        else:  # a file plays at its own size and rate
-            path = _video(tmp / f"{name}.avi", i, fps, seconds)
-            table = {"type": "opencv", "index_or_path": str(path)}
-        configs[name] = parse_camera_table(name, table)
-    return configs
+    return {
+        name: parse_camera_table(
+            name,
+            {
+                "type": "zmq",
+                "server_address": "127.0.0.1",
+                "port": ports[i],
+                "fps": int(fps),
+                "width": WIDTH,
+                "height": HEIGHT,
+            },
+        )
+        for i, name in enumerate(names)
+    }
 
 
-def _round(condition: str, args, env, action, ports, tmp: Path) -> dict:
+def _round(condition: str, args, env, action, ports) -> dict:
     from beavr_sim.cameras.real import RealCameras
 
     names = ("front", "overhead")
     cameras = stream = None
     if condition != "none":
-        configs = _configs(args.source, names, args.fps, ports, tmp, args.seconds + 2)
+        configs = _configs(names, args.fps, ports)
         cameras = RealCameras(configs, control_period_s=1.0 / args.fps)
         cameras.connect()
         if condition == "cameras+stream":
@@ -186,22 +179,19 @@ def run(args) -> dict:
     env = gym.make("beavr_sim/Playground-v0")
     env.reset(seed=0)
     action = np.asarray(env.action_space.sample() * 0, dtype=np.float64)
-    servers = _Servers(("front", "overhead"), args.fps) if args.source == "zmq" else None
+    servers = _Servers(("front", "overhead"), args.fps)
     results: dict[str, list[dict]] = {c: [] for c in CONDITIONS}
     try:
-        with tempfile.TemporaryDirectory() as tmp:
-            for _ in range(args.runs):
-                for condition in CONDITIONS:  # interleaved
-                    ports = servers.ports if servers is not None else []
-                    results[condition].append(_round(condition, args, env, action, ports, Path(tmp)))
-                    print(f"{condition}: {results[condition][-1]}", file=sys.stderr)
+        for _ in range(args.runs):
+            for condition in CONDITIONS:  # interleaved
+                results[condition].append(_round(condition, args, env, action, servers.ports))
+                print(f"{condition}: {results[condition][-1]}", file=sys.stderr)
     finally:
-        if servers is not None:
-            servers.close()
+        servers.close()
         env.close()
     return {
         "benchmark": "cameras",
-        "source": args.source,
+        "source": "zmq image servers (child processes)",
         "cameras": f"2 x {HEIGHT}x{WIDTH} @ {args.fps:g} fps",
         "fps": args.fps,
         "seconds": args.seconds,
@@ -213,7 +203,6 @@ def run(args) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench cameras", description=__doc__)
-    parser.add_argument("--source", choices=SOURCES, default="zmq")
     parser.add_argument("--fps", type=float, default=30.0, help="cameras and recording (30)")
     parser.add_argument("--seconds", type=float, default=5.0, help="per round (5)")
     parser.add_argument("--runs", type=int, default=3, help="interleaved rounds (3)")

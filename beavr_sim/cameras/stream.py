@@ -113,7 +113,9 @@ def no_signal_image(shape: tuple[int, int, int], name: str) -> np.ndarray:
     return image
 
 
-def compose(real: np.ndarray | None, twin: np.ndarray | None, view: str, blend: float) -> np.ndarray | None:
+def compose(
+    real: np.ndarray | None, twin: np.ndarray | None, view: str, blend: float
+) -> np.ndarray | None:
     """The panel for ``view`` from a real frame and the twin's render (either may be None:
     the view falls back to what there is). The twin's render is resized to the real frame."""
     if real is None:
@@ -248,7 +250,9 @@ class CameraStream:
             )
             if not live:
                 self.no_signal += 1
-                out.append(StreamFrame(name, no_signal_image(shape, name), NO_SIGNAL, None, self._seq))
+                out.append(
+                    StreamFrame(name, no_signal_image(shape, name), NO_SIGNAL, None, self._seq)
+                )
                 continue
             image = compose(real, (twin or {}).get(name), self.view, self.blend)
             out.append(StreamFrame(name, image, LIVE, age + waited, self._seq))
