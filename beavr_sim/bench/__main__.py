@@ -40,7 +40,6 @@ import sys
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.bench.cameras import main as cameras_main
 from beavr_sim.bench.hardware import run as run_hardware
 from beavr_sim.bench.mutations import main as mutations_main
 from beavr_sim.bench.plots import write as write_plots
@@ -74,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["mutations"]:  # options of its own
         return mutations_main(argv[1:])
     if argv[:1] == ["cameras"]:  # options of its own
+        from beavr_sim.bench.cameras import main as cameras_main  # local: heavy (OpenCV)
+
         return cameras_main(argv[1:])
     if argv[:1] == ["soak"]:  # options of its own
         return soak_main(argv[1:])

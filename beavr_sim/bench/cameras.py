@@ -86,7 +86,7 @@ class _Servers:
 
 
 def _configs(names, fps: float, ports):
-    from beavr_sim.cameras.spec import parse_camera_table
+    from beavr_sim.cameras.spec import parse_camera_table  # local: heavy (lerobot + torch, ~1 s)
 
     return {
         name: parse_camera_table(
@@ -105,7 +105,7 @@ def _configs(names, fps: float, ports):
 
 
 def _round(condition: str, args, env, action, ports) -> dict:
-    from beavr_sim.cameras.real import RealCameras
+    from beavr_sim.cameras.real import RealCameras  # local: heavy (lerobot + torch, ~1 s)
 
     names = ("front", "overhead")
     cameras = stream = None

@@ -32,8 +32,11 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     the caller closes it before the cameras."""
     if real is None or config.rate_hz <= 0:
         return None
-    from beavr_sim.cameras.stream import CameraStream  # local: OpenCV
-    from beavr_sim.headset.camera_panels import QuestCameraSink, WebXRCameraSink
+    from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
+    from beavr_sim.headset.camera_panels import (  # local: heavy (OpenCV, Pillow)
+        QuestCameraSink,
+        WebXRCameraSink,
+    )
 
     shapes = {name: real.frame_shape(name) for name in real.names}
     sinks = []

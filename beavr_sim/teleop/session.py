@@ -290,7 +290,7 @@ class SessionOptions:
 
     def camera_stream_config(self):
         """The real cameras' stream to the viewers (``CameraStream``'s config)."""
-        from beavr_sim.cameras.stream import StreamConfig  # local: OpenCV
+        from beavr_sim.cameras.stream import StreamConfig  # local: heavy (OpenCV, ~170 ms)
 
         return StreamConfig(rate_hz=self.camera_stream_hz, view=self.camera_view)
 

@@ -611,7 +611,7 @@ class TwinView:
     def add_camera_panel(self, shapes: Mapping[str, tuple[int, int, int]]):
         """A real-camera panel (``viz/camera_panel.py``) for cameras of frame ``shapes``: a
         sink for a ``CameraStream``, fed on the stream's thread."""
-        from beavr_sim.viz.camera_panel import CameraPanel  # local: pulls in OpenCV
+        from beavr_sim.viz.camera_panel import CameraPanel  # local: heavy (OpenCV, ~170 ms)
 
         self.camera_panel = CameraPanel(self.server.gui, shapes)
         return self.camera_panel
