@@ -370,3 +370,54 @@ def test_a_recording_session_streams_its_camera_to_the_viewers(tmp_path, server)
     assert record["kept"] and record["hardware_fault"] is None
     assert any(p.state == "live" and p.image.shape == (24, 32, 3) for p in view.panels)
     assert record["cameras"]["front"]["frames"] >= record["frames"]  # the recorder's own grabs
+
+
+def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):
+    """`[cameras.NAME]` in the rig file of a mirrored session (the emulated rig, its devices
+    written into a rig file as a real rig's are) records that camera."""
+    import gymnasium as gym
+
+    from beavr_sim.datasets.features import RecordingConfig
+    from beavr_sim.hardware.rig import EmulatedRig
+    from beavr_sim.teleop.session import SessionOptions, run_session
+
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    rig = EmulatedRig(env.embodiment, env.joints)
+    env.close()
+    try:
+        lines = []
+        for d in rig.config.devices:
+            lines += ["[[devices]]", f'name = "{d.name}"', f'kind = "{d.kind}"']
+            lines.append(f'effector = "{d.effector}"')
+            if d.kind == "xarm7":
+                lines += [f'host = "{d.config.host}"', f"port = {d.config.port}"]
+            else:
+                lines += [f'port = "{d.config.port}"', "reply_timeout_s = 0.25"]
+        lines += ["[mirror]", "hand_divergence_rad = 2.5", "[cameras.front]", 'type = "zmq"']
+        lines += ['server_address = "127.0.0.1"', f"port = {server.port}", "warmup_s = 0"]
+        (tmp_path / "rig.toml").write_text("\n".join(lines) + "\n")
+        run_session(
+            SessionOptions(
+                task="PickupBox",
+                source="trace",
+                clock="paced",
+                viser=False,
+                headless=True,
+                progress=False,
+                mirror_hardware=True,
+                hardware_config=str(tmp_path / "rig.toml"),
+                record=tmp_path / "rec",
+                repo_id="local/rigcam",
+                episodes=1,
+                recording=RecordingConfig(cameras=(), episode_seconds=0.5, use_videos=False),
+                auto_start=True,
+            )
+        )
+    finally:
+        rig.close()
+    lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
+    record = json.loads(lines[0])
+    assert record["kept"] and record["hardware_fault"] is None
+    assert record["cameras"]["front"]["frames"] >= record["frames"] > 0
+    info = json.loads((tmp_path / "rec" / "meta" / "info.json").read_text())
+    assert info["features"]["observation.images.front"]["shape"] == [24, 32, 3]

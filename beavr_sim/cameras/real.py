@@ -95,7 +95,10 @@ class RealCameras:
         for name, config in self.configs.items():
             try:
                 camera = make_cameras_from_configs({name: config})[name]
-                camera.connect()
+                # LeRobot's ZMQ warm-up checks for a frame the instant its read thread starts
+                # (with warmup_s = 0: a race); the image server is warm, and the first frame
+                # is waited for below.
+                camera.connect(warmup=not isinstance(config, ZMQCameraConfig))
                 self._cameras[name] = camera
                 self._wait_first_frame(camera)
             except Exception as exc:
