@@ -297,6 +297,14 @@ def test_camera_flag_errors():
             headless=True,
             real_cameras=("front=opencv:0",),
         )
+    with pytest.raises(ValueError, match="add --record"):
+        SessionOptions(
+            task="PickupBox", source="trace", viser=False, headless=True, camera_stream_hz=5.0
+        )
+    with pytest.raises(ValueError, match="real, twin, both, overlay"):
+        SessionOptions(
+            task="PickupBox", source="trace", viser=False, headless=True, camera_view="side"
+        )
     with pytest.raises(ValueError, match="leave out --multiprocess"):
         SessionOptions(
             task="PickupBox",

@@ -171,6 +171,8 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
+        if self.camera_stream_hz > 0 and self.record is None:
+            raise ValueError("--camera-stream-hz streams a recording's real cameras; add --record")
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
@@ -660,7 +662,10 @@ def run_session(
                 rate_hz=options.headset_image_hz,
             )
             closers.append(publisher.close)
-        if not options.headless and options.source == "quest" and options.camera_stream_hz > 0:
+        streams_cameras = options.camera_stream_hz > 0 and (
+            options.real_cameras or options.mirror_hardware
+        )
+        if not options.headless and options.source == "quest" and streams_cameras:
             viewers["quest"] = publisher  # the panel shows the first real camera, not the twin
         elif not options.headless and options.source == "quest":
             images = headset_listener(
