@@ -27,7 +27,7 @@ import numpy as np
 from beavr_sim.datasets.augment.frames import blend, carry, smoothstep
 from beavr_sim.datasets.augment.replay import Things, Trajectory, make_env
 from beavr_sim.datasets.augment.segments import Segment
-from beavr_sim.operator.arm_ik import ArmIK
+from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.operator.obstacles import fixture_obstacles
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand, Tick, TwinState
@@ -65,14 +65,16 @@ def pieces_of(segments: list[Segment]) -> list[Piece]:
 
 
 def failure_reason(state: TwinState | None, ran_out: bool) -> str:
-    """One line: ``fallen: item``, ``time limit: not in_area``, ``not lifted``, ..."""
+    """One line: ``fallen: item``, ``time limit: not in_area``, ``not lifted``, or the
+    checker's counts (``checker said no (poured 2, held_by_source 5)``)."""
     if state is None:
         return "no tick"
     details = {k.removeprefix("task/"): v for k, v in state.info.items() if k.startswith("task/")}
     if details.get("fallen"):
         return f"fallen: {details['fallen']}"
     unmet = next((k for k, v in details.items() if v is False), "")
-    why = f"not {unmet}" if unmet else "checker said no"
+    counts = ", ".join(f"{k} {v}" for k, v in details.items() if not isinstance(v, bool))
+    why = f"not {unmet}" if unmet else f"checker said no ({counts or 'no details'})"
     if state.truncated and not ran_out:
         return f"time limit: {why}"
     return why
@@ -96,7 +98,7 @@ class Rig:
         self.env = make_env(task, embodiment)
         self.twin = TwinInterface(self.env)
         self.effector = self.env.embodiment.effectors[0]
-        self.ik = ArmIK(self.env.embodiment, self.effector.name, self.twin.dt)
+        self.ik = ArmIK(self.env.embodiment, self.effector.name, self.twin.dt, ArmIKConfig(iterations=3))
         self.slice = self.env.joints.slices[self.effector.name]
         self.n_arm = len(self.effector.arm_joints)
         self.things = Things.of(self.env)
