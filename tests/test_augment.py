@@ -5,6 +5,7 @@ thing that makes them succeed."""
 from __future__ import annotations
 
 import json
+from itertools import pairwise
 from pathlib import Path
 
 import mujoco
@@ -16,12 +17,12 @@ from beavr_sim.datasets.shards import read_log
 
 pytest.importorskip("lerobot", reason="lerobot (>= 0.5) is not installed")
 
-from beavr_sim.datasets.augment import execute as execute_module  # noqa: E402
-from beavr_sim.datasets.augment.execute import ExecuteConfig, Rig, execute  # noqa: E402
-from beavr_sim.datasets.augment.frames import FULL_TURN, body_yaw_symmetry, carry  # noqa: E402
-from beavr_sim.datasets.augment.replay import replay  # noqa: E402
-from beavr_sim.datasets.augment.segments import find_segments  # noqa: E402
-from beavr_sim.datasets.augment.source import load_episode, open_source  # noqa: E402
+from beavr_sim.datasets.augment import execute as execute_module
+from beavr_sim.datasets.augment.execute import ExecuteConfig, Rig, execute
+from beavr_sim.datasets.augment.frames import FULL_TURN, body_yaw_symmetry, carry
+from beavr_sim.datasets.augment.replay import replay
+from beavr_sim.datasets.augment.segments import find_segments
+from beavr_sim.datasets.augment.source import load_episode, open_source
 
 NEW_SEEDS = (100, 101)
 
@@ -32,9 +33,7 @@ def source_root(tmp_path_factory) -> Path:
     from beavr_sim.synthetic.generate import generate
 
     root = tmp_path_factory.mktemp("augment") / "source"
-    summary = generate(
-        "PickPlace", 1, 0, root, config=RecordingConfig(cameras=()), progress=False
-    )
+    summary = generate("PickPlace", 1, 0, root, config=RecordingConfig(cameras=()), progress=False)
     assert summary.episodes_written == 1, summary
     return root
 
@@ -67,7 +66,7 @@ def test_symmetry_and_carry():
 def test_source_without_episode_log_is_refused(tmp_path):
     (tmp_path / "meta").mkdir()
     (tmp_path / "meta" / "info.json").write_text("{}")
-    with pytest.raises(ValueError, match="beavr_episodes.jsonl"):
+    with pytest.raises(ValueError, match=r"beavr_episodes\.jsonl"):
         open_source(tmp_path)
 
 
@@ -81,7 +80,7 @@ def test_segmenter_finds_approach_grasp_transport_release(plan):
         ("release", "item", "target"),
     ]
     assert segments[0].start == 0 and segments[-1].stop == traj.frames
-    assert all(a.stop == b.start for a, b in zip(segments, segments[1:]))
+    assert all(a.stop == b.start for a, b in pairwise(segments))
 
 
 def test_augmented_episodes_succeed_in_moved_scenes_and_replay(source_root, plan, tmp_path):

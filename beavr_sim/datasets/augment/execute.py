@@ -98,7 +98,9 @@ class Rig:
         self.env = make_env(task, embodiment)
         self.twin = TwinInterface(self.env)
         self.effector = self.env.embodiment.effectors[0]
-        self.ik = ArmIK(self.env.embodiment, self.effector.name, self.twin.dt, ArmIKConfig(iterations=3))
+        self.ik = ArmIK(
+            self.env.embodiment, self.effector.name, self.twin.dt, ArmIKConfig(iterations=3)
+        )
         self.slice = self.env.joints.slices[self.effector.name]
         self.n_arm = len(self.effector.arm_joints)
         self.things = Things.of(self.env)
@@ -160,9 +162,14 @@ def execute(
             src_pos = traj.pos[ref][at] if i else traj.start_pos[ref]
             src_yaw = traj.yaw[ref][at] if i else traj.start_yaw[ref]
             new_pos, new_yaw = rig.things.pose(rig.env, ref)
-            T_prev, T_cur = T_cur, carry(src_pos, src_yaw, new_pos, new_yaw, traj.things.symmetry[ref])
+            T_prev, T_cur = (
+                T_cur,
+                carry(src_pos, src_yaw, new_pos, new_yaw, traj.things.symmetry[ref]),
+            )
             length = piece.stop - piece.start
-            blend_frames = max(1, min(int(config.blend_fraction * length), int(config.max_blend_s * fps)))
+            blend_frames = max(
+                1, min(int(config.blend_fraction * length), int(config.max_blend_s * fps))
+            )
             piece_start = i
             turn = float(np.arctan2(T_cur[1, 0], T_cur[0, 0]))
             outcome.transforms.append([*np.round(T_cur[:3, 3], 4).tolist(), round(turn, 4)])

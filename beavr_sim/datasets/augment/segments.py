@@ -26,6 +26,7 @@ release far from any thing picks the nearest all the same.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -89,7 +90,7 @@ def find_segments(traj: Trajectory, rules: SegmentRules | None = None) -> list[S
     name = f"source episode {traj.episode.index} (seed {traj.episode.seed})"
     if not handlings:
         raise SegmentationError(f"{name}: the robot never moves an object by touching it")
-    for (_, b1, o1), (a2, _, o2) in zip(handlings, handlings[1:]):
+    for (_, b1, o1), (a2, _, o2) in pairwise(handlings):
         if a2 < b1:
             raise SegmentationError(f"{name}: {o1} and {o2} are held at once")
     segments: list[Segment] = []

@@ -43,7 +43,9 @@ class Source:
 
     def recording_config(self, cameras: tuple[str, ...] | None = None) -> RecordingConfig:
         """The options that record this source's features (``cameras`` replaces its own)."""
-        own = tuple(k.removeprefix(IMAGE_PREFIX) for k in self.features if k.startswith(IMAGE_PREFIX))
+        own = tuple(
+            k.removeprefix(IMAGE_PREFIX) for k in self.features if k.startswith(IMAGE_PREFIX)
+        )
         height, width = 480, 640
         for key in self.features:
             if key.startswith(IMAGE_PREFIX):
