@@ -70,6 +70,17 @@ def test_source_without_episode_log_is_refused(tmp_path):
         open_source(tmp_path)
 
 
+def test_augment_cli_says_what_is_wrong_in_one_line(tmp_path, capsys):
+    from beavr_sim.datasets.__main__ import main
+
+    code = main(["augment", "--source", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"error: no LeRobot dataset in {tmp_path / 'nothing'} (meta/info.json is missing)"
+    ]
+
+
 def test_segmenter_finds_approach_grasp_transport_release(plan):
     _, traj, segments = plan
     assert traj.success  # the source replays to success from its seed
@@ -108,6 +119,12 @@ def test_augmented_episodes_succeed_in_moved_scenes_and_replay(source_root, plan
         assert new.success, f"episode {index} does not replay to success"
         moved = np.linalg.norm(new.start_pos["item"][:2] - traj.start_pos["item"][:2])
         assert moved > 0.01, "the new scene's item stands where the source's did"
+    again = generate(
+        source.task, len(NEW_SEEDS), NEW_SEEDS[0], out, embodiment=source.embodiment,
+        config=source.recording_config(), progress=False, source=source_root,
+    )  # fmt: skip
+    assert again.mode == "resume" and again.episodes_written == 0
+    assert sorted(again.seeds_skipped) == sorted(result.seeds)
 
 
 def test_without_the_object_transform_the_new_scenes_fail(plan, monkeypatch):

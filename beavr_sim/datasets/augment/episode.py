@@ -75,6 +75,7 @@ def augment_episode(
             source_seed=traj.episode.seed,
             segments=[f"{s.kind}:{s.object}@{s.reference}" for s in segments],
             failure=result.reason or None,
+            checker=result.details,
             guard_blocks=result.guard_blocks,
         )
     finally:

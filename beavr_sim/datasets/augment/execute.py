@@ -5,7 +5,7 @@ Pieces: consecutive segments with the same reference (approach and grasp of an o
 transport and release to its destination) move rigidly together. When a piece starts, its
 transform is T_world_ref_new * inv(T_world_ref_src) (:func:`~.frames.carry`) with the
 reference's pose in the source at that frame and in the new scene now; over the piece's
-first :attr:`ExecuteConfig.blend_fraction` (at most :attr:`ExecuteConfig.max_blend_s`) the
+first :attr:`ExecuteConfig.blend_fraction` of its first segment (approach, transport) the
 palm target moves from the previous piece's transform of the source palm to this one's
 (:func:`~.frames.blend`): the bridge. Every tick the IK steps towards the target (one
 control period at its joint speed limit) with the fingers where the source's were, and the
@@ -35,16 +35,18 @@ from beavr_sim.wire.records import JointCommand, Tick, TwinState
 
 @dataclass(frozen=True)
 class ExecuteConfig:
-    blend_fraction: float = 0.5  # of a piece's frames spent bridging from the previous one
-    max_blend_s: float = 1.5
+    #: Of a piece's first segment (approach, transport), the frames spent bridging from the
+    #: previous piece: long enough that the bridge adds little speed (a held cup slips when
+    #: the bridge hurries), short enough that the grasp and the placement are exact.
+    blend_fraction: float = 0.7
     settle_s: float = 3.0  # hold after the source's last frame, waiting for the checker
     tail_seconds: float = 0.5  # ticks recorded after success (RecordingConfig.tail_seconds)
 
     def __post_init__(self) -> None:
         if not 0 < self.blend_fraction <= 1:
             raise ValueError(f"blend_fraction must be in (0, 1], got {self.blend_fraction}")
-        if min(self.max_blend_s, self.settle_s, self.tail_seconds) < 0:
-            raise ValueError("max_blend_s, settle_s and tail_seconds must be >= 0")
+        if min(self.settle_s, self.tail_seconds) < 0:
+            raise ValueError("settle_s and tail_seconds must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -52,29 +54,37 @@ class Piece:
     reference: str
     start: int
     stop: int
+    lead: int  # frames of its first segment
 
 
 def pieces_of(segments: list[Segment]) -> list[Piece]:
+    """Consecutive segments with the same reference, joined."""
     out: list[Piece] = []
     for seg in segments:
         if out and out[-1].reference == seg.reference and out[-1].stop == seg.start:
-            out[-1] = Piece(seg.reference, out[-1].start, seg.stop)
+            out[-1] = Piece(seg.reference, out[-1].start, seg.stop, out[-1].lead)
         else:
-            out.append(Piece(seg.reference, seg.start, seg.stop))
+            out.append(Piece(seg.reference, seg.start, seg.stop, seg.stop - seg.start))
     return out
 
 
+def checker_details(state: TwinState | None) -> dict:
+    """The checker's details at ``state`` (``task/...`` of the env's info), names unprefixed."""
+    info = state.info if state is not None else {}
+    return {k.removeprefix("task/"): v for k, v in info.items() if k.startswith("task/")}
+
+
 def failure_reason(state: TwinState | None, ran_out: bool) -> str:
-    """One line: ``fallen: item``, ``time limit: not in_area``, ``not lifted``, or the
-    checker's counts (``checker said no (poured 2, held_by_source 5)``)."""
+    """One line, the same for failures alike (failures are counted by it): ``fallen: item``,
+    ``time limit: not in_area``, ``not lifted``, ``checker said no`` (a checker with counts,
+    not conditions: the counts are in :func:`checker_details`)."""
     if state is None:
         return "no tick"
-    details = {k.removeprefix("task/"): v for k, v in state.info.items() if k.startswith("task/")}
+    details = checker_details(state)
     if details.get("fallen"):
         return f"fallen: {details['fallen']}"
     unmet = next((k for k, v in details.items() if v is False), "")
-    counts = ", ".join(f"{k} {v}" for k, v in details.items() if not isinstance(v, bool))
-    why = f"not {unmet}" if unmet else f"checker said no ({counts or 'no details'})"
+    why = f"not {unmet}" if unmet else "checker said no"
     if state.truncated and not ran_out:
         return f"time limit: {why}"
     return why
@@ -84,6 +94,7 @@ def failure_reason(state: TwinState | None, ran_out: bool) -> str:
 class Outcome:
     success: bool
     reason: str = ""
+    details: dict = field(default_factory=dict)  # the checker's, at the end
     frames: int = 0
     guard_blocks: int = 0
     step_limited: int = 0
@@ -166,10 +177,7 @@ def execute(
                 T_cur,
                 carry(src_pos, src_yaw, new_pos, new_yaw, traj.things.symmetry[ref]),
             )
-            length = piece.stop - piece.start
-            blend_frames = max(
-                1, min(int(config.blend_fraction * length), int(config.max_blend_s * fps))
-            )
+            blend_frames = max(1, int(config.blend_fraction * piece.lead))
             piece_start = i
             turn = float(np.arctan2(T_cur[1, 0], T_cur[0, 0]))
             outcome.transforms.append([*np.round(T_cur[:3, 3], 4).tolist(), round(turn, 4)])
@@ -191,6 +199,10 @@ def execute(
             tick()
     else:
         outcome.reason = failure_reason(state, ran_out)
+    outcome.details = {
+        k: v if isinstance(v, bool | int | str) else float(v)
+        for k, v in checker_details(state).items()
+    }
     outcome.guard_blocks = sum(rig.twin.guard_blocks.values()) - blocks0
     outcome.step_limited = sum(rig.twin.step_limited.values()) - limited0
     return outcome
