@@ -76,6 +76,7 @@ def augment_episode(
             segments=[f"{s.kind}:{s.object}@{s.reference}" for s in segments],
             failure=result.reason or None,
             checker=result.details,
+            carried=result.transforms,
             guard_blocks=result.guard_blocks,
         )
     finally:

@@ -98,7 +98,8 @@ class Outcome:
     frames: int = 0
     guard_blocks: int = 0
     step_limited: int = 0
-    transforms: list[list[float]] = field(default_factory=list)  # per piece: dx, dy, dz, yaw
+    #: Per piece, the carrying transform: translation (m) and turn about z (rad).
+    transforms: list[list[float]] = field(default_factory=list)
 
 
 class Rig:
