@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import threading
@@ -29,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from beavr_sim.heap import in_use_mb
+from beavr_sim.teleop.session import SessionOptions, run_session
 
 #: The target slope of this process's resident memory after warm-up (MB per hour).
 TARGET_MB_PER_HOUR = 1.0
@@ -125,9 +127,6 @@ def run(
 ) -> dict:
     """The soak (see the module docstring); warm-up default: a fifth of the run, at least a
     minute where the run is over two."""
-    import logging
-
-    from beavr_sim.teleop.session import SessionOptions, run_session
 
     if not minutes > 0:
         raise ValueError(f"--minutes must be positive, got {minutes}")

@@ -20,6 +20,7 @@ import numpy as np
 import zmq
 
 from beavr_sim.headset.address_gate import AddressGate
+from beavr_sim.headset.quest_protocol import parse_keypoints, parse_pause, parse_resolution
 from beavr_sim.naming import check_name
 from beavr_sim.wire.hand import SIDES, HandFrame
 from beavr_sim.wire.ports import TransportConfig
@@ -146,7 +147,6 @@ class QuestReceiver:
         return payloads
 
     def _update_controls(self) -> None:
-        from beavr_sim.headset.quest_protocol import parse_pause, parse_resolution
 
         for payload in self._drain("resolution"):
             try:
@@ -164,7 +164,6 @@ class QuestReceiver:
 
     def poll(self, timeout_s: float = 0.0) -> list[HandFrame]:
         """Hand frames received within ``timeout_s`` (right then left; see ``latest_only``)."""
-        from beavr_sim.headset.quest_protocol import parse_keypoints
 
         if self._poller is None:
             raise RuntimeError("QuestReceiver is closed")
@@ -215,7 +214,7 @@ class QuestReceiver:
 
 def encode_jpeg(image: np.ndarray, quality: int = 80) -> bytes:
     """JPEG bytes of an ``(H, W, 3)`` or ``(H, W)`` uint8 image."""
-    from PIL import Image
+    from PIL import Image  # local: heavy (Pillow, ~15-30 ms, only when images are streamed)
 
     image = np.asarray(image)
     if (

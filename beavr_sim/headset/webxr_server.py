@@ -47,7 +47,7 @@ from beavr_sim.headset.webxr_protocol import (
     hand_frames,
     parse_message,
 )
-from beavr_sim.headset.webxr_tls import ensure_certificate, server_ssl_context
+from beavr_sim.headset.webxr_tls import ensure_certificate, local_ipv4_addresses, server_ssl_context
 from beavr_sim.naming import check_name
 from beavr_sim.wire.access import BAD_TOKEN, NO_TOKEN, SessionToken, is_loopback
 from beavr_sim.wire.hand import HandFrame
@@ -222,8 +222,6 @@ class WebXRServer:
         scheme = "https" if self.config.use_tls else "http"
         host = self.config.host
         if host == "0.0.0.0":
-            from beavr_sim.headset.webxr_tls import local_ipv4_addresses
-
             host = next(iter(local_ipv4_addresses()), "127.0.0.1")
         return f"{scheme}://{host}:{self.port}/{self.config.token.url_suffix()}"
 

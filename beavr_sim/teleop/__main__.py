@@ -33,6 +33,7 @@ from pathlib import Path
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.cameras.errors import CameraError
 from beavr_sim.datasets.cli import add_recording_args
+from beavr_sim.hardware.device import MirrorError
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.robots.parts import LEAP_HAND
@@ -301,9 +302,12 @@ def explain(report: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.debug)
-    from beavr_sim.teleop.session import SessionOptions
 
     try:
+        from beavr_sim.teleop.session import (
+            SessionOptions,
+        )  # local: heavy (twin, IK, numba; not for --help)
+
         options = SessionOptions.from_args(args)
     except (UnknownNameError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -320,8 +324,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace, options, stop: StopSignal) -> int:
     """The session of ``options``, its summary printed (and written); the exit code."""
-    from beavr_sim.hardware.device import MirrorError
-    from beavr_sim.teleop.session import run_session
+
+    from beavr_sim.teleop.session import run_session  # local: heavy (imported once options parse)
 
     start = time.perf_counter()
     try:

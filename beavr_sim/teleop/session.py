@@ -22,18 +22,47 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 
+from beavr_sim.datasets.cli import recording_config
+from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+from beavr_sim.datasets.recorder import (
+    EpisodeRecorder,
+    FollowLimits,
+    HardwareWatch,
+    run_recorded_episode,
+)
+from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.envs.scene import DEFAULT_HAND_VARIANT
 from beavr_sim.hardware.mirror import Fixtures
+from beavr_sim.hardware.rig import RigConfig
 from beavr_sim.headset.address_gate import parse_allow_list
-from beavr_sim.headset.sources import HandSource
+from beavr_sim.headset.quest_io import HeadsetImagePublisher
+from beavr_sim.headset.sources import HandSource, QuestSource, TraceSource, WebXRSource
+from beavr_sim.headset.validation import StreamValidator
+from beavr_sim.headset.webxr_server import WebXRConfig
 from beavr_sim.naming import check_name
+from beavr_sim.operator.operator import Operator
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.robots.parts import LEAP_HAND
+from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.console import CONSOLE
+from beavr_sim.teleop.episodes import EpisodeControl, KeyboardControl
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
-from beavr_sim.teleop.mirroring import RigSync, episode_fault, failed_for_good, hardware_summary
+from beavr_sim.teleop.mirroring import (
+    MIRROR_SWITCH_INTERVAL_S,
+    BrowserEstop,
+    MirrorListener,
+    RigChoice,
+    RigSync,
+    connect_mirror,
+    episode_fault,
+    failed_for_good,
+    hardware_summary,
+)
 from beavr_sim.teleop.pipeline import (
     RunRecord,
     RunTally,
@@ -41,6 +70,10 @@ from beavr_sim.teleop.pipeline import (
     TeleopSummary,
     ThreadedListener,
 )
+from beavr_sim.teleop.processes import run_multiprocess
+from beavr_sim.teleop.view import attach_view
+from beavr_sim.traces.bundled import find_bundled_trace
+from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.access import SessionToken, is_loopback, new_token_value
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import Tick
@@ -133,7 +166,9 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         if self.real_cameras:
-            from beavr_sim.cameras.spec import parse_camera_arg
+            from beavr_sim.cameras.spec import (
+                parse_camera_arg,
+            )  # local: heavy (lerobot + torch, ~1 s)
 
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
@@ -146,13 +181,10 @@ class SessionOptions:
             self.transport = TransportConfig(
                 headset_host=self.headset_host, headset_allow=self._headset_allow()
             )
-        from beavr_sim.tasks.registry import canonical_task_name
 
         self.task = canonical_task_name(self.task)
         check_name("source", self.source, SOURCES)
         if self.source == "trace":
-            from beavr_sim.traces.bundled import find_bundled_trace
-
             self.trace = (
                 Path(self.trace)
                 if self.trace is not None
@@ -202,8 +234,6 @@ class SessionOptions:
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
         if self.record is not None:
-            from beavr_sim.datasets.features import RecordingConfig
-
             self.record = Path(self.record)
             self.recording = self.recording or RecordingConfig()
             if self.multiprocess:
@@ -222,7 +252,7 @@ class SessionOptions:
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
         if self.rerun is not None:
-            from beavr_sim.viz.rerun_log import check_rrd_path
+            from beavr_sim.viz.rerun_log import check_rrd_path  # local: heavy (rerun, ~360 ms)
 
             self.rerun = check_rrd_path(self.rerun)
             if self.multiprocess:
@@ -254,7 +284,6 @@ class SessionOptions:
 
     def webxr_config(self):
         """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
-        from beavr_sim.headset.webxr_server import WebXRConfig
 
         port = self.transport.ports.webxr if self.webxr_port is None else self.webxr_port
         return WebXRConfig(
@@ -285,15 +314,11 @@ class SessionOptions:
 
     def _twin_leap_variant(self) -> str:
         """The twin's LEAP variant: the mirrored rig's hands', else the chosen one, else full."""
-        from beavr_sim.envs.scene import DEFAULT_HAND_VARIANT
-        from beavr_sim.robots.parts import LEAP_HAND
 
         chosen = self.leap_variant
         if chosen is not None:
             check_name("LEAP variant", chosen, LEAP_HAND.variants)
         if self.mirror_hardware and self.hardware_config != "emulated":
-            from beavr_sim.hardware.rig import RigConfig
-
             rig = RigConfig.from_toml(self.hardware_config).leap_variant()
             if rig is not None:
                 if chosen not in (None, rig):
@@ -307,7 +332,6 @@ class SessionOptions:
 
     @classmethod
     def from_args(cls, args) -> SessionOptions:
-        from beavr_sim.datasets.cli import recording_config
 
         size = str(args.headset_image_size).lower().split("x")
         if len(size) != 2 or not all(s.isdigit() and int(s) > 0 for s in size):
@@ -489,12 +513,6 @@ class HardwareSync:
 
 def build_loop(options: SessionOptions, context=None):
     """The env, source and loop for ``options`` (single process)."""
-    import gymnasium as gym
-
-    from beavr_sim.headset.sources import QuestSource, TraceSource
-    from beavr_sim.headset.validation import StreamValidator
-    from beavr_sim.operator.operator import Operator
-    from beavr_sim.twin.twin import TwinInterface
 
     validator = StreamValidator()
     seed = options.seed
@@ -512,8 +530,6 @@ def build_loop(options: SessionOptions, context=None):
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
     elif options.source == "webxr":
-        from beavr_sim.headset.sources import WebXRSource
-
         source = WebXRSource(options.webxr_config(), validator)
     else:
         # Every frame reaches the loop (it counts the frames a newer one supersedes).
@@ -548,8 +564,6 @@ def run_session(
     (asked every tick; :class:`~beavr_sim.teleop.interrupt.StopSignal`): true ends the session
     in order, the episode in progress dropped, and returns its summary so far."""
     if options.multiprocess:
-        from beavr_sim.teleop.processes import run_multiprocess
-
         return run_multiprocess(options, interrupted)
     context = None
     if options.source == "quest" or not options.headless:
@@ -566,8 +580,6 @@ def run_session(
     mirror = None
     keys = {}
     if options.record is not None:
-        from beavr_sim.teleop.episodes import EpisodeControl
-
         control = EpisodeControl()
     sync = None
     try:
@@ -583,12 +595,10 @@ def run_session(
             sync = HardwareSync(loop, mirror, progress, timeout_s, interactive)
             loop.listeners.append(sync)
         if interactive and ((control is not None and not options.auto_start) or keys):
-            from beavr_sim.teleop.episodes import KeyboardControl
-
             keyboard = KeyboardControl(control if not options.auto_start else None, actions=keys)
             print(keyboard.help, file=sys.stderr)
         if options.rerun is not None:
-            from beavr_sim.viz.rerun_log import RerunLogger
+            from beavr_sim.viz.rerun_log import RerunLogger  # local: heavy (rerun, ~360 ms)
 
             logger = RerunLogger(
                 options.rerun,
@@ -601,8 +611,6 @@ def run_session(
             loop.listeners.append(logger)
             print(f"rerun log: {options.rerun} (open: rerun {options.rerun})", file=sys.stderr)
         if options.viser:
-            from beavr_sim.teleop.view import attach_view
-
             view = attach_view(
                 loop,
                 options.viser_host,
@@ -616,8 +624,6 @@ def run_session(
                 token=options.session_token(options.viser_host),
             )
             if mirror is not None:
-                from beavr_sim.teleop.mirroring import BrowserEstop
-
                 loop.listeners.append(BrowserEstop(view, mirror))
             closers.append(view.close)
             announce_view(view.url, options.session_token(options.viser_host))
@@ -631,8 +637,6 @@ def run_session(
                     loop.source.twin_feed(env.render_model, env.data, loop.operator, info)
                 )
         if not options.headless and options.source == "quest":
-            from beavr_sim.headset.quest_io import HeadsetImagePublisher
-
             publisher = HeadsetImagePublisher(
                 context,
                 options.transport,
@@ -691,7 +695,6 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
     """The runs of a session without recording: the source once, or a trace ``--repeat``
     times (0: until Ctrl-C or ``--max-seconds``), each from a fresh reset and, mirrored, from a
     synced rig. Returns the last run's summary with every run counted."""
-    from beavr_sim.headset.sources import TraceSource
 
     records = RunTally()
     stopped = ""
@@ -767,13 +770,15 @@ class _EpisodeRequests:
 def _real_cameras(options: SessionOptions, fps: int):
     """The session's real cameras, connected (None when there are none); a camera that does
     not open fails here with one line naming it."""
-    from beavr_sim.cameras.real import RealCameras
-    from beavr_sim.cameras.spec import session_cameras
 
     rig = options.hardware_config if options.mirror_hardware else None
+    from beavr_sim.cameras.spec import session_cameras  # local: heavy (lerobot + torch, ~1 s)
+
     configs = session_cameras(options.real_cameras, None if rig == "emulated" else rig, fps)
     if not configs:
         return None
+    from beavr_sim.cameras.real import RealCameras  # local: heavy (lerobot + torch, ~1 s)
+
     cameras = RealCameras(configs, control_period_s=1.0 / fps)
     cameras.connect()
     return cameras
@@ -806,11 +811,6 @@ def record_episodes(
     or ``options.max_seconds`` of session time (idle or recording) have passed. Ctrl-C or
     SIGTERM (``loop.interrupted``) ends the session and drops only the episode in progress.
     """
-    from beavr_sim.datasets.features import lerobot_features
-    from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch, run_recorded_episode
-    from beavr_sim.datasets.writer import EpisodeWriter
-    from beavr_sim.headset.sources import TraceSource
-    from beavr_sim.teleop.episodes import EpisodeControl
 
     config = options.recording
     env = loop.twin.env
@@ -1020,7 +1020,6 @@ def repeated_trace_note(options: SessionOptions, seed: int | None) -> str:
 def follow_limits(mirror, env):
     """The rig's divergence limits per joint of the action (``inf`` where no device measures
     a joint) and its window: what the recorder holds the measured state to."""
-    from beavr_sim.datasets.recorder import FollowLimits
 
     limit = np.full(env.joints.size, np.inf)
     for link in mirror.links:
@@ -1057,12 +1056,6 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
     add the mirror as the loop's first listener and command hook: it gets every guarded
     command the moment the twin applies it."""
-    from beavr_sim.teleop.mirroring import (
-        MIRROR_SWITCH_INTERVAL_S,
-        MirrorListener,
-        RigChoice,
-        connect_mirror,
-    )
 
     mirror, q_measured = connect_mirror(RigChoice.of(options), loop.twin.env, closers)
     loop.twin.follow_speed_caps(mirror.speed_caps)
