@@ -21,6 +21,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.datasets.augment.source import open_source
 from beavr_sim.datasets.cli import add_recording_args, parse_cameras, recording_config
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
@@ -86,8 +87,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _augment(args: argparse.Namespace, generate) -> int:
-    from beavr_sim.datasets.augment.source import open_source  # local: reads the source
-
     try:
         source = open_source(args.source)
         cameras = None if args.cameras is None else parse_cameras(args.cameras)

@@ -150,9 +150,10 @@ def run_episode(
     if source:
         from beavr_sim.datasets.augment.episode import augment_episode  # local: heavy
 
-        return augment_episode(
+        done = augment_episode(
             source, task, seed, embodiment, config, keep_failed, writer, make_writer
         )
+        return EpisodeOutcome(seed, done.success, done.written, done.frames, done.reason)
     from beavr_sim.synthetic.trace import quantize, synthesize, write_trace  # local: heavy (mujoco)
     from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
         SessionOptions,

@@ -1,7 +1,7 @@
 """One augmented episode, recorded: the per-seed work of ``datasets augment``.
 
-:func:`augment_episode` is what :func:`beavr_sim.synthetic.generate.run_episode` calls for a
-seed when the run has a source: the new seed's source episode (:meth:`Source.episode_for`) is
+:func:`augment_episode` is what ``datasets generate``'s per-seed work calls when the run has
+a source: the new seed's source episode (:meth:`Source.episode_for`) is
 replayed and segmented (once per process), the new scene is run (:mod:`.execute`) while the
 recorder writes its frames, and the episode is kept if the task's checker said success. The
 episode's line in ``meta/beavr_episodes.jsonl`` names the new seed, the source dataset, episode
@@ -10,6 +10,7 @@ and seed, the segments and, for a failure, its reason.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
@@ -19,6 +20,16 @@ from beavr_sim.datasets.augment.segments import Segment, SegmentationError, find
 from beavr_sim.datasets.augment.source import load_episode, open_source
 from beavr_sim.datasets.features import RecordingConfig
 from beavr_sim.datasets.recorder import EpisodeRecorder
+
+
+@dataclass(frozen=True)
+class Augmented:
+    """What became of one seed: the checker's verdict, whether it was written, and why not."""
+
+    success: bool
+    written: bool
+    frames: int
+    reason: str = ""
 
 
 @cache
@@ -41,11 +52,9 @@ def augment_episode(
     keep_failed: bool,
     writer,
     make_writer=None,
-):
-    """One new episode at ``seed`` from the source at ``source_root``; returns the run's
-    ``EpisodeOutcome`` (``synth_ok``: the checker said success; ``reason``: why not)."""
-    from beavr_sim.synthetic.generate import EpisodeOutcome  # local: that module calls this one
-
+) -> Augmented:
+    """One new episode at ``seed`` from the source at ``source_root`` into ``writer`` (or
+    ``make_writer()``)."""
     source = open_source(source_root)
     if (source.task, source.embodiment) != (task, embodiment):
         raise ValueError(
@@ -55,7 +64,7 @@ def augment_episode(
     try:
         traj, segments = _plan(str(Path(source_root).resolve()), index)
     except SegmentationError as exc:
-        return EpisodeOutcome(seed, False, False, 0, reason=f"segmenting: {exc}")
+        return Augmented(False, False, 0, f"segmenting: {exc}")
     rig = _rig(task, embodiment)
     rig.reset(seed)
     if writer is None:
@@ -82,4 +91,4 @@ def augment_episode(
     finally:
         recorder.close()
     frames = recorder.frames if written else 0
-    return EpisodeOutcome(seed, result.success, bool(written), frames, reason=result.reason)
+    return Augmented(result.success, bool(written), frames, result.reason)
