@@ -226,6 +226,8 @@ def _kill_rig_while(argv: list[str], marker: bytes) -> tuple[int, str, str]:
 def _check_dead_rig_ending(code: int, err: str) -> None:
     assert code == EXIT_DEVICE_FAILED, err[-2000:]
     assert "Traceback" not in err, err[-4000:]
+    # the vendor SDK's own error lines repeat our one line (only with --debug)
+    assert "[SDK][ERROR]" not in err, err[-4000:]
     errors = [line for line in err.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "failed" in errors[0], errors
 

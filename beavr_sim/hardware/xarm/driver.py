@@ -426,7 +426,14 @@ class _ModeReminderFilter(logging.Filter):
     mode (fed only by the report stream) stays 0, so it would log this on every servo_j."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith("The mode may be incorrect")
+        if str(record.msg).startswith("The mode may be incorrect"):
+            return False
+        # The SDK's own error lines (``API -> set_servo_angle_j -> code=3, angles=[...]``, "xArm
+        # is not connected") say again what this driver raises as one line naming what to
+        # check: shown only with debug logging (``--debug``).
+        return record.levelno < logging.ERROR or logging.getLogger("beavr_sim").isEnabledFor(
+            logging.DEBUG
+        )
 
 
 class _Stderr:
