@@ -161,6 +161,9 @@ SPECS: tuple[Spec, ...] = (
          "each (configurations: test_bench_latency.py)"),
     Spec(r"bench tracking$", why="a minute of replays (test_bench_tracking.py runs 200 ticks)"),
     Spec(r"bench\.webxr", why="needs chromium and playwright (make sysdeps; test_webxr_browser.py)"),
+    Spec(r"datasets augment --source (SRC|data/pick_few)",
+         why="placeholder source datasets (SRC, data/...); test_augment.py augments a source it "
+         "records itself"),
     # docs/hardware.md
     Spec(r"--task pick_place --embodiment rx1 .*--hardware-config emulated$",
          extra="--max-seconds 1"),
