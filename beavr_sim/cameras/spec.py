@@ -156,7 +156,9 @@ def placed_camera(name: str, table: dict[str, Any]) -> PlacedCamera | None:
         fovy = float(table["fovy_deg"]) if "fovy_deg" in table else None
         return PlacedCamera(name, table["T_world_camera"], intrinsics=intrinsics, fovy_deg=fovy)
     except (ValueError, TypeError) as exc:
-        raise CameraSpecError(f"camera {name!r}: {exc}") from None
+        text = str(exc)
+        prefix = "" if text.startswith(f"camera {name!r}") else f"camera {name!r}: "
+        raise CameraSpecError(prefix + text) from None
 
 
 def merge_cameras(
