@@ -17,9 +17,12 @@ an undistorted pinhole.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -84,6 +87,37 @@ class CharucoBoardSpec:
         """The board as a grey uint8 image, ``px_per_square`` pixels a square, no margin."""
         size = (self.squares_x * px_per_square, self.squares_y * px_per_square)
         return self.board.generateImage(size, marginSize=0, borderBits=1)
+
+
+def load_board(path: str | Path) -> CharucoBoardSpec:
+    """A board file's ``[board]`` table (the :class:`CharucoBoardSpec` fields)."""
+    try:
+        with open(path, "rb") as f:
+            table = tomllib.load(f).get("board")
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
+    valid = [f.name for f in dataclasses.fields(CharucoBoardSpec)]
+    if not isinstance(table, dict):
+        raise CalibrationError(f"{path}: needs a [board] table with keys {valid}")
+    unknown = sorted(set(table) - set(valid))
+    if unknown:
+        raise CalibrationError(f"{path}: unknown [board] keys {unknown}; valid: {valid}")
+    required = [f.name for f in dataclasses.fields(CharucoBoardSpec) if f.default is dataclasses.MISSING]
+    missing = [k for k in required + ["T_world_board"] if k not in table]
+    if missing:
+        raise CalibrationError(f"{path}: [board] misses {missing} (keys: {valid})")
+    try:
+        return CharucoBoardSpec(**table)
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An image file as RGB uint8; :class:`CalibrationError` if it cannot be read."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise CalibrationError(f"cannot read image {path} (missing, or not an image OpenCV reads)")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 @dataclass(frozen=True)
