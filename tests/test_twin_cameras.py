@@ -89,7 +89,13 @@ def test_rig_pose_places_the_twin_camera(tmp_path):
         ({"fx": 600.0}, "intrinsics need all of fx, fy, cx, cy, width, height"),
         ({}, "needs the field of view"),
         ({"fovy_deg": 50, "T_world_camera": [[1, 0, 0, 0]] * 4}, "last row must be"),
-        ({"fovy_deg": 50, "T_world_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "not a rotation"),
+        (
+            {
+                "fovy_deg": 50,
+                "T_world_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+            },
+            "not a rotation",
+        ),
     ],
 )
 def test_rig_pose_errors_name_the_camera(extra, message):
@@ -159,7 +165,10 @@ def test_twin_depth_recorded_in_metres():
     env = gym.make("beavr_sim/Playground-v0").unwrapped
     env.reset(seed=0)
     config = RecordingConfig(
-        cameras=("front",), depth_cameras=("front",), image_height=48, image_width=64,
+        cameras=("front",),
+        depth_cameras=("front",),
+        image_height=48,
+        image_width=64,
         hand_keypoints=False,
     )
     features = lerobot_features(env.embodiment, config, env.environment_state_names)

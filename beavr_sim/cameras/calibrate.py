@@ -102,7 +102,9 @@ def load_board(path: str | Path) -> CharucoBoardSpec:
     unknown = sorted(set(table) - set(valid))
     if unknown:
         raise CalibrationError(f"{path}: unknown [board] keys {unknown}; valid: {valid}")
-    required = [f.name for f in dataclasses.fields(CharucoBoardSpec) if f.default is dataclasses.MISSING]
+    required = [
+        f.name for f in dataclasses.fields(CharucoBoardSpec) if f.default is dataclasses.MISSING
+    ]
     missing = [k for k in required + ["T_world_board"] if k not in table]
     if missing:
         raise CalibrationError(f"{path}: [board] misses {missing} (keys: {valid})")
