@@ -20,7 +20,7 @@ from beavr_sim.cameras.calibrate import (
     load_board,
 )
 from beavr_sim.cameras.errors import CalibrationError
-from beavr_sim.cameras.spec import placed_camera
+from beavr_sim.cameras.poses import placed_camera
 from beavr_sim.envs.camera_pose import CameraIntrinsics, PlacedCamera, place_camera
 
 H, W = 480, 640

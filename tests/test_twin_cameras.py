@@ -13,7 +13,8 @@ from lerobot.datasets.feature_utils import validate_frame
 
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.cameras.errors import CameraSpecError
-from beavr_sim.cameras.spec import parse_camera_table, rig_cameras, rig_placed_cameras
+from beavr_sim.cameras.poses import placed_camera, rig_placed_cameras
+from beavr_sim.cameras.spec import parse_camera_table, rig_cameras
 from beavr_sim.datasets.cli import parse_cameras
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import EpisodeRecorder
@@ -102,7 +103,6 @@ def test_rig_pose_errors_name_the_camera(extra, message):
     table = {"type": "opencv", "index_or_path": 0}
     table.setdefault("T_world_camera", np.eye(4).tolist())
     table.update(extra)
-    from beavr_sim.cameras.spec import placed_camera
 
     with pytest.raises(CameraSpecError, match=message) as err:
         placed_camera("wrist", table)
@@ -195,3 +195,36 @@ def test_twin_depth_recorded_in_metres():
     # Pixels on an edge may see the other side of it; the bulk agrees to a few millimetres.
     assert np.median(np.abs(got - expected)) < 0.005
     assert np.mean(np.abs(got - expected) < 0.02) > 0.9
+
+
+def test_session_camera_poses_place_the_twin_camera(tmp_path, monkeypatch):
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.teleop import session
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    common = dict(task="PickupBox", source="trace", trace=bundled_trace("PickupBox"))
+    options = session.SessionOptions(
+        **common, viser=False, headless=True, progress=False, camera_poses=rig
+    )
+    assert [c.name for c in options.placed_cameras] == ["front", "side"]
+
+    class _Built(Exception):
+        pass
+
+    made = {}
+
+    def make(env_id, **kwargs):  # the session's twin env: its arguments, then stop
+        made.update(kwargs)
+        raise _Built
+
+    monkeypatch.setattr(session.gym, "make", make)
+    with pytest.raises(_Built):
+        session.build_loop(options)
+    assert made["placed_cameras"] == options.placed_cameras  # (placement: the test above)
+    with pytest.raises(ValueError, match="--camera-poses runs in one process"):
+        session.SessionOptions(**common, multiprocess=True, headless=True, camera_poses=rig)
+    bare = tmp_path / "bare.toml"
+    bare.write_text('[cameras.front]\ntype = "opencv"\nindex_or_path = 0\n')
+    with pytest.raises(ValueError, match=r"no \[cameras\.NAME\] table has a T_world_camera"):
+        session.SessionOptions(**common, viser=False, headless=True, camera_poses=bare)

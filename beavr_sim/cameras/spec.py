@@ -9,7 +9,8 @@ Two sources, one result (`dict[name, lerobot CameraConfig]`):
 A rig table may also carry where the camera stands, for the twin camera of its name
 (`beavr_sim.envs.camera_pose.PlacedCamera`): `T_world_camera` (4x4, the camera's optical frame
 x right, y down, z forward, in the world frame) and `fx`, `fy`, `cx`, `cy` (pixels at `width` x
-`height`) or `fovy_deg`; `rig_placed_cameras` reads them, `parse_camera_table` leaves them out.
+`height`) or `fovy_deg`; `beavr_sim.cameras.poses` reads them, `parse_camera_table` leaves them
+out.
 Every error is a `CameraSpecError` with one line naming the camera and listing the valid choices.
 """
 
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +27,7 @@ from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraCon
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
 from beavr_sim.cameras.errors import CameraSpecError
-from beavr_sim.envs.camera_pose import CameraIntrinsics, PlacedCamera
+from beavr_sim.cameras.poses import POSE_KEYS, rig_tables
 
 DEFAULT_FPS = 30
 _NAME = re.compile(r"^[A-Za-z0-9_]+$")
@@ -40,9 +40,6 @@ CONFIG_TYPES: dict[str, type[CameraConfig]] = {
     "intelrealsense": RealSenseCameraConfig,
     "zmq": ZMQCameraConfig,
 }
-#: A rig table's keys placing the twin camera of its name (not LeRobot's).
-POSE_KEYS = ("T_world_camera", "fx", "fy", "cx", "cy", "fovy_deg")
-_INTRINSICS = ("fx", "fy", "cx", "cy")
 _SPEC_FORMS = "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally @WIDTHxHEIGHT"
 
 
@@ -125,42 +122,6 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
         raise CameraSpecError(f"camera {name!r}: {exc}") from None
 
 
-def placed_camera(name: str, table: dict[str, Any]) -> PlacedCamera | None:
-    """The twin camera a rig's `[cameras.NAME]` table places, or None when it has no pose."""
-    given = [k for k in POSE_KEYS if k in table]
-    if not given:
-        return None
-    if "T_world_camera" not in table:
-        raise CameraSpecError(
-            f"camera {name!r}: {given} place the twin camera only with T_world_camera "
-            "(4x4, the optical frame in the world frame)"
-        )
-    intrinsics = None
-    if any(k in table for k in _INTRINSICS):
-        missing = [k for k in (*_INTRINSICS, "width", "height") if k not in table]
-        if missing or "fovy_deg" in table:
-            raise CameraSpecError(
-                f"camera {name!r}: intrinsics need all of fx, fy, cx, cy, width, height "
-                f"(missing {missing}) and no fovy_deg"
-            )
-    elif "fovy_deg" not in table:
-        raise CameraSpecError(
-            f"camera {name!r}: T_world_camera needs the field of view: fx, fy, cx, cy "
-            "(with width, height) or fovy_deg"
-        )
-    try:
-        if "fx" in table:
-            intrinsics = CameraIntrinsics(
-                *(float(table[k]) for k in _INTRINSICS), int(table["width"]), int(table["height"])
-            )
-        fovy = float(table["fovy_deg"]) if "fovy_deg" in table else None
-        return PlacedCamera(name, table["T_world_camera"], intrinsics=intrinsics, fovy_deg=fovy)
-    except (ValueError, TypeError) as exc:
-        text = str(exc)
-        prefix = "" if text.startswith(f"camera {name!r}") else f"camera {name!r}: "
-        raise CameraSpecError(prefix + text) from None
-
-
 def merge_cameras(
     rig: dict[str, CameraConfig], cli: dict[str, CameraConfig]
 ) -> dict[str, CameraConfig]:
@@ -171,23 +132,9 @@ def merge_cameras(
     return {**rig, **cli}
 
 
-def _rig_tables(path: str | Path) -> dict[str, dict[str, Any]]:
-    with open(path, "rb") as f:
-        tables = tomllib.load(f).get("cameras", {})
-    if not isinstance(tables, dict) or not all(isinstance(t, dict) for t in tables.values()):
-        raise CameraSpecError(f"{path}: [cameras] must hold one [cameras.NAME] table per camera")
-    return tables
-
-
 def rig_cameras(path: str | Path) -> dict[str, CameraConfig]:
     """The `[cameras.NAME]` tables of a rig file (none: {})."""
-    return {name: parse_camera_table(name, table) for name, table in _rig_tables(path).items()}
-
-
-def rig_placed_cameras(path: str | Path) -> tuple[PlacedCamera, ...]:
-    """The twin cameras a rig file's `[cameras.NAME]` tables place (those with a pose)."""
-    placed = (placed_camera(name, table) for name, table in _rig_tables(path).items())
-    return tuple(p for p in placed if p is not None)
+    return {name: parse_camera_table(name, table) for name, table in rig_tables(path).items()}
 
 
 def session_cameras(
