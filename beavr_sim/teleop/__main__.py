@@ -214,6 +214,15 @@ def build_parser() -> argparse.ArgumentParser:
         "cameras; SPEC opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally "
         "@WIDTHxHEIGHT (docs/cameras.md)",
     )
+    rec.add_argument(
+        "--camera-poses",
+        type=Path,
+        default=None,
+        metavar="F.toml",
+        help="place the twin's cameras at real cameras' poses: the T_world_camera and "
+        "intrinsics of F's [cameras.NAME] tables (a rig file; python -m beavr_sim.cameras "
+        "calibrate writes them; docs/cameras.md)",
+    )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()
     start.add_argument(

@@ -25,6 +25,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from beavr_sim.cameras.poses import rig_placed_cameras
 from beavr_sim.datasets.cli import recording_config
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import (
@@ -34,6 +35,7 @@ from beavr_sim.datasets.recorder import (
     run_recorded_episode,
 )
 from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.envs.camera_pose import PlacedCamera
 from beavr_sim.envs.scene import DEFAULT_HAND_VARIANT
 from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.hardware.rig import RigConfig
@@ -163,6 +165,9 @@ class SessionOptions:
     #: ``--camera NAME=SPEC`` (``beavr_sim.cameras.spec``): real cameras recorded next to the
     #: twin's renders (plus a mirrored rig file's ``[cameras.NAME]`` tables).
     real_cameras: tuple[str, ...] = ()
+    #: ``--camera-poses F.toml``: a file of ``[cameras.NAME]`` tables (a rig file) whose
+    #: ``T_world_camera`` poses place the twin's cameras (``beavr_sim.cameras.poses``).
+    camera_poses: str | Path | None = None
 
     def __post_init__(self) -> None:
         if self.real_cameras:
@@ -176,6 +181,18 @@ class SessionOptions:
                 raise ValueError("--camera runs in one process for now; leave out --multiprocess")
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
+        self._placed_cameras: tuple[PlacedCamera, ...] = ()
+        if self.camera_poses is not None:
+            if self.multiprocess:
+                raise ValueError(
+                    "--camera-poses runs in one process for now; leave out --multiprocess"
+                )
+            self._placed_cameras = rig_placed_cameras(self.camera_poses)
+            if not self._placed_cameras:
+                raise ValueError(
+                    f"--camera-poses {self.camera_poses}: no [cameras.NAME] table has a "
+                    "T_world_camera (docs/cameras.md)"
+                )
         self._token_value = self.token or new_token_value()  # one per session
         if self.transport is None:
             self.transport = TransportConfig(
@@ -308,6 +325,11 @@ class SessionOptions:
                 )
         return allowed
 
+    @property
+    def placed_cameras(self) -> tuple[PlacedCamera, ...]:
+        """The twin cameras ``--camera-poses`` places (none: ())."""
+        return self._placed_cameras
+
     def session_token(self, host: str) -> SessionToken:
         """This session's token for a server bound to ``host`` (the loopback rule)."""
         return SessionToken.for_host(host, self.token, value=self._token_value)
@@ -378,6 +400,7 @@ class SessionOptions:
             sync_timeout_s=getattr(args, "sync_timeout", None),
             emulate_faults=getattr(args, "emulate_faults", None),
             real_cameras=tuple(getattr(args, "camera", None) or ()),
+            camera_poses=getattr(args, "camera_poses", None),
         )
 
 
@@ -540,6 +563,8 @@ def build_loop(options: SessionOptions, context=None):
         kwargs["max_episode_seconds"] = 1e9  # live: episodes end by the operator, not a timer
     if options.leap_variant:
         kwargs["hand_variant"] = options.leap_variant
+    if options.placed_cameras:
+        kwargs["placed_cameras"] = options.placed_cameras
     env = gym.make(f"beavr_sim/{options.task}-v0", embodiment=embodiment, **kwargs).unwrapped
     operator = Operator(env.embodiment, 1.0 / env.control_hz)
     loop = TeleopLoop(
