@@ -27,6 +27,7 @@ import numpy as np
 
 from beavr_sim.cameras.poses import rig_placed_cameras
 from beavr_sim.datasets.cli import recording_config
+from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import (
     EpisodeRecorder,
@@ -954,24 +955,16 @@ def record_episodes(
             fault = recorder.fault
             # Ctrl-C / SIGTERM drops the episode in progress (never saved as if it had ended).
             interrupted = loop.interrupted()
-            written = recorder.end(
-                keep="discard" not in asked
-                and not interrupted
-                and (not fault or options.keep_faulty_episodes),
-                success=bool(summary.success) and not fault and not interrupted,
+            end = EpisodeEnd(
+                fault=fault,
+                interrupted=interrupted,
+                asked=tuple(asked),
                 task_success=bool(summary.success),
-                seed=loop.seed,
-                source=options.source,
-                ended_by="hardware_fault"
-                if fault
-                else "interrupted"
-                if interrupted
-                else asked[0]
-                if asked
-                else "auto",
+                keep_faulty=options.keep_faulty_episodes,
             )
+            written = end_recorded_episode(recorder, end, seed=loop.seed, source=options.source)
             attempts += 1
-            saved += int(written and not fault)
+            saved += int(end.counts_as_saved(written))
             faulty += int(bool(fault))
             in_a_row = in_a_row + 1 if fault else 0
             records.add(
@@ -985,17 +978,7 @@ def record_episodes(
                 )
             )
             if options.progress:
-                outcome = (
-                    ("kept, marked hardware_fault" if written else "discarded")
-                    if fault
-                    else "interrupted, not saved"
-                    if interrupted
-                    else "saved"
-                    if written
-                    else "discarded"
-                    if asked
-                    else "empty, not saved"
-                )
+                outcome = end.outcome(written)
                 print(
                     f"\n{name}: {'success' if summary.success else 'no success'}, "
                     f"{summary.duration_s:.1f} s, "
