@@ -179,7 +179,10 @@ class SessionOptions:
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
             if self.multiprocess:
-                raise ValueError("--camera runs in one process for now; leave out --multiprocess")
+                raise ValueError(
+                    "--camera runs in one process for now (its frames go to the recorder, which "
+                    "follows the one-process loop); leave out --multiprocess"
+                )
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
@@ -249,6 +252,11 @@ class SessionOptions:
             raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
         if self.repeat < 0 or (self.repeat != 1 and self.source != "trace"):
             raise ValueError("--repeat needs --source trace and a count >= 0 (0: forever)")
+        if self.repeat != 1 and self.multiprocess:
+            raise ValueError(
+                "--repeat runs in one process for now (the processes play one run: the trace "
+                "restarts only in the one-process loop); leave out --multiprocess"
+            )
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
         if self.record is not None:
