@@ -8,6 +8,7 @@ counted and no warning is logged. The operator-level rules are in
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -73,7 +74,7 @@ def test_a_trace_that_ends_holds_as_source_ended_in_one_process(short_trace, cap
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
     assert "the source ended" in caplog.text  # said, at INFO
     # The hold never moves: every source_ended command repeats the one before it.
-    for before, cmd in zip(seen, seen[1:]):
+    for before, cmd in itertools.pairwise(seen):
         if cmd.reason == "source_ended":
             np.testing.assert_array_equal(cmd.positions, before.positions)
 

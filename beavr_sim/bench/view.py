@@ -38,11 +38,13 @@ def _free_port() -> int:
 
 @contextmanager
 def _websocket_client(url: str):
-    """A client reading every message the view sends (viser's subprotocol), in a thread."""
+    """A client reading every message the view sends (viser's subprotocol), in a thread;
+    entered once the first message came. (Not a browser: it sends no camera, so the view does
+    not count it among its clients.)"""
     import viser
     from websockets.sync.client import connect
 
-    stop = threading.Event()
+    stop, received = threading.Event(), threading.Event()
     ws = connect(
         url.replace("http://", "ws://"),
         max_size=None,
@@ -53,6 +55,7 @@ def _websocket_client(url: str):
         while not stop.is_set():
             try:
                 ws.recv(timeout=0.2)
+                received.set()
             except TimeoutError:
                 continue
             except Exception:  # closed
@@ -61,6 +64,8 @@ def _websocket_client(url: str):
     reader = threading.Thread(target=read, name="bench-view-client", daemon=True)
     reader.start()
     try:
+        if not received.wait(60.0):
+            raise RuntimeError("the view sent nothing to a connected client in 60 s")
         yield
     finally:
         stop.set()
@@ -103,15 +108,18 @@ def _nothing():
     yield
 
 
-def _wait_for_client(view, timeout_s: float = 60.0) -> None:
+def _wait_for_browser(view, timeout_s: float = 60.0) -> None:
+    """Until a browser counts as connected (viser: once it sent its camera)."""
     deadline = time.monotonic() + timeout_s
     while view.clients < 1:
         if time.monotonic() > deadline:
-            raise RuntimeError(f"no client connected to the view in {timeout_s:g} s")
+            raise RuntimeError(f"no browser connected to the view in {timeout_s:g} s")
         time.sleep(0.05)
 
 
-def _measure(seconds: float, view_rate_hz: float | None, client: str | None = None) -> dict:
+def _measure(
+    seconds: float, view_rate_hz: float | None, client: str | None = None, clock: str = "virtual"
+) -> dict:
     from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
         SessionOptions,
         build_loop,
@@ -124,7 +132,7 @@ def _measure(seconds: float, view_rate_hz: float | None, client: str | None = No
         source="trace",
         trace=trace,
         viser=view_rate_hz is not None,
-        clock="virtual",
+        clock=clock,
         headless=True,
         progress=False,
     )
@@ -136,8 +144,8 @@ def _measure(seconds: float, view_rate_hz: float | None, client: str | None = No
     try:
         connected = clients[client](view.url) if client else _nothing()
         with connected:
-            if client:
-                _wait_for_client(view)
+            if client == "chromium":
+                _wait_for_browser(view)
             for _ in range(30):  # warm-up: first QP solves, caches
                 loop.tick()
             if view is not None:
@@ -149,7 +157,12 @@ def _measure(seconds: float, view_rate_hz: float | None, client: str | None = No
                 if loop.source.finished or tick.state.terminated or tick.state.truncated:
                     loop.replace_source(TraceSource(trace, real_time=False))
                     loop.reset(loop.seed)
-            out = {"ticks": ticks, "wall_s": round(elapsed, 3), "loop_rate_hz": ticks / elapsed}
+            out = {
+                "ticks": ticks,
+                "wall_s": round(elapsed, 3),
+                "loop_rate_hz": ticks / elapsed,
+                "missed_ticks": loop.schedule.missed_ticks,
+            }
             if view is not None:
                 out["view_updates"] = view.updates
                 busy, server = view.cost.per_second()
@@ -164,13 +177,16 @@ def _measure(seconds: float, view_rate_hz: float | None, client: str | None = No
         loop.twin.env.close()
 
 
-#: name -> (view updates per second at most: None without a view, 0 every tick; the client)
-CONFIGS: dict[str, tuple[float | None, str | None]] = {
-    "without_view": (None, None),
-    "with_view_30hz": (30.0, None),
-    "with_view_30hz_client": (30.0, "websocket"),
-    "with_view_30hz_chromium": (30.0, "chromium"),
-    "with_view_every_tick": (0.0, None),
+#: name -> (view updates per second at most: None without a view, 0 every tick; the client;
+#: the clock: "virtual" as fast as possible, "paced" at the real 30 Hz control rate)
+CONFIGS: dict[str, tuple[float | None, str | None, str]] = {
+    "without_view": (None, None, "virtual"),
+    "with_view_30hz": (30.0, None, "virtual"),
+    "with_view_30hz_client": (30.0, "websocket", "virtual"),
+    "with_view_30hz_chromium": (30.0, "chromium", "virtual"),
+    "with_view_every_tick": (0.0, None, "virtual"),
+    "paced_without_view": (None, None, "paced"),
+    "paced_with_view_30hz_chromium": (30.0, "chromium", "paced"),
 }
 
 
@@ -189,25 +205,31 @@ def run(seconds: float = 2.0, rounds: int = 3) -> dict:
     }
     samples: dict[str, list[dict]] = {name: [] for name in configs}
     for _ in range(rounds):
-        for name, (rate_hz, client) in configs.items():
-            samples[name].append(_measure(seconds, rate_hz, client))
+        for name, (rate_hz, client, clock) in configs.items():
+            samples[name].append(_measure(seconds, rate_hz, client, clock))
     out: dict = {
         "machine": f"{platform.machine()}, {platform.python_version()}, {os.cpu_count()} CPUs",
         "trace": bundled_trace(TASK).name,
-        "clock": "virtual, as fast as possible",
+        "clock": "virtual: as fast as possible; paced: the real 30 Hz rate",
         "seconds_per_run": seconds,
         "rounds": rounds,
     }
-    base = float(np.median([r["loop_rate_hz"] for r in samples["without_view"]]))
+    bases = {
+        clock: float(np.median([r["loop_rate_hz"] for r in samples[name]]))
+        for clock, name in (("virtual", "without_view"), ("paced", "paced_without_view"))
+    }
     for name, runs in samples.items():
         rates = [r["loop_rate_hz"] for r in runs]
-        rate = float(np.median(rates))
+        rate, base = float(np.median(rates)), bases[configs[name][2]]
         out[name] = {
             "loop_rate_hz": round(rate, 1),
             "loop_rate_hz_runs": [round(r, 1) for r in rates],
             "ratio": round(rate / base, 3),
-            "added_ms_per_tick": round(1e3 / rate - 1e3 / base, 3),
         }
+        if configs[name][2] == "virtual":
+            out[name]["added_ms_per_tick"] = round(1e3 / rate - 1e3 / base, 3)
+        else:
+            out[name]["missed_ticks_per_s"] = _median(r["missed_ticks"] / r["wall_s"] for r in runs)
         if "view_updates" in runs[0]:
             out[name]["view_updates_per_s"] = round(
                 float(np.median([r["view_updates"] / r["wall_s"] for r in runs])), 1
@@ -219,5 +241,5 @@ def run(seconds: float = 2.0, rounds: int = 3) -> dict:
                 r["view_sending_ms_per_tick"] for r in runs
             )
     if len(configs) < len(CONFIGS):
-        out["skipped"] = "with_view_30hz_chromium: chromium or playwright not installed"
+        out["skipped"] = "the chromium runs: chromium or playwright not installed"
     return out

@@ -178,14 +178,12 @@ class ViewCost:
             server = max(c1 - c0, 0.0) / (t1 - t0)
         return busy, server
 
-    def readout(self, loop_rate_hz: float | None, clients: int) -> str:
+    def readout(self, loop_rate_hz: float | None, clients: int, now: float | None = None) -> str:
         """The panel's line: ms per tick in the loop's thread and sending, and the share of
         the wall time (at the loop's rate: of each control period)."""
-        busy, server = self.per_second()
+        busy, server = self.per_second(now)
         total = busy + (server or 0.0)
-        per_tick = (
-            f"**{1e3 * total / loop_rate_hz:.2f} ms/tick**" if loop_rate_hz else "- ms/tick"
-        )
+        per_tick = f"**{1e3 * total / loop_rate_hz:.2f} ms/tick**" if loop_rate_hz else "- ms/tick"
         parts = f"loop {1e3 * busy / loop_rate_hz:.2f}" if loop_rate_hz else ""
         if server is not None and loop_rate_hz:
             parts += f", sending {1e3 * server / loop_rate_hz:.2f}"
@@ -724,7 +722,7 @@ class TwinView:
             self.cost.sample_server(start)
             self.readout.content = (
                 f"loop rate **{rate}**  \nlatency p50 **{lat}**  \n"
-                + self.cost.readout(loop_rate_hz, self.clients)
+                + self.cost.readout(loop_rate_hz, self.clients, start)
             )
         if episode is not None and self.episode is not None and self.episode.content != episode:
             self.episode.content = episode
