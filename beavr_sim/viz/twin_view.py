@@ -189,7 +189,7 @@ class ViewCost:
             parts += f", sending {1e3 * server / loop_rate_hz:.2f}"
         browsers = f"{clients} browser" + ("" if clients == 1 else "s")
         return (
-            f"view {per_tick} ({parts}; {100 * total:.1f} % of the period) · {browsers}"
+            f"view {per_tick} ({parts}; {100 * total:.1f} % of the time) · {browsers}"
             if parts
             else f"view {per_tick} · {browsers}"
         )
