@@ -299,7 +299,9 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     # Each side's effectors are commanded when its hand frame arrives; a side without a
     # frame for CLOCK_COMMAND_AFTER control periods is commanded on the clock (holds:
     # tracking lost, paused, waiting), so the twin always hears from the operator.
-    stage = OperatorStage(operator, control_hz, start=time.monotonic())
+    stage = OperatorStage(
+        operator, control_hz, start=time.monotonic(), source_finished=lambda: source.finished
+    )
     # The detector: the headset's sockets (or a trace) in this process's event loop; every
     # valid frame is observed (none is dropped unseen).
     validator = StreamValidator()
