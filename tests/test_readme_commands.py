@@ -114,6 +114,9 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"teleop --record data/rec --camera ",
          why="real cameras (a webcam, a LAN ZMQ server, a RealSense); test_cameras.py runs the "
              "same path through LeRobot's OpenCV (a video file) and ZMQ cameras"),
+    Spec(r"beavr_sim\.cameras (board|calibrate) --board board\.toml",
+         why="a printed board and a real camera's images (placeholders board.toml, front_*.png); "
+             "test_camera_calibration.py runs both commands on a board the twin renders"),
     Spec(r"traces info assets/traces/pour\.mcap"),
     Spec(r"traces record --out my\.mcap", extra="--seconds 0.5", check="my.mcap"),
     Spec(r"traces synth --task pour --seed 0 --out pour\.mcap", extra="--no-verify",
@@ -161,6 +164,9 @@ SPECS: tuple[Spec, ...] = (
          "each (configurations: test_bench_latency.py)"),
     Spec(r"bench tracking$", why="a minute of replays (test_bench_tracking.py runs 200 ticks)"),
     Spec(r"bench\.webxr", why="needs chromium and playwright (make sysdeps; test_webxr_browser.py)"),
+    Spec(r"datasets augment --source (SRC|data/pick_few)",
+         why="placeholder source datasets (SRC, data/...); test_augment.py augments a source it "
+         "records itself"),
     # docs/hardware.md
     Spec(r"--task pick_place --embodiment rx1 .*--hardware-config emulated$",
          extra="--max-seconds 1"),

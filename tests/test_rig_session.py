@@ -363,6 +363,11 @@ def test_emulated_faults_are_rehearsed_through_the_cli(capsys, layout):
     assert summary["failed_devices"] == []
     assert any(r["hardware_fault"] for r in summary["per_run"]), summary["per_run"]
     assert hand["state"] == "following" and hand["connected"], hand
+    # the twin poured, the rig held 2 s of it: not a success, the twin's outcome said apart
+    faulty = summary["per_run"][-1]
+    assert faulty["hardware_fault"] and faulty["success"] is False, faulty
+    assert faulty["task_success"] is True and summary["task_success"] is True, faulty
+    assert summary["success"] is False and summary["successes"] == 0, summary
 
 
 def test_a_bad_fault_spec_is_one_line_naming_the_choices(capsys):

@@ -238,10 +238,12 @@ def test_summary_counts_runs_and_the_cli_outcome():
     assert report["run_totals"]["duration_s"] == 29.5
     assert report["per_run"][1] == {
         "run": 2,
-        "success": True,
+        "success": False,  # the twin finished; the rig did not follow all along
+        "task_success": True,
         "duration_s": 9.0,
         "hardware_fault": "right_arm failed",
     }
+    assert [r["success"] for r in report["per_run"]] == [True, False, False, False]
     assert hardware_outcome(report) == (0, "")
     report["failed_devices"] = ["right_arm"]
     report["hardware"] = {"right_arm": {"reason": "no answer within 5 s"}}

@@ -7,3 +7,7 @@ class CameraSpecError(ValueError):
 
 class CameraError(RuntimeError):
     """A camera that cannot be opened."""
+
+
+class CalibrationError(ValueError):
+    """Calibration images that do not give a camera pose (the board not found, too few views)."""

@@ -6,6 +6,11 @@ Two sources, one result (`dict[name, lerobot CameraConfig]`):
 - a rig file's `[cameras.NAME]` table with LeRobot's config keys (`type`, `fps`, `width`,
   `height`, plus the type's own keys such as `index_or_path`, `serial_number_or_name`,
   `server_address`, `port`).
+A rig table may also carry where the camera stands, for the twin camera of its name
+(`beavr_sim.envs.camera_pose.PlacedCamera`): `T_world_camera` (4x4, the camera's optical frame
+x right, y down, z forward, in the world frame) and `fx`, `fy`, `cx`, `cy` (pixels at `width` x
+`height`) or `fovy_deg`; `beavr_sim.cameras.poses` reads them, `parse_camera_table` leaves them
+out.
 Every error is a `CameraSpecError` with one line naming the camera and listing the valid choices.
 """
 
@@ -13,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +27,7 @@ from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraCon
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
 from beavr_sim.cameras.errors import CameraSpecError
+from beavr_sim.cameras.poses import POSE_KEYS, rig_tables
 
 DEFAULT_FPS = 30
 _NAME = re.compile(r"^[A-Za-z0-9_]+$")
@@ -92,7 +97,7 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
 def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
     """A rig file's `[cameras.NAME]` table -> LeRobot config (keys are LeRobot's)."""
     _check_name(name, "rig [cameras]")
-    values = dict(table)
+    values = {k: v for k, v in table.items() if k not in POSE_KEYS}
     kind = values.pop("type", None)
     if kind not in CONFIG_TYPES:
         raise CameraSpecError(
@@ -103,7 +108,8 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
     unknown = sorted(set(values) - set(valid))
     if unknown:
         raise CameraSpecError(
-            f"camera {name!r}: unknown keys {unknown} for type {kind!r}; valid: {valid}"
+            f"camera {name!r}: unknown keys {unknown} for type {kind!r}; "
+            f"valid: {valid + sorted(POSE_KEYS)}"
         )
     values.setdefault("fps", DEFAULT_FPS)
     if cls is ZMQCameraConfig:
@@ -128,11 +134,7 @@ def merge_cameras(
 
 def rig_cameras(path: str | Path) -> dict[str, CameraConfig]:
     """The `[cameras.NAME]` tables of a rig file (none: {})."""
-    with open(path, "rb") as f:
-        tables = tomllib.load(f).get("cameras", {})
-    if not isinstance(tables, dict) or not all(isinstance(t, dict) for t in tables.values()):
-        raise CameraSpecError(f"{path}: [cameras] must hold one [cameras.NAME] table per camera")
-    return {name: parse_camera_table(name, table) for name, table in tables.items()}
+    return {name: parse_camera_table(name, table) for name, table in rig_tables(path).items()}
 
 
 def session_cameras(

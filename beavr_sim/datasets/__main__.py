@@ -1,11 +1,14 @@
 """``python -m beavr_sim.datasets generate --task T --episodes N --seed S --out DIR
-[--workers N | --ray [--ray-address ADDRESS]]``.
+[--workers N | --ray [--ray-address ADDRESS]]`` and ``python -m beavr_sim.datasets augment
+--source SRC --episodes N --seed S --out DIR [--workers N | --ray] [--cameras ...]``.
 
 Generates LeRobot demonstrations headless from synthesized VR traces run through the full
 teleop pipeline (see :mod:`beavr_sim.synthetic.generate`). ``--workers N`` (default: one per
 core) runs episodes in N local worker processes, ``--ray`` as Ray tasks; each episode is a shard,
 merged in seed order with LeRobot's ``aggregate_datasets`` into the same dataset a serial run
-(``--workers 1``) writes. Prints, last, one JSON line.
+(``--workers 1``) writes. ``augment`` makes the episodes from a recorded dataset instead of the
+expert (MimicGen-style, :mod:`beavr_sim.datasets.augment`), with the same runner. Prints, last,
+one JSON line.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
-from beavr_sim.datasets.cli import add_recording_args, recording_config
+from beavr_sim.datasets.augment.source import open_source
+from beavr_sim.datasets.cli import add_recording_args, parse_cameras, recording_config
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
 from beavr_sim.scaling.executors import LOG_FORMAT, JobFailed
@@ -42,10 +46,25 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_args(g)
     add_scale_args(g)
+    a = sub.add_parser("augment", help="new demonstrations from recorded ones (MimicGen-style)")
+    a.add_argument("--source", type=Path, required=True, help="a beavr_sim LeRobot dataset")
+    a.add_argument("--episodes", type=int, default=50)
+    a.add_argument("--seed", type=int, default=1000, help="first new seed (then seed+1, ...)")
+    a.add_argument("--out", type=Path, required=True, help="dataset root folder")
+    a.add_argument("--repo-id", default=None, help="dataset repo id (default beavr_sim/<task>)")
+    a.add_argument(
+        "--cameras", default=None, help="cameras to record, comma-separated, or none (default: "
+        "the source's)"
+    )  # fmt: skip
+    a.add_argument("--overwrite", action="store_true", help="start anew (default: resume)")
+    a.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_scale_args(a)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format=LOG_FORMAT)
     from beavr_sim.synthetic.generate import generate  # local: heavy (mujoco)
 
+    if args.command == "augment":
+        return _augment(args, generate)
     try:
         summary = generate(
             args.task,
@@ -61,6 +80,31 @@ def main(argv: list[str] | None = None) -> int:
             scale=scale_config(args),
         )
     except (UnknownNameError, ValueError, FileExistsError, ImportError, JobFailed) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(asdict(summary)))
+    return 0
+
+
+def _augment(args: argparse.Namespace, generate) -> int:
+    try:
+        source = open_source(args.source)
+        cameras = None if args.cameras is None else parse_cameras(args.cameras)
+        summary = generate(
+            source.task,
+            args.episodes,
+            args.seed,
+            args.out,
+            repo_id=args.repo_id,
+            embodiment=source.embodiment,
+            config=source.recording_config(cameras),
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+            scale=scale_config(args),
+            source=source.root,
+        )
+    except (UnknownNameError, ValueError, FileExistsError, FileNotFoundError, ImportError,
+            JobFailed) as exc:  # fmt: skip
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(asdict(summary)))

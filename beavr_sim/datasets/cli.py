@@ -9,9 +9,20 @@ import argparse
 from beavr_sim.datasets.features import RecordingConfig
 
 
-def parse_cameras(text: str) -> tuple[str, ...]:
+def parse_cameras(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``--cameras``: ``front,overhead`` (RGB) with ``NAME:depth`` for a camera's depth ->
+    (RGB cameras, depth cameras); ``none`` -> nothing."""
     text = text.strip().lower()
-    return () if text in ("", "none", "off") else tuple(c.strip() for c in text.split(","))
+    if text in ("", "none", "off"):
+        return (), ()
+    rgb: list[str] = []
+    depth: list[str] = []
+    for item in (c.strip() for c in text.split(",")):
+        name, _, kind = item.partition(":")
+        if kind not in ("", "depth"):
+            raise ValueError(f"--cameras {item!r}: a camera is NAME or NAME:depth")
+        (depth if kind else rgb).append(name)
+    return tuple(rgb), tuple(depth)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -27,7 +38,10 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repo-id", default=None, help="dataset repo id (default beavr_sim/<task>)")
     p.add_argument("--fps", type=int, default=30, help="frame rate = the env's control rate")
     p.add_argument(
-        "--cameras", default="front,overhead", help="cameras to record, comma-separated, or none"
+        "--cameras",
+        default="front,overhead",
+        help="twin cameras to record, comma-separated (NAME:depth for a camera's depth, "
+        "e.g. front,front:depth), or none",
     )
     p.add_argument("--image-size", default="480x640", help="HxW of recorded images")
     p.add_argument("--no-videos", action="store_true", help="store PNG frames, not video")
@@ -45,9 +59,11 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
 def recording_config(args: argparse.Namespace) -> RecordingConfig:
     """The :class:`RecordingConfig` of options added by :func:`add_recording_args`."""
     height, width = parse_size(args.image_size)
+    cameras, depth_cameras = parse_cameras(args.cameras)
     return RecordingConfig(
         fps=args.fps,
-        cameras=parse_cameras(args.cameras),
+        cameras=cameras,
+        depth_cameras=depth_cameras,
         image_height=height,
         image_width=width,
         hand_keypoints=not args.no_keypoints,

@@ -9,6 +9,9 @@ Features (``docs/formats.md`` lists them with shapes):
   task's object and target poses, privileged state for state-based policies; off by default
   because ``lerobot-train`` feeds every ``observation.*`` feature to the policy;
 - ``observation.images.<camera>``: the twin's cameras (``front``, ``overhead``), HxWx3 video;
+- ``observation.images.<camera>_depth`` (only for ``RecordingConfig.depth_cameras``): the twin
+  camera's depth, HxWx1 float32 metres, flagged ``info.is_depth_map`` as LeRobot's RealSense
+  depth features (``<camera>_depth``, ``(H, W, 1)``), so sim and RGB-D rig datasets match;
 - ``hand.keypoints``: the raw tracked hand joints of every side the embodiment uses (26 XR Hands
   joints x 3, metres, right-handed Z-up world frame), and ``hand.tracked`` (1 tracked, 0 not),
   so that retargeting can be redone later. They do not start with ``observation.``, so LeRobot
@@ -29,6 +32,8 @@ STATE = "observation.state"
 ENV_STATE = "observation.environment_state"
 ACTION = "action"
 IMAGE_PREFIX = "observation.images."
+#: LeRobot's suffix for a camera's depth feature (``observation.images.<camera>_depth``).
+DEPTH_SUFFIX = "_depth"
 KEYPOINTS = "hand.keypoints"
 TRACKED = "hand.tracked"
 
@@ -39,6 +44,8 @@ class RecordingConfig:
 
     fps: int = 30
     cameras: tuple[str, ...] = ("front", "overhead")
+    #: Twin cameras whose depth is recorded too (``--cameras front,front:depth``).
+    depth_cameras: tuple[str, ...] = ()
     image_height: int = 480
     image_width: int = 640
     hand_keypoints: bool = True
@@ -59,6 +66,11 @@ class RecordingConfig:
             check_name("camera", camera, ALL_CAMERA_NAMES)
         if len(set(self.cameras)) != len(self.cameras):
             raise ValueError(f"cameras repeat: {self.cameras}")
+        object.__setattr__(self, "depth_cameras", tuple(self.depth_cameras))
+        for camera in self.depth_cameras:
+            check_name("depth camera", camera, ALL_CAMERA_NAMES)
+        if len(set(self.depth_cameras)) != len(self.depth_cameras):
+            raise ValueError(f"depth cameras repeat: {self.depth_cameras}")
         if self.image_height <= 0 or self.image_width <= 0:
             raise ValueError(
                 f"image size must be positive, got {self.image_height}x{self.image_width}"
@@ -102,9 +114,18 @@ def lerobot_features(
             "shape": (config.image_height, config.image_width, 3),
             "names": ["height", "width", "channels"],
         }
+    for camera in config.depth_cameras:
+        features[IMAGE_PREFIX + camera + DEPTH_SUFFIX] = {
+            "dtype": "video" if config.use_videos else "image",
+            "shape": (config.image_height, config.image_width, 1),
+            "names": ["height", "width", "channels"],
+            "info": {"is_depth_map": True},
+        }
     for camera, shape in (real_cameras or {}).items():
         if IMAGE_PREFIX + camera in features:
-            raise ValueError(f"camera {camera!r} is both a twin camera (--cameras) and a real one")
+            raise ValueError(
+                f"camera {camera!r} is both a twin camera or depth (--cameras) and a real one"
+            )
         features[IMAGE_PREFIX + camera] = {
             "dtype": "video" if config.use_videos else "image",
             "shape": tuple(shape),

@@ -38,6 +38,7 @@ import numpy as np
 
 from beavr_sim.datasets.features import (
     ACTION,
+    DEPTH_SUFFIX,
     ENV_STATE,
     IMAGE_PREFIX,
     KEYPOINTS,
@@ -53,28 +54,45 @@ from beavr_sim.wire.records import Tick
 
 
 class CameraSet:
-    """The recorded cameras, rendered together at the recording size."""
+    """The recorded cameras, rendered together at the recording size; ``depth``: cameras
+    whose depth (metres, HxWx1 float32) is rendered too."""
 
     def __init__(
-        self, model: mujoco.MjModel | None, cameras: tuple[str, ...], height: int, width: int
+        self,
+        model: mujoco.MjModel | None,
+        cameras: tuple[str, ...],
+        height: int,
+        width: int,
+        depth: tuple[str, ...] = (),
     ):
         self.cameras = tuple(cameras)
-        if self.cameras and model is None:
-            raise ValueError(f"cameras {self.cameras} need a model to render")
-        self._cameras = OffscreenCameras(model, height, width) if self.cameras else None
+        self.depth = tuple(depth)
+        if (self.cameras or self.depth) and model is None:
+            raise ValueError(f"cameras {self.cameras + self.depth} need a model to render")
+        drawn = self.cameras or self.depth
+        self._cameras = OffscreenCameras(model, height, width) if drawn else None
 
     @classmethod
-    def of_env(cls, env, cameras: tuple[str, ...], height: int, width: int) -> CameraSet:
+    def of_env(
+        cls, env, cameras: tuple[str, ...], height: int, width: int, depth: tuple[str, ...] = ()
+    ) -> CameraSet:
         """The cameras of a :class:`~beavr_sim.envs.beavr_env.BeavrEnv`, drawing its render
         model (compiled only if there is a camera)."""
-        return cls(env.render_model if cameras else None, cameras, height, width)
+        return cls(env.render_model if cameras or depth else None, cameras, height, width, depth)
 
     def render(self, data: mujoco.MjData) -> dict[str, np.ndarray]:
         return {c: self._cameras.render(data, c) for c in self.cameras}
 
+    def render_depth(self, data: mujoco.MjData) -> dict[str, np.ndarray]:
+        return {c: self._cameras.render_depth(data, c) for c in self.depth}
+
     def render_env(self, env) -> dict[str, np.ndarray]:
         """Every camera at ``env``'s current state (its render model's data)."""
         return self.render(env.render_data()) if self.cameras else {}
+
+    def render_env_depth(self, env) -> dict[str, np.ndarray]:
+        """Every depth camera at ``env``'s current state."""
+        return self.render_depth(env.render_data()) if self.depth else {}
 
     def close(self) -> None:
         if self._cameras is not None:
@@ -199,7 +217,7 @@ class EpisodeRecorder:
         self.task_text = env.task.instruction or env.task.name
         self.sides = hand_sides(env.embodiment)
         self.cameras = CameraSet.of_env(
-            env, config.cameras, config.image_height, config.image_width
+            env, config.cameras, config.image_height, config.image_width, config.depth_cameras
         )
         self.recording = False
         self._observation: dict[str, np.ndarray] | None = None
@@ -272,6 +290,8 @@ class EpisodeRecorder:
             obs[ENV_STATE] = self.env.environment_state
         for camera, image in self.cameras.render_env(self.env).items():
             obs[IMAGE_PREFIX + camera] = image
+        for camera, depth in self.cameras.render_env_depth(self.env).items():
+            obs[IMAGE_PREFIX + camera + DEPTH_SUFFIX] = depth
         if self.real_cameras is not None:
             grab = self.real_cameras.grab()
             if grab.dead and not self._camera_fault:

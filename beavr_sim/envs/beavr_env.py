@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from beavr_sim.envs.camera_pose import PlacedCamera
 from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.envs.drive import InterpolatedServo
 from beavr_sim.envs.scene import (
@@ -58,17 +59,25 @@ class BeavrEnv(gym.Env):
         camera_width: int = 640,
         hand_variant: str = DEFAULT_HAND_VARIANT,
         contact: ContactSettings | None = None,
+        placed_cameras: Sequence[PlacedCamera] = (),
     ):
         """``hand_variant``: the hands' hardware variant (LEAP: ``"full"`` or ``"lite"``); it
         sets their finger joints' torque cap (docs/models.md, "LEAP servos"). ``contact``: the
-        scene's contact options (friction cone, impratio; default :data:`DEFAULT_CONTACT`)."""
+        scene's contact options (friction cone, impratio; default :data:`DEFAULT_CONTACT`).
+        ``placed_cameras``: twin cameras at real cameras' poses (a rig file's
+        ``[cameras.NAME]`` poses; :mod:`beavr_sim.envs.camera_pose`): a fixed camera of the
+        same name moves there, other names are added to the scene's cameras."""
         super().__init__()
         if render_mode is not None:
             check_name("render_mode", render_mode, RENDER_MODES)
         self.render_mode = render_mode
         self.embodiment: Embodiment = make_embodiment(embodiment)
         self.hand_variant = check_hand_variant(self.embodiment, hand_variant)
-        valid_cameras = camera_names(self.embodiment)
+        self.placed_cameras = tuple(placed_cameras)
+        placed_names = [c.name for c in self.placed_cameras]
+        if len(set(placed_names)) != len(placed_names):
+            raise ValueError(f"placed cameras repeat a name: {placed_names}")
+        valid_cameras = tuple(dict.fromkeys(camera_names(self.embodiment) + tuple(placed_names)))
         self.cameras = tuple(
             check_name("camera", c, valid_cameras, f"for embodiment {embodiment}")
             for c in (cameras or ())
@@ -292,6 +301,7 @@ class BeavrEnv(gym.Env):
             self.hand_variant,
             self._contact,
             visuals=visuals,
+            placed_cameras=self.placed_cameras,
         )
         self.task.build(spec)
         return spec

@@ -1,6 +1,8 @@
 """Offscreen rendering of the twin's named cameras (shadows and reflections off: several times
 faster under Mesa, and what every consumer here wants): the env, the recorder, the policy
-evaluation and the headset view all render through :class:`OffscreenCameras`."""
+evaluation and the headset view all render through :class:`OffscreenCameras`. Depth
+(:meth:`OffscreenCameras.render_depth`) is MuJoCo's depth buffer as metres along the camera's
+axis, float32; where nothing is drawn it is the far clipping distance."""
 
 from __future__ import annotations
 
@@ -49,6 +51,19 @@ class OffscreenCameras:
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
         return self._renderer.render().copy()
+
+    def render_depth(self, data: mujoco.MjData, camera: str) -> np.ndarray:
+        """One HxWx1 float32 depth image (metres along the camera's axis) from ``camera``."""
+        check_name("camera", camera, self._names)
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self._model, self.height, self.width)
+        self._renderer.update_scene(data, camera=camera, scene_option=self.option)
+        self._renderer.enable_depth_rendering()
+        try:
+            depth = self._renderer.render()
+        finally:
+            self._renderer.disable_depth_rendering()
+        return depth.astype(np.float32)[..., None]
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
+from beavr_sim.envs.camera_pose import PlacedCamera, place_camera
 from beavr_sim.naming import check_name
 from beavr_sim.robots import EMBODIMENTS, Embodiment
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_THICKNESS, TABLE_TOP_Z, TABLE_X
@@ -135,12 +137,15 @@ def build_scene_spec(
     hand_variant: str = DEFAULT_HAND_VARIANT,
     contact: ContactSettings = DEFAULT_CONTACT,
     visuals: bool = False,
+    placed_cameras: Sequence[PlacedCamera] = (),
 ) -> mujoco.MjSpec:
     """The scene without task objects: everything every task shares. The hands are the
     ``hand_variant`` of their hardware (their torque cap: :func:`apply_hand_variant`);
     ``contact``: the global contact options; ``visuals``: the robots' visual geometry too
     (what the env and its views draw; the physics is the same without it, and the
-    operator's and guards' private models leave it out)."""
+    operator's and guards' private models leave it out); ``placed_cameras``: cameras at real
+    cameras' poses (:mod:`beavr_sim.envs.camera_pose`), moving a fixed camera of the same name
+    or added to the fixed ones."""
     check_hand_variant(embodiment, hand_variant)
     spec = mujoco.MjSpec()
     spec.modelname = f"beavr_sim_{embodiment.name}"
@@ -220,6 +225,8 @@ def build_scene_spec(
             pos=[x, y, z / 2],
         )
     embodiment.attach_to(spec, visuals=visuals)
+    for placed in placed_cameras:
+        place_camera(spec, placed)
     apply_hand_variant(spec, embodiment, hand_variant)
     if embodiment.spec.body is None:
         for effector in embodiment.spec.effectors:

@@ -25,6 +25,10 @@ with the serial rules above. The shards of the seeds a serial run would have wri
 merged in seed order: the same episodes, frames and stats as a serial run with the same seeds.
 Shards live in ``<out>.shards/`` until merged; a run stopped before the merge resumes from the
 finished ones when started again with the same options.
+
+With a ``source`` (``python -m beavr_sim.datasets augment``) a seed's episode is made from a
+recorded source episode instead of the expert (:mod:`beavr_sim.datasets.augment`); seeds,
+workers, resume and merge are the same, and failures are counted by reason.
 """
 
 from __future__ import annotations
@@ -81,6 +85,10 @@ class GenerateSummary:
     mode: str = "new"
     #: Seeds of this run already in the dataset: not run again, not in ``episodes_written``.
     seeds_skipped: list[int] = field(default_factory=list)
+    #: Failed episodes per reason (augmentation: the checker's unmet condition, ...).
+    failure_reasons: dict[str, int] = field(default_factory=dict)
+    #: The source dataset of an augmentation run ("" for expert demonstrations).
+    source: str = ""
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,7 @@ class EpisodeJob:
     keep_failed: bool
     shard: str
     features: dict
+    source: str = ""  # a source dataset to augment ("": the expert's synthesized trace)
 
 
 @dataclass(frozen=True)
@@ -103,6 +112,7 @@ class EpisodeOutcome:
     synth_ok: bool
     written: bool
     frames: int
+    reason: str = ""  # why the episode failed ("" when it did not)
 
 
 def _crash_hook(seed: int):
@@ -131,9 +141,19 @@ def run_episode(
     writer: EpisodeWriter | None,
     trace_dir: Path,
     make_writer=None,
+    source: str = "",
 ) -> EpisodeOutcome:
     """One seed: synthesize its trace, and if kept replay it into ``writer`` (or into
-    ``make_writer()``, called only when there is something to write)."""
+    ``make_writer()``, called only when there is something to write). With a ``source``:
+    the seed's episode augmented from it (:func:`beavr_sim.datasets.augment.episode.
+    augment_episode`)."""
+    if source:
+        from beavr_sim.datasets.augment.episode import augment_episode  # local: heavy
+
+        done = augment_episode(
+            source, task, seed, embodiment, config, keep_failed, writer, make_writer
+        )
+        return EpisodeOutcome(seed, done.success, done.written, done.frames, done.reason)
     from beavr_sim.synthetic.trace import quantize, synthesize, write_trace  # local: heavy (mujoco)
     from beavr_sim.teleop.session import (  # local: heavy (the pipeline: mink, scipy)
         SessionOptions,
@@ -216,6 +236,7 @@ def run_episode_job(job: EpisodeJob) -> EpisodeOutcome:
             None,
             shard / TRACES,
             make_writer=once,
+            source=job.source,
         )
     finally:
         for writer in holder:
@@ -254,6 +275,7 @@ class _SerialRules:
     failures: int = 0
     frames: int = 0
     seeds_failed: list[int] = field(default_factory=list)
+    reasons: dict[str, int] = field(default_factory=dict)
     used: list[int] = field(default_factory=list)  # seeds the serial run would have tried
     skipped: list[int] = field(default_factory=list)  # seeds already in the dataset
     gave_up: bool = False
@@ -268,6 +290,8 @@ class _SerialRules:
         self.failures += int(not outcome.synth_ok)
         if not outcome.synth_ok:
             self.seeds_failed.append(outcome.seed)
+            reason = outcome.reason or "expert failed"
+            self.reasons[reason] = self.reasons.get(reason, 0) + 1
         if outcome.written:
             self.written += 1
             self.frames += outcome.frames
@@ -292,12 +316,14 @@ def generate(
     overwrite: bool = False,
     progress: bool = True,
     scale: ScaleConfig | None = None,
+    source: str | Path = "",
 ) -> GenerateSummary:
     """``episodes`` demonstrations into the LeRobot dataset at ``out`` (resumed if it holds
     one: seeds already there are skipped; replaced with ``overwrite``). ``scale``: None or one
     local worker writes in this process, episode by episode; otherwise see the module
-    docstring."""
+    docstring. ``source``: augment that recorded dataset instead of running the expert."""
     task = canonical_task_name(task)
+    source = str(Path(source).resolve()) if source else ""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     config = config or RecordingConfig()
@@ -308,19 +334,21 @@ def generate(
     quiet_dataset_writes()
     if scale is None or scale.in_process:
         summary = _generate_serial(
-            task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress
-        )
+            task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress,
+            source,
+        )  # fmt: skip
     else:
         summary = _generate_parallel(
             task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress,
-            scale,
+            scale, source,
         )  # fmt: skip
     summary.mode = plan.mode
+    summary.source = source
     return summary
 
 
 def _generate_serial(
-    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress
+    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, source
 ) -> GenerateSummary:
     features = _features(task, embodiment, config)
     writer = EpisodeWriter(
@@ -335,7 +363,7 @@ def _generate_serial(
     summary = GenerateSummary(task, embodiment, str(out), repo_id, episodes, 0, 0, 0)
     rules = _SerialRules(episodes)
     start = time.perf_counter()
-    bar = tqdm(total=episodes, desc=f"{task} demos", unit="ep", disable=not progress)
+    bar = tqdm(total=episodes, desc=_bar_label(task, source), unit="ep", disable=not progress)
     episode_seed = seed
     try:
         while not rules.done:
@@ -345,8 +373,9 @@ def _generate_serial(
                 episode_seed += 1
                 continue
             outcome = run_episode(
-                task, episode_seed, embodiment, config, keep_failed, writer, out / "beavr_traces"
-            )
+                task, episode_seed, embodiment, config, keep_failed, writer, out / "beavr_traces",
+                source=source,
+            )  # fmt: skip
             rules.take(outcome)
             bar.update(int(outcome.written))
             bar.set_postfix(ok=rules.successes, failed=rules.failures)
@@ -361,12 +390,17 @@ def _generate_serial(
     return summary
 
 
+def _bar_label(task: str, source: str) -> str:
+    return f"{task} {'augmented' if source else 'demos'}"
+
+
 def _fill(summary: GenerateSummary, rules: _SerialRules) -> None:
     summary.episodes_written = rules.written - len(rules.skipped)
     summary.seeds_skipped = list(rules.skipped)
     summary.successes = rules.successes
     summary.failures = rules.failures
     summary.seeds_failed = list(rules.seeds_failed)
+    summary.failure_reasons = dict(rules.reasons)
     summary.frames = rules.frames
 
 
@@ -390,8 +424,9 @@ def _preload_merge() -> threading.Thread:
 
 
 def _generate_parallel(
-    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, scale
-) -> GenerateSummary:
+    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, scale,
+    source,
+) -> GenerateSummary:  # fmt: skip
     features = _features(task, embodiment, config)  # validates fps before any worker starts
     staging = staging_dir(out)
     there = plan.seeds_there
@@ -411,6 +446,7 @@ def _generate_parallel(
         "repo_id": repo_id,
         "keep_failed": keep_failed,
         "config": asdict(config),
+        "source": source,
     }
     outcomes = _resume(staging, manifest)
     staging.mkdir(parents=True, exist_ok=True)
@@ -429,7 +465,7 @@ def _generate_parallel(
     env = {CRASH_ONCE_ENV: os.environ[CRASH_ONCE_ENV]} if CRASH_ONCE_ENV in os.environ else {}
     executor = make_executor(function, scale, env=env)
     summary.workers = executor.capacity
-    bar = tqdm(total=episodes, desc=f"{task} demos", unit="ep", disable=not progress)
+    bar = tqdm(total=episodes, desc=_bar_label(task, source), unit="ep", disable=not progress)
     running: set[int] = set()
     next_seed = seed
 
@@ -473,7 +509,7 @@ def _generate_parallel(
                 else:
                     job = EpisodeJob(
                         task, embodiment, next_seed, config, repo_id, keep_failed,
-                        str(shard_of(next_seed)), features,
+                        str(shard_of(next_seed)), features, source,
                     )  # fmt: skip
                     executor.submit(next_seed, job)
                     running.add(next_seed)

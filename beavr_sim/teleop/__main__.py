@@ -215,6 +215,15 @@ def build_parser() -> argparse.ArgumentParser:
         "@WIDTHxHEIGHT (docs/cameras.md)",
     )
     rec.add_argument(
+        "--camera-poses",
+        type=Path,
+        default=None,
+        metavar="F.toml",
+        help="place the twin's cameras at real cameras' poses: the T_world_camera and "
+        "intrinsics of F's [cameras.NAME] tables (a rig file; python -m beavr_sim.cameras "
+        "calibrate writes them; docs/cameras.md)",
+    )
+    rec.add_argument(
         "--camera-stream-hz",
         type=float,
         default=0.0,

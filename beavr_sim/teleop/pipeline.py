@@ -297,6 +297,8 @@ class RunRecord:
     """One run of a session (a play of a trace, a recorded episode): its line in the summary."""
 
     run: int
+    #: The task's checker on the twin (the line's ``task_success``); the line's ``success``
+    #: also needs the rig: no hardware fault and, when recording, the episode saved.
     success: bool
     duration_s: float
     #: What the hardware did wrong in this run ("" when nothing): the first fault's line.
@@ -306,8 +308,15 @@ class RunRecord:
     #: Mirrored: wall seconds the rig took to reach the run's start pose (None: no rig).
     sync_s: float | None = None
 
+    @property
+    def true_success(self) -> bool:
+        """Task success on the twin with the rig following all along (and, recording, saved)."""
+        return self.success and not self.hardware_fault and self.saved is not False
+
     def to_dict(self) -> dict:
         out = asdict(self)
+        out["success"] = self.true_success
+        out["task_success"] = self.success
         out["duration_s"] = round(self.duration_s, 3)
         for key in ("saved", "sync_s"):
             if out[key] is None:
@@ -345,13 +354,14 @@ class RunTally:
         self.slowest_sync_s = 0.0
         self._first: list[dict] = []
         self._last: deque[dict] = deque(maxlen=self.kept)
+        #: The run just ended (None before the first).
+        self.last: RunRecord | None = None
 
     def add(self, record: RunRecord) -> None:
         """Count ``record`` (the run just ended)."""
         self.runs += 1
-        self.successes += int(
-            record.success and not record.hardware_fault and record.saved is not False
-        )
+        self.last = record
+        self.successes += int(record.true_success)
         self.hardware_faults += int(bool(record.hardware_fault))
         self.duration_s += record.duration_s
         self.longest_s = max(self.longest_s, record.duration_s)
@@ -439,10 +449,17 @@ class TeleopSummary:
     failed_devices: list = field(default_factory=list)
     #: Why the session ended before all its runs were played ("" when it did not).
     stopped_early: str = ""
+    #: The task's checker on the twin in the last run (None: no run counted). ``success`` is
+    #: False where that run had a hardware fault: the twin finished, the rig did not follow.
+    task_success: bool | None = None
 
     def count_runs(self, tally: RunTally) -> None:
         """Describe the session's runs (the session runner's :class:`RunTally`)."""
         self.runs, self.successes = tally.runs, tally.successes
+        if tally.last is not None:
+            self.task_success = bool(tally.last.success)
+            if tally.last.hardware_fault:
+                self.success = False
         self.hardware_faults = tally.hardware_faults
         self.per_run = tally.lines()
         self.per_run_kept, self.per_run_dropped = tally.kept, tally.dropped
@@ -492,6 +509,7 @@ class TeleopLoop:
             operator,
             twin.env.control_hz,
             hold_positions=lambda name: self.twin.action[self.twin.slices[name]].copy(),
+            source_finished=lambda: self.source.finished,
         )
         self.twin_stage = TwinStage(twin, hook_errors=self.listener_errors, latencies=LatencyLog())
         #: Per applied command (ms; see the module docstring), bounded (:class:`LatencyLog`).

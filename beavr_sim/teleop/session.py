@@ -25,7 +25,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from beavr_sim.cameras.poses import rig_placed_cameras
 from beavr_sim.datasets.cli import recording_config
+from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import (
     EpisodeRecorder,
@@ -34,6 +36,7 @@ from beavr_sim.datasets.recorder import (
     run_recorded_episode,
 )
 from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.envs.camera_pose import PlacedCamera
 from beavr_sim.envs.scene import DEFAULT_HAND_VARIANT
 from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.hardware.rig import RigConfig
@@ -168,6 +171,9 @@ class SessionOptions:
     #: ``--camera-view`` (``beavr_sim.cameras.stream.VIEWS``).
     camera_stream_hz: float = 0.0
     camera_view: str = "real"
+    #: ``--camera-poses F.toml``: a file of ``[cameras.NAME]`` tables (a rig file) whose
+    #: ``T_world_camera`` poses place the twin's cameras (``beavr_sim.cameras.poses``).
+    camera_poses: str | Path | None = None
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
@@ -181,9 +187,24 @@ class SessionOptions:
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
             if self.multiprocess:
-                raise ValueError("--camera runs in one process for now; leave out --multiprocess")
+                raise ValueError(
+                    "--camera runs in one process for now (its frames go to the recorder, which "
+                    "follows the one-process loop); leave out --multiprocess"
+                )
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
+        self._placed_cameras: tuple[PlacedCamera, ...] = ()
+        if self.camera_poses is not None:
+            if self.multiprocess:
+                raise ValueError(
+                    "--camera-poses runs in one process for now; leave out --multiprocess"
+                )
+            self._placed_cameras = rig_placed_cameras(self.camera_poses)
+            if not self._placed_cameras:
+                raise ValueError(
+                    f"--camera-poses {self.camera_poses}: no [cameras.NAME] table has a "
+                    "T_world_camera (docs/cameras.md)"
+                )
         self._token_value = self.token or new_token_value()  # one per session
         if self.transport is None:
             self.transport = TransportConfig(
@@ -239,6 +260,11 @@ class SessionOptions:
             raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
         if self.repeat < 0 or (self.repeat != 1 and self.source != "trace"):
             raise ValueError("--repeat needs --source trace and a count >= 0 (0: forever)")
+        if self.repeat != 1 and self.multiprocess:
+            raise ValueError(
+                "--repeat runs in one process for now (the processes play one run: the trace "
+                "restarts only in the one-process loop); leave out --multiprocess"
+            )
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
         if self.record is not None:
@@ -322,6 +348,11 @@ class SessionOptions:
                 )
         return allowed
 
+    @property
+    def placed_cameras(self) -> tuple[PlacedCamera, ...]:
+        """The twin cameras ``--camera-poses`` places (none: ())."""
+        return self._placed_cameras
+
     def session_token(self, host: str) -> SessionToken:
         """This session's token for a server bound to ``host`` (the loopback rule)."""
         return SessionToken.for_host(host, self.token, value=self._token_value)
@@ -394,6 +425,7 @@ class SessionOptions:
             real_cameras=tuple(getattr(args, "camera", None) or ()),
             camera_stream_hz=getattr(args, "camera_stream_hz", 0.0),
             camera_view=getattr(args, "camera_view", "real"),
+            camera_poses=getattr(args, "camera_poses", None),
         )
 
 
@@ -556,6 +588,8 @@ def build_loop(options: SessionOptions, context=None):
         kwargs["max_episode_seconds"] = 1e9  # live: episodes end by the operator, not a timer
     if options.leap_variant:
         kwargs["hand_variant"] = options.leap_variant
+    if options.placed_cameras:
+        kwargs["placed_cameras"] = options.placed_cameras
     env = gym.make(f"beavr_sim/{options.task}-v0", embodiment=embodiment, **kwargs).unwrapped
     operator = Operator(env.embodiment, 1.0 / env.control_hz)
     loop = TeleopLoop(
@@ -957,24 +991,16 @@ def record_episodes(
             fault = recorder.fault
             # Ctrl-C / SIGTERM drops the episode in progress (never saved as if it had ended).
             interrupted = loop.interrupted()
-            written = recorder.end(
-                keep="discard" not in asked
-                and not interrupted
-                and (not fault or options.keep_faulty_episodes),
-                success=bool(summary.success) and not fault and not interrupted,
+            end = EpisodeEnd(
+                fault=fault,
+                interrupted=interrupted,
+                asked=tuple(asked),
                 task_success=bool(summary.success),
-                seed=loop.seed,
-                source=options.source,
-                ended_by="hardware_fault"
-                if fault
-                else "interrupted"
-                if interrupted
-                else asked[0]
-                if asked
-                else "auto",
+                keep_faulty=options.keep_faulty_episodes,
             )
+            written = end_recorded_episode(recorder, end, seed=loop.seed, source=options.source)
             attempts += 1
-            saved += int(written and not fault)
+            saved += int(end.counts_as_saved(written))
             faulty += int(bool(fault))
             in_a_row = in_a_row + 1 if fault else 0
             records.add(
@@ -988,17 +1014,7 @@ def record_episodes(
                 )
             )
             if options.progress:
-                outcome = (
-                    ("kept, marked hardware_fault" if written else "discarded")
-                    if fault
-                    else "interrupted, not saved"
-                    if interrupted
-                    else "saved"
-                    if written
-                    else "discarded"
-                    if asked
-                    else "empty, not saved"
-                )
+                outcome = end.outcome(written)
                 print(
                     f"\n{name}: {'success' if summary.success else 'no success'}, "
                     f"{summary.duration_s:.1f} s, "

@@ -1,0 +1,94 @@
+"""One augmented episode, recorded: the per-seed work of ``datasets augment``.
+
+:func:`augment_episode` is what ``datasets generate``'s per-seed work calls when the run has
+a source: the new seed's source episode (:meth:`Source.episode_for`) is
+replayed and segmented (once per process), the new scene is run (:mod:`.execute`) while the
+recorder writes its frames, and the episode is kept if the task's checker said success. The
+episode's line in ``meta/beavr_episodes.jsonl`` names the new seed, the source dataset, episode
+and seed, the segments and, for a failure, its reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+from beavr_sim.datasets.augment.execute import ExecuteConfig, Rig, execute
+from beavr_sim.datasets.augment.replay import Trajectory, replay
+from beavr_sim.datasets.augment.segments import Segment, SegmentationError, find_segments
+from beavr_sim.datasets.augment.source import load_episode, open_source
+from beavr_sim.datasets.features import RecordingConfig
+from beavr_sim.datasets.recorder import EpisodeRecorder
+
+
+@dataclass(frozen=True)
+class Augmented:
+    """What became of one seed: the checker's verdict, whether it was written, and why not."""
+
+    success: bool
+    written: bool
+    frames: int
+    reason: str = ""
+
+
+@cache
+def _rig(task: str, embodiment: str) -> Rig:
+    return Rig(task, embodiment)
+
+
+@cache
+def _plan(root: str, index: int) -> tuple[Trajectory, list[Segment]]:
+    traj = replay(load_episode(open_source(root), index))
+    return traj, find_segments(traj)
+
+
+def augment_episode(
+    source_root: str,
+    task: str,
+    seed: int,
+    embodiment: str,
+    config: RecordingConfig,
+    keep_failed: bool,
+    writer,
+    make_writer=None,
+) -> Augmented:
+    """One new episode at ``seed`` from the source at ``source_root`` into ``writer`` (or
+    ``make_writer()``)."""
+    source = open_source(source_root)
+    if (source.task, source.embodiment) != (task, embodiment):
+        raise ValueError(
+            f"{source_root} holds {source.task} on {source.embodiment}, not {task} on {embodiment}"
+        )
+    index = source.episode_for(seed)
+    try:
+        traj, segments = _plan(str(Path(source_root).resolve()), index)
+    except SegmentationError as exc:
+        return Augmented(False, False, 0, f"segmenting: {exc}")
+    rig = _rig(task, embodiment)
+    rig.reset(seed)
+    if writer is None:
+        writer = make_writer()
+    recorder = EpisodeRecorder(writer, rig.env, config)
+    recorder.begin()
+    try:
+        result = execute(
+            rig, traj, segments, seed, ExecuteConfig(tail_seconds=config.tail_seconds), recorder
+        )
+        written = recorder.end(
+            keep=result.success or keep_failed,
+            success=result.success,
+            seed=seed,
+            source=f"augment {Path(source_root).name} episode {index}",
+            source_episode=index,
+            source_seed=traj.episode.seed,
+            segments=[f"{s.kind}:{s.object}@{s.reference}" for s in segments],
+            failure=result.reason or None,
+            checker=result.details,
+            carried=result.transforms,
+            guard_blocks=result.guard_blocks,
+        )
+    finally:
+        recorder.close()
+    frames = recorder.frames if written else 0
+    return Augmented(result.success, bool(written), frames, result.reason)

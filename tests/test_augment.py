@@ -1,0 +1,144 @@
+"""Demonstrations multiplied (``datasets augment``): the segmenter on a recorded source, new
+episodes at new seeds that succeed and replay open loop, and the object transform as the
+thing that makes them succeed."""
+
+from __future__ import annotations
+
+import json
+from itertools import pairwise
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from beavr_sim.datasets.features import RecordingConfig
+from beavr_sim.datasets.shards import read_log
+
+pytest.importorskip("lerobot", reason="lerobot (>= 0.5) is not installed")
+
+from beavr_sim.datasets.augment import execute as execute_module
+from beavr_sim.datasets.augment.execute import ExecuteConfig, Rig, execute
+from beavr_sim.datasets.augment.frames import FULL_TURN, body_yaw_symmetry, carry
+from beavr_sim.datasets.augment.replay import replay
+from beavr_sim.datasets.augment.segments import find_segments
+from beavr_sim.datasets.augment.source import load_episode, open_source
+
+NEW_SEEDS = (100, 101)
+
+
+@pytest.fixture(scope="module")
+def source_root(tmp_path_factory) -> Path:
+    """One PickPlace episode recorded by ``datasets generate`` (no cameras)."""
+    from beavr_sim.synthetic.generate import generate
+
+    root = tmp_path_factory.mktemp("augment") / "source"
+    summary = generate("PickPlace", 1, 0, root, config=RecordingConfig(cameras=()), progress=False)
+    assert summary.episodes_written == 1, summary
+    return root
+
+
+@pytest.fixture(scope="module")
+def plan(source_root):
+    source = open_source(source_root)
+    traj = replay(load_episode(source, source.episodes[0]))
+    return source, traj, find_segments(traj)
+
+
+def test_symmetry_and_carry():
+    spec = mujoco.MjSpec()
+    body = spec.worldbody.add_body(name="b")
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.03, 0.04, 0])
+    square = spec.worldbody.add_body(name="s")
+    square.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.02, 0.02, 0.02])
+    two = spec.worldbody.add_body(name="t")
+    two.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.02, 0.02, 0.02])
+    two.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.02, 0.02, 0.02], pos=[0.1, 0, 0])
+    model = spec.compile()
+    geoms = [np.flatnonzero(model.geom_bodyid == model.body(n).id) for n in "bst"]
+    assert [body_yaw_symmetry(model, g) for g in geoms] == [0.0, np.pi / 2, FULL_TURN]
+    # A square turned by 80 degrees is the square turned by -10: the palm turns -10.
+    T = carry(np.zeros(3), 0.0, np.array([0.1, 0.2, 0.0]), np.deg2rad(80), np.pi / 2)
+    assert np.isclose(np.arctan2(T[1, 0], T[0, 0]), np.deg2rad(-10))
+    assert np.allclose(T[:3, 3], [0.1, 0.2, 0.0])
+
+
+def test_source_without_episode_log_is_refused(tmp_path):
+    (tmp_path / "meta").mkdir()
+    (tmp_path / "meta" / "info.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"beavr_episodes\.jsonl"):
+        open_source(tmp_path)
+
+
+def test_augment_cli_says_what_is_wrong_in_one_line(tmp_path, capsys):
+    from beavr_sim.datasets.__main__ import main
+
+    code = main(["augment", "--source", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"error: no LeRobot dataset in {tmp_path / 'nothing'} (meta/info.json is missing)"
+    ]
+
+
+def test_segmenter_finds_approach_grasp_transport_release(plan):
+    _, traj, segments = plan
+    assert traj.success  # the source replays to success from its seed
+    assert [(s.kind, s.object, s.reference) for s in segments] == [
+        ("approach", "item", "item"),
+        ("grasp", "item", "item"),
+        ("transport", "item", "target"),
+        ("release", "item", "target"),
+    ]
+    assert segments[0].start == 0 and segments[-1].stop == traj.frames
+    assert all(a.stop == b.start for a, b in pairwise(segments))
+
+
+def test_augmented_episodes_succeed_in_moved_scenes_and_replay(source_root, plan, tmp_path):
+    from beavr_sim.synthetic.generate import generate
+
+    source, traj, _ = plan
+    out = tmp_path / "augmented"
+    summary = generate(
+        source.task, len(NEW_SEEDS), NEW_SEEDS[0], out, embodiment=source.embodiment,
+        config=source.recording_config(), progress=False, source=source_root,
+    )  # fmt: skip
+    assert summary.episodes_written >= 1, summary
+    assert sum(summary.failure_reasons.values()) == summary.failures
+    info = json.loads((out / "meta" / "info.json").read_text())
+    assert info["features"].keys() == source.features.keys()
+    result = open_source(out)
+    assert set(result.seeds) <= set(range(NEW_SEEDS[0], NEW_SEEDS[0] + 20))
+    records = [r for r in read_log(out) if r["kept"]]
+    assert len(records) == summary.episodes_written
+    for record in records:
+        assert record["source_episode"] == source.episodes[0]
+        assert record["source_seed"] == traj.episode.seed
+    for index in result.episodes:
+        new = replay(load_episode(result, index))  # open loop, from the recorded seed
+        assert new.success, f"episode {index} does not replay to success"
+        moved = np.linalg.norm(new.start_pos["item"][:2] - traj.start_pos["item"][:2])
+        assert moved > 0.01, "the new scene's item stands where the source's did"
+    again = generate(
+        source.task, len(NEW_SEEDS), NEW_SEEDS[0], out, embodiment=source.embodiment,
+        config=source.recording_config(), progress=False, source=source_root,
+    )  # fmt: skip
+    assert again.mode == "resume" and again.episodes_written == 0
+    assert sorted(again.seeds_skipped) == sorted(result.seeds)
+
+
+def test_without_the_object_transform_the_new_scenes_fail(plan, monkeypatch):
+    _, traj, segments = plan
+    rig = Rig(traj.episode.task, traj.episode.embodiment)
+    config = ExecuteConfig(tail_seconds=0.0)
+
+    def run() -> list[bool]:
+        results = []
+        for seed in NEW_SEEDS:
+            rig.reset(seed)
+            results.append(execute(rig, traj, segments, seed, config).success)
+        return results
+
+    assert any(run())
+    monkeypatch.setattr(execute_module, "carry", lambda *args: np.eye(4))
+    assert not any(run())

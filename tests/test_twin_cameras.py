@@ -1,0 +1,230 @@
+"""Twin cameras placed from a rig file's [cameras.NAME] poses, and twin depth recorded as
+LeRobot's ``<camera>_depth`` feature."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+from lerobot.datasets.feature_utils import validate_frame
+
+import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.cameras.errors import CameraSpecError
+from beavr_sim.cameras.poses import placed_camera, rig_placed_cameras
+from beavr_sim.cameras.spec import parse_camera_table, rig_cameras
+from beavr_sim.datasets.cli import parse_cameras
+from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+from beavr_sim.datasets.recorder import EpisodeRecorder
+from beavr_sim.envs.cameras import render_option
+from beavr_sim.wire.records import Tick
+
+# The front camera moved to a calibrated pose (optical frame: looking along world -x, tilted
+# 30 degrees down, image x towards world +y) and a new side camera with a field of view.
+_C, _S = math.cos(math.radians(30)), math.sin(math.radians(30))
+R_FRONT = np.column_stack([[0.0, 1.0, 0.0], [_S, 0.0, -_C], [-_C, 0.0, -_S]])
+P_FRONT = [1.3, 0.05, 1.2]
+RIG = f"""
+[[devices]]
+name = "right_arm"
+kind = "xarm7"
+effector = "right"
+host = "127.0.0.1"
+
+[cameras.front]
+type = "opencv"
+index_or_path = 0
+width = 640
+height = 480
+fx = 600.0
+fy = 600.0
+cx = 322.0
+cy = 236.0
+T_world_camera = [
+    [{R_FRONT[0, 0]}, {R_FRONT[0, 1]}, {R_FRONT[0, 2]}, {P_FRONT[0]}],
+    [{R_FRONT[1, 0]}, {R_FRONT[1, 1]}, {R_FRONT[1, 2]}, {P_FRONT[1]}],
+    [{R_FRONT[2, 0]}, {R_FRONT[2, 1]}, {R_FRONT[2, 2]}, {P_FRONT[2]}],
+    [0, 0, 0, 1],
+]
+
+[cameras.side]
+type = "zmq"
+server_address = "127.0.0.1"
+port = 5555
+fovy_deg = 50.0
+T_world_camera = [[1, 0, 0, 0.4], [0, 0, 1, -0.9], [0, -1, 0, 1.1], [0, 0, 0, 1]]
+"""
+
+
+def test_rig_pose_places_the_twin_camera(tmp_path):
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    assert set(rig_cameras(rig)) == {"front", "side"}  # LeRobot configs without the pose keys
+    placed = {c.name: c for c in rig_placed_cameras(rig)}
+    assert placed["front"].intrinsics.cx == 322.0 and placed["side"].fovy_deg == 50.0
+    env = gym.make(
+        "beavr_sim/Playground-v0", placed_cameras=tuple(placed.values()), cameras=("front", "side")
+    ).unwrapped
+    env.reset(seed=0)
+    for model, data in ((env.model, env.data), (env.render_model, env.render_data())):
+        for name, R_optical, p in (("front", R_FRONT, P_FRONT), ("side", None, (0.4, -0.9, 1.1))):
+            cam = model.camera(name).id
+            np.testing.assert_allclose(data.cam_xpos[cam], p, atol=1e-9)
+            if R_optical is not None:
+                # MuJoCo's camera frame: the optical frame's x, and -y, -z (looks along -z).
+                R_mujoco = data.cam_xmat[cam].reshape(3, 3)
+                np.testing.assert_allclose(R_mujoco, R_optical @ np.diag([1, -1, -1]), atol=1e-9)
+    side = env.render_model.camera("side").id
+    assert env.render_model.cam_fovy[side] == pytest.approx(50.0)
+    # The side camera (optical z along world +y) looks at the table from -y: world +y is
+    # along its axis, i.e. MuJoCo's -z.
+    np.testing.assert_allclose(env.data.cam_xmat[side].reshape(3, 3)[:, 2], [0, -1, 0], atol=1e-9)
+    env.close()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        ({"fx": 600.0}, "intrinsics need all of fx, fy, cx, cy, width, height"),
+        ({}, "needs the field of view"),
+        ({"fovy_deg": 50, "T_world_camera": [[1, 0, 0, 0]] * 4}, "last row must be"),
+        (
+            {
+                "fovy_deg": 50,
+                "T_world_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+            },
+            "not a rotation",
+        ),
+    ],
+)
+def test_rig_pose_errors_name_the_camera(extra, message):
+    table = {"type": "opencv", "index_or_path": 0}
+    table.setdefault("T_world_camera", np.eye(4).tolist())
+    table.update(extra)
+
+    with pytest.raises(CameraSpecError, match=message) as err:
+        placed_camera("wrist", table)
+    assert "'wrist'" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_unknown_rig_key_lists_the_pose_keys():
+    with pytest.raises(CameraSpecError, match="T_world_camera") as err:
+        parse_camera_table("wrist", {"type": "opencv", "index_or_path": 0, "pose": [0, 0, 0]})
+    assert "fovy_deg" in str(err.value)
+
+
+def test_cameras_option_takes_depth():
+    assert parse_cameras("front,front:depth,overhead") == (("front", "overhead"), ("front",))
+    assert parse_cameras("overhead:depth") == ((), ("overhead",))
+    with pytest.raises(ValueError, match="NAME or NAME:depth"):
+        parse_cameras("front:ir")
+    with pytest.raises(ValueError, match="Valid depth cameras"):
+        RecordingConfig(depth_cameras=("frnt",))
+
+
+class _FrameSink:
+    """The writer's interface, keeping the frames (LeRobot's own dataset I/O is tested in
+    test_rig_session; here LeRobot's frame validation judges the depth feature)."""
+
+    root = "unused"
+    num_episodes = 0
+
+    def __init__(self):
+        self.frames: list[dict] = []
+
+    def add_frame(self, row: dict, task: str) -> None:
+        self.frames.append({**row, "task": task})
+
+    def discard_episode(self) -> None:
+        pass
+
+
+def _ray_depths(model, data, camera: str, height: int, width: int, step: int = 6) -> tuple:
+    """Depth along the camera's axis at every ``step``-th pixel centre, by casting rays
+    through the visible geom groups (independent of the renderer's depth buffer)."""
+    cam = model.camera(camera).id
+    R = data.cam_xmat[cam].reshape(3, 3)
+    focal = (height / 2) / math.tan(math.radians(model.cam_fovy[cam]) / 2)
+    groups = np.array(render_option().geomgroup, dtype=np.uint8)
+    hit = np.array([-1], dtype=np.int32)
+    pixels, depths = [], []
+    for v in range(step // 2, height, step):
+        for u in range(step // 2, width, step):
+            d_cam = np.array([(u + 0.5 - width / 2) / focal, -(v + 0.5 - height / 2) / focal, -1.0])
+            d_world = R @ (d_cam / np.linalg.norm(d_cam))
+            r = mujoco.mj_ray(model, data, data.cam_xpos[cam], d_world, groups, 1, -1, hit)
+            if r > 0:
+                pixels.append((v, u))
+                depths.append(r / np.linalg.norm(d_cam))  # along the axis (d_cam's z is -1)
+    return pixels, np.array(depths)
+
+
+def test_twin_depth_recorded_in_metres():
+    env = gym.make("beavr_sim/Playground-v0").unwrapped
+    env.reset(seed=0)
+    config = RecordingConfig(
+        cameras=("front",),
+        depth_cameras=("front",),
+        image_height=48,
+        image_width=64,
+        hand_keypoints=False,
+    )
+    features = lerobot_features(env.embodiment, config, env.environment_state_names)
+    depth_key = "observation.images.front_depth"
+    assert features[depth_key]["shape"] == (48, 64, 1)
+    assert features[depth_key]["info"] == {"is_depth_map": True}
+    sink = _FrameSink()
+    recorder = EpisodeRecorder(sink, env, config)  # type: ignore[arg-type]
+    recorder.begin()
+
+    class _State:
+        action = env.joints.home.copy()
+
+    recorder(Tick(t=0.0, frames=(), commands={}, state=_State()))  # type: ignore[arg-type]
+    recorder.close()
+    (frame,) = sink.frames
+    validate_frame(frame, features)  # LeRobot's own check of every feature's dtype and shape
+    depth = frame[depth_key]
+    assert depth.dtype == np.float32 and depth.shape == (48, 64, 1)
+    pixels, expected = _ray_depths(env.render_model, env.render_data(), "front", 48, 64)
+    env.close()
+    assert len(pixels) > 50 and 0.5 < np.median(expected) < 3.0  # the table and the robot
+    got = np.array([depth[v, u, 0] for v, u in pixels])
+    # Pixels on an edge may see the other side of it; the bulk agrees to a few millimetres.
+    assert np.median(np.abs(got - expected)) < 0.005
+    assert np.mean(np.abs(got - expected) < 0.02) > 0.9
+
+
+def test_session_camera_poses_place_the_twin_camera(tmp_path, monkeypatch):
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.teleop import session
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    common = dict(task="PickupBox", source="trace", trace=bundled_trace("PickupBox"))
+    options = session.SessionOptions(
+        **common, viser=False, headless=True, progress=False, camera_poses=rig
+    )
+    assert [c.name for c in options.placed_cameras] == ["front", "side"]
+
+    class _Built(Exception):
+        pass
+
+    made = {}
+
+    def make(env_id, **kwargs):  # the session's twin env: its arguments, then stop
+        made.update(kwargs)
+        raise _Built
+
+    monkeypatch.setattr(session.gym, "make", make)
+    with pytest.raises(_Built):
+        session.build_loop(options)
+    assert made["placed_cameras"] == options.placed_cameras  # (placement: the test above)
+    with pytest.raises(ValueError, match="--camera-poses runs in one process"):
+        session.SessionOptions(**common, multiprocess=True, headless=True, camera_poses=rig)
+    bare = tmp_path / "bare.toml"
+    bare.write_text('[cameras.front]\ntype = "opencv"\nindex_or_path = 0\n')
+    with pytest.raises(ValueError, match=r"no \[cameras\.NAME\] table has a T_world_camera"):
+        session.SessionOptions(**common, viser=False, headless=True, camera_poses=bare)
