@@ -25,6 +25,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from beavr_sim.assets import bundled_trace
+from beavr_sim.bench.webxr import CHROMIUM_ARGS, find_chromium
 from beavr_sim.headset.sources import TraceSource
 
 TASK = "Pour"
@@ -78,8 +79,6 @@ def _chromium(url: str):
     """Headless chromium (software WebGL) showing the page until the scene is drawn."""
     from playwright.sync_api import sync_playwright
 
-    from beavr_sim.bench.webxr import CHROMIUM_ARGS, find_chromium
-
     with sync_playwright() as pw:
         browser = pw.chromium.launch(
             executable_path=find_chromium(), headless=True, args=CHROMIUM_ARGS
@@ -94,7 +93,6 @@ def _chromium(url: str):
 
 
 def chromium_available() -> bool:
-    from beavr_sim.bench.webxr import find_chromium
 
     try:
         import playwright.sync_api  # noqa: F401
