@@ -55,3 +55,16 @@ def test_both_hands_on_one_object_share_its_transforms():
     assert groups["left", "box"] == groups["right", "box"]
     assert groups["left", "target"] == groups["right", "target"] != groups["left", "box"]
     assert all(not p.waits_for for p in pieces)  # held together, not one after the other
+
+
+def test_a_placement_on_what_the_other_arm_set_down_waits_for_it():
+    # StackBlocks on two arms: right sets the large block down at 150; left, holding the
+    # small block since 60, places it on the large block (transport from 60 to 200).
+    segments = handling("right", "large", "target", (0, 20, 30, 150, 170)) + handling(
+        "left", "small", "large", (0, 50, 60, 200, 230)
+    )
+    pieces = coordinate(segments, {"large": np.zeros(230), "small": np.zeros(230)})
+    by = {(p.arm, p.reference): p for p in pieces}
+    assert (by["left", "large"].start, by["left", "large"].anchor) == (60, 150)
+    assert by["left", "large"].waits_for == "right:large"
+    assert by["left", "small"].anchor == 0

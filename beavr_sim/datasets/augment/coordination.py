@@ -6,10 +6,11 @@ reference, its transform taken at its *anchor* frame (:mod:`.execute`). All arms
 clock, the source's frame index, so what the source did at the same time is done at the same
 time (lockstep). Two constraints between arms, as in DexMimicGen:
 
-- **Sequential**: an arm's piece that goes for an object another arm handled before it (the
-  source ordered them: the other arm let go of the object after this piece began and before
-  this arm first touches it) waits: its anchor is where the other arm let go and the object
-  came to rest (speed under :attr:`CoordinationRules.still_speed`), not the piece's start.
+- **Sequential**: an arm's piece carried in the frame of an object another arm handled before
+  it (the source ordered them: the other arm let go of the object after this piece began and
+  before the end of the piece's first segment: this arm's first touch of it, or its placement
+  on it) waits: its anchor is where the other arm let go and the object came to rest (speed
+  under :attr:`CoordinationRules.still_speed`), not the piece's start.
   Until then the arm keeps its previous transform; its bridge starts from there. A relay (one
   arm sets the object down, the other picks it up) is therefore grasped where the object was
   set down in the new scene, not where it stood at the reset.
@@ -104,34 +105,25 @@ def coordinate(
         pieces += pieces_of(arm_segments)
     out: list[Piece] = []
     for piece in pieces:
-        mine = next(
-            (h for h in handlings
-             if h.arm == piece.arm and h.object == piece.reference
-             and piece.start <= h.first_touch < piece.stop),
-            None,
-        )  # fmt: skip
-        if mine is None:
-            out.append(piece)
-            continue
+        # the end of its first segment: the first touch (an approach), the placement (a transport)
+        first_stop = next(s.stop for s in by_arm[piece.arm] if s.start >= piece.start)
         before = [
             h for h in handlings
-            if h.arm != piece.arm and h.object == mine.object
-            and piece.start < h.let_go <= mine.first_touch
+            if h.arm != piece.arm and h.object == piece.reference
+            and piece.start < h.let_go <= first_stop
         ]  # fmt: skip
         if not before:
             out.append(piece)
             continue
         other = max(before, key=lambda h: h.let_go)
         anchor = other.let_go
-        if speed is not None and mine.object in speed:
-            moving = speed[mine.object]
-            while anchor < mine.first_touch and moving[anchor] >= rules.still_speed:
+        if speed is not None and piece.reference in speed:
+            moving = speed[piece.reference]
+            while anchor < first_stop - 1 and moving[anchor] >= rules.still_speed:
                 anchor += 1
-        anchor = min(anchor, mine.first_touch)
-        first_stop = next(s.stop for s in by_arm[piece.arm] if s.start >= piece.start)
-        lead = max(1, max(first_stop, anchor + 1) - anchor)
-        out.append(Piece(piece.arm, piece.reference, piece.start, piece.stop, anchor, lead,
-                         None, f"{other.arm}:{other.object}"))  # fmt: skip
+        anchor = min(anchor, first_stop - 1)
+        out.append(Piece(piece.arm, piece.reference, piece.start, piece.stop, anchor,
+                         first_stop - anchor, None, f"{other.arm}:{other.object}"))  # fmt: skip
     return _group(out, handlings)
 
 
