@@ -152,7 +152,7 @@ def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
 # --- capture through LeRobot's cameras -------------------------------------------------------
 
 
-def test_opencv_video_file_delivers_then_dies_at_end(tmp_path):
+def test_opencv_video_file_delivers_then_dies_at_end(tmp_path, caplog):
     cfg = parse_camera_table(
         "front",
         {
@@ -169,6 +169,10 @@ def test_opencv_video_file_delivers_then_dies_at_end(tmp_path):
         # The file ends, LeRobot's read thread gives up: the camera is reported dead, no frame.
         _wait_for(lambda: cams.grab().dead == ("front",), "the video's end to be reported dead")
         assert "front" not in cams.grab().frames
+        # LeRobot's read thread raised: one log line, not a thread traceback on stderr
+        _wait_for(lambda: any("camera stopped" in r.message for r in caplog.records), "the line")
+        (line,) = [r.message for r in caplog.records if "camera stopped" in r.message]
+        assert "OpenCVCamera(" in line and "\n" not in line, line
     finally:
         cams.close()
 

@@ -262,6 +262,41 @@ def test_every_held_tick_is_counted_by_reason(operator):
     assert set(op.stats.holds) <= set(HOLD_REASONS)
 
 
+def test_the_end_of_the_source_is_its_own_hold_not_a_tracking_loss(operator, caplog):
+    """A trace that ends is not a lost hand: ``source_ended`` holds, counted under that name,
+    no tracking loss and no warning (an INFO line); the held command does not move."""
+    fresh(operator)
+    op = operator.effectors["right"]
+    last = _drive(operator, 0.0, 3)["right"]
+    operator.set_source_ended(True)  # the runner: no frame will come again
+    with caplog.at_level(logging.INFO, logger=LOGGER):
+        for t in (0.2, 0.4, 0.5, 0.9):
+            cmd = operator.command(t)["right"]
+    assert cmd.hold and cmd.reason == "source_ended"
+    np.testing.assert_array_equal(cmd.positions, operator.command(1.0)["right"].positions)
+    assert np.abs(cmd.positions - last.positions).max() < 0.05  # held where it was
+    assert op.stats.holds == {"source_ended": 4}
+    assert op.stats.tracking_losses == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+    ended = [r for r in caplog.records if "source ended" in r.getMessage()]
+    assert len(ended) == 1 and ended[0].levelno == logging.INFO  # said once
+    assert set(op.stats.holds) <= set(HOLD_REASONS)
+
+
+def test_a_hand_lost_before_the_source_ended_stays_lost_and_a_replay_loses_it_again(operator):
+    fresh(operator)
+    op = operator.effectors["right"]
+    _drive(operator, 0.0, 3)
+    assert operator.command(0.5)["right"].reason == "tracking_lost"  # lost mid-trace
+    operator.set_source_ended(True)
+    assert operator.command(0.6)["right"].reason == "tracking_lost"
+    operator.set_source_ended(False)  # replayed from its start: a live stream again
+    _drive(operator, 1.0, 2)
+    assert operator.command(1.5)["right"].reason == "tracking_lost"
+    assert op.stats.tracking_losses == 2
+    assert "source_ended" not in op.stats.holds
+
+
 # ------------------------------------------------------------------ time-based filters (item 8)
 def _palm_lag(operator: Operator, rate_hz: float, speed: float = 0.1) -> float:
     """Seconds by which the arm target trails a hand moving at ``speed`` (m/s), with frames

@@ -230,6 +230,8 @@ FEATURES = (
     "headset_images",
     "sync_timeout",
     "emulate_faults",
+    "camera",
+    "repeat",
 )
 MIRRORED_FEATURES = ("mirror", "estop_inputs", "sync_timeout", "emulate_faults")
 
@@ -254,6 +256,10 @@ def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
         kwargs["record"] = tmp_path / "dataset"
     if feature == "rerun":
         kwargs["rerun"] = tmp_path / "session.rrd"
+    if feature == "camera":  # a real camera (parsed, never opened here) records with --record
+        kwargs.update(real_cameras=("wrist=opencv:0",), record=tmp_path / "dataset")
+    if feature == "repeat":
+        kwargs["repeat"] = 2
     return kwargs
 
 
@@ -269,6 +275,12 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("--record")
     if multiprocess and feature == "rerun":
         reasons.append("--rerun")
+    if multiprocess and feature == "camera":
+        reasons.append("--camera")
+    if feature == "repeat" and source != "trace":
+        reasons.append("--source trace")
+    if multiprocess and feature == "repeat":
+        reasons.append("--repeat")
     if multiprocess and source == "webxr" and feature == "headset_images":
         reasons.append("--headless")
     return tuple(reasons)

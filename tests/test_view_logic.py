@@ -5,6 +5,7 @@ the listener that drives the view from a teleop loop."""
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from beavr_sim.viz.twin_view import (
     GuardTint,
     RateMeter,
     Throttle,
+    ViewCost,
     recent_p50,
     skeleton_bones,
     skeleton_segments,
@@ -118,6 +120,24 @@ def test_guard_tint_sends_colours_on_transitions_only():
 viser = pytest.importorskip("viser", reason="viser (extra 'viz') not installed")
 
 
+def test_view_cost_per_tick_and_share_of_the_period():
+    cpu = iter([1.0, 1.003])  # the server thread's CPU clock: 3 ms in 0.5 s
+    cost = ViewCost(1.0, server_cpu=lambda: next(cpu))
+    for k in range(30):  # 30 ticks in 0.5 s, 1 ms each in the loop's thread
+        cost.add(0.001, now=10.0 + k / 60)
+    cost.sample_server(now=10.0)
+    cost.sample_server(now=10.5)
+    busy, server = cost.per_second(now=10.5)
+    assert busy == pytest.approx(0.030) and server == pytest.approx(0.006)
+    text = cost.readout(60.0, clients=1, now=10.5)
+    # (30 + 6) ms per second at 60 ticks per second: 0.6 ms per tick, 3.6 % of the time.
+    assert text == "view **0.60 ms/tick** (loop 0.50, sending 0.10; 3.6 % of the time) · 1 browser"
+    assert ViewCost().readout(None, clients=2) == "view - ms/tick · 2 browsers"
+    unreadable = ViewCost(server_cpu=None)
+    unreadable.sample_server()
+    assert unreadable.per_second()[1] is None
+
+
 @pytest.fixture()
 def loop():
     from beavr_sim.teleop.session import SessionOptions, build_loop
@@ -153,6 +173,12 @@ def test_view_panel_overlays_and_guard_colours(loop):
         np.testing.assert_allclose(overlay.frame.position, targets.T_world_target[:3, 3])
         np.testing.assert_allclose(overlay.bones.points, skeleton_segments(targets.keypoints_world))
         assert "loop rate" in view.readout.content and "Hz" in view.readout.content
+        # What the view costs the loop, per tick and as a share of the wall time; no browser.
+        assert "view **" in view.readout.content and " ms/tick**" in view.readout.content
+        assert "% of the time" in view.readout.content
+        assert "0 browsers" in view.readout.content
+        busy, _ = view.cost.per_second()
+        assert busy > 0
 
         # Guard: the right effector's geoms turn red on the block, back when it clears.
         right = view.guard.geoms["right"]
@@ -194,16 +220,20 @@ def test_view_panel_overlays_and_guard_colours(loop):
         view.close()
 
 
-def test_view_is_rate_limited_and_estop_only_when_mirroring(loop):
+def test_view_is_rate_limited_and_estop_only_when_mirroring(loop, monkeypatch):
+    from beavr_sim.teleop import view as view_module
     from beavr_sim.teleop.episodes import EpisodeControl
     from beavr_sim.teleop.view import attach_view, episode_line
 
     control = EpisodeControl()
     view = attach_view(loop, "127.0.0.1", 0, control=control, mirroring=True, rate_hz=5.0)
+    wall = [100.0]  # the listener's wall clock, moved by hand (a loaded machine's ticks are slow)
+    monkeypatch.setattr(view_module, "time", types.SimpleNamespace(perf_counter=lambda: wall[0]))
     try:
-        for _ in range(30):  # much faster than 5 Hz on the virtual clock
+        for _ in range(30):  # 30 ticks in 0.29 s of wall time: 5 Hz allows 2 updates
             loop.tick()
-        assert 1 <= view.updates <= 3
+            wall[0] += 0.01
+        assert view.updates == 2
         assert view.estop_button is not None
         view._estop()
         loop.tick()

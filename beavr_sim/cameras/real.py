@@ -11,6 +11,8 @@ A dead camera yields no frame: the caller ends the episode as a hardware fault.
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -23,6 +25,8 @@ from lerobot.cameras.utils import make_cameras_from_configs
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
 from beavr_sim.cameras.errors import CameraError
+
+log = logging.getLogger(__name__)
 
 DEAD_AFTER_S = 1.0
 FIRST_FRAME_TIMEOUT_S = 5.0
@@ -91,6 +95,7 @@ class RealCameras:
 
     def connect(self) -> None:
         """Open every camera and wait for its first frame; one-line `CameraError` otherwise."""
+        _camera_thread_errors_in_one_line()
         for name, config in self.configs.items():
             try:
                 camera = make_cameras_from_configs({name: config})[name]
@@ -176,3 +181,25 @@ class RealCameras:
             except Exception:
                 pass
         self._cameras.clear()
+
+
+def _camera_thread_errors_in_one_line() -> None:
+    """A LeRobot camera's read thread (named ``<camera>_read_loop``) ends by raising when its
+    camera stops (a video file's end, a pulled cable); Python would print that traceback on
+    stderr. Log it as one line instead (:meth:`RealCameras.grab` reports the camera dead); any
+    other thread's exception goes to the hook that was there. Idempotent."""
+    previous = threading.excepthook
+    if getattr(previous, "_beavr_camera_hook", False):
+        return
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        name = args.thread.name if args.thread is not None else ""
+        if name.endswith("_read_loop") and args.exc_type is not SystemExit:
+            camera = name.removesuffix("_read_loop")
+            text = str(args.exc_value)
+            log.warning("camera stopped: %s", text if camera in text else f"{camera}: {text}")
+        else:
+            previous(args)
+
+    hook._beavr_camera_hook = True  # type: ignore[attr-defined]
+    threading.excepthook = hook

@@ -150,6 +150,7 @@ class BeavrQuestTeleop(Teleoperator):
             operator,
             cfg.fps,
             hold_positions=lambda name: self._action[self._slices[name]].copy(),
+            source_finished=lambda: self.source is not None and self.source.finished,
         )
         log.info("%s connected (%s, %s clock)", self, cfg.source, cfg.clock)
 

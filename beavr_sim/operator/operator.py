@@ -29,6 +29,11 @@ Session control:
 - tracking loss: no usable frame (palm joints tracked) for ``tracking_timeout_s``: the effector
   holds where it is and a warning is logged; when tracking returns it continues from the same
   anchor (the hand may have moved meanwhile, within the jump limit).
+- end of the source: once the runner says no frame will ever come again
+  (:meth:`Operator.set_source_ended`: a trace played to its end), the same wait ends in a
+  ``"source_ended"`` hold instead: the effector holds where it is, an INFO line says so, and
+  neither a warning nor a tracking loss is counted (a finite recording ending is not a fault).
+  A hand already lost before the end stays ``"tracking_lost"``.
 - jumps: a palm that moved faster than ``max_hand_speed`` (and more than ``min_jump``) since
   the last accepted frame is a tracking glitch: the frame is ignored and counted. If the hand
   stays at the new place for ``reanchor_after`` frames, the mapping re-anchors there.
@@ -104,6 +109,7 @@ HOLD_REASONS = (
     "waiting",
     "paused",
     "tracking_lost",
+    "source_ended",
     "error",
     "ik_infeasible",
     "retarget_infeasible",
@@ -270,6 +276,9 @@ class EffectorOperator:
         self._t_source = self._t_receive = float("nan")
         self._resolution = "high"
         self._lost = False
+        self._ended = False  # holding for the end of the source (logged once)
+        #: The runner said the source will send no more frames (:meth:`Operator.set_source_ended`).
+        self.source_ended = False
         self._fresh = False
         self._T_target: np.ndarray | None = None
         self._last_reason = "waiting"
@@ -477,7 +486,7 @@ class EffectorOperator:
         elif self._T_palm is None:
             reason = "waiting"
         elif now - self._t_accepted > self.config.tracking_timeout_s:
-            reason = "tracking_lost"
+            reason = "source_ended" if self.source_ended and not self._lost else "tracking_lost"
         if reason == "tracking_lost" and not self._lost:
             self.stats.tracking_losses += 1
             log.warning(
@@ -485,7 +494,14 @@ class EffectorOperator:
                 self.side,
                 now - self._t_accepted,
             )
+        elif reason == "source_ended" and not self._ended:
+            log.info(
+                "%s hand: the source ended (its last frame %.2f s ago): holding",
+                self.side,
+                now - self._t_accepted,
+            )
         self._lost = reason == "tracking_lost"
+        self._ended = reason == "source_ended"
 
         fingers_held = False
         if reason:
@@ -600,6 +616,13 @@ class Operator:
     def set_paused(self, paused: bool) -> None:
         """Pause or resume from the UI (browser view, keyboard)."""
         self._ui_paused = bool(paused)
+
+    def set_source_ended(self, ended: bool) -> None:
+        """Whether the source will send no more frames (a trace played to its end; False
+        again when it is replayed). Runners say it before each command: an effector waiting
+        for frames then holds as ``"source_ended"``, not ``"tracking_lost"``."""
+        for op in self.effectors.values():
+            op.source_ended = bool(ended)
 
     def reset(self, q_measured: np.ndarray, joint_slices: dict[str, slice]) -> None:
         """Re-home from measured joints (full action vector; ``joint_slices`` per effector)."""

@@ -509,6 +509,7 @@ class TeleopLoop:
             operator,
             twin.env.control_hz,
             hold_positions=lambda name: self.twin.action[self.twin.slices[name]].copy(),
+            source_finished=lambda: self.source.finished,
         )
         self.twin_stage = TwinStage(twin, hook_errors=self.listener_errors, latencies=LatencyLog())
         #: Per applied command (ms; see the module docstring), bounded (:class:`LatencyLog`).

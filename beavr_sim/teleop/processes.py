@@ -69,12 +69,38 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
+import gymnasium as gym
 import numpy as np
 import zmq
 
+import beavr_sim  # noqa: F401  (registers the envs the twin process makes)
+from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+from beavr_sim.hardware.device import MirrorError
+from beavr_sim.hardware.mirror import Fixtures
+from beavr_sim.headset.quest_io import HeadsetImagePublisher
+from beavr_sim.headset.sources import QuestSource, TraceSource
+from beavr_sim.headset.sources import WebXRSource as WebXRSourceType
+from beavr_sim.headset.validation import StreamValidator
+from beavr_sim.operator.obstacles import (
+    Obstacle,
+    ObstacleGeom,
+    fixture_obstacles,
+)
+from beavr_sim.operator.operator import Operator
+from beavr_sim.robots import make_embodiment
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.announce import announce_view, announce_webxr
+from beavr_sim.teleop.episodes import KeyboardControl
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
-from beavr_sim.teleop.mirroring import episode_fault, hardware_summary
+from beavr_sim.teleop.mirroring import (
+    MIRROR_SWITCH_INTERVAL_S,
+    BrowserEstop,
+    RigChoice,
+    RigSync,
+    connect_mirror,
+    episode_fault,
+    hardware_summary,
+)
 from beavr_sim.teleop.pipeline import (
     LatencyLog,
     RunRecord,
@@ -85,9 +111,13 @@ from beavr_sim.teleop.pipeline import (
     _percentiles,
 )
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
-from beavr_sim.twin.twin import CommandOutcome
+from beavr_sim.traces.format import TraceReader
+from beavr_sim.twin.twin import CommandOutcome, TwinInterface
+from beavr_sim.viz.twin_view import TwinView, subtree_bodies
+from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.messages import (
+    FixtureMsg,
     JointCommandMsg,
     OperatorEventMsg,
     RobotStateMsg,
@@ -95,6 +125,7 @@ from beavr_sim.wire.messages import (
 )
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import JointCommand, TwinState
+from beavr_sim.wire.transport import Publisher, Subscriber
 
 if TYPE_CHECKING:
     from beavr_sim.headset.webxr_server import WebXRConfig
@@ -260,13 +291,6 @@ def _leave_ctrl_c_to_the_session() -> None:
 
 def operator_main(config: OperatorProcessConfig, transport: TransportConfig, conn) -> None:
     _leave_ctrl_c_to_the_session()
-    from beavr_sim.headset.sources import QuestSource, TraceSource
-    from beavr_sim.headset.sources import WebXRSource as WebXRSourceType
-    from beavr_sim.headset.validation import StreamValidator
-    from beavr_sim.operator.operator import Operator
-    from beavr_sim.robots import make_embodiment
-    from beavr_sim.wire.transport import Publisher, Subscriber
-
     context = zmq.Context()
     embodiment = make_embodiment(config.stage.embodiment)
     control_hz = config.stage.control_hz
@@ -275,7 +299,9 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     # Each side's effectors are commanded when its hand frame arrives; a side without a
     # frame for CLOCK_COMMAND_AFTER control periods is commanded on the clock (holds:
     # tracking lost, paused, waiting), so the twin always hears from the operator.
-    stage = OperatorStage(operator, control_hz, start=time.monotonic())
+    stage = OperatorStage(
+        operator, control_hz, start=time.monotonic(), source_finished=lambda: source.finished
+    )
     # The detector: the headset's sockets (or a trace) in this process's event loop; every
     # valid frame is observed (none is dropped unseen).
     validator = StreamValidator()
@@ -483,9 +509,6 @@ FIXTURES_FOR_S = 2.0
 
 def fixtures_to_wire(env) -> list:
     """The env's fixtures as its reset placed them, for the robot state messages."""
-    from beavr_sim.operator.obstacles import fixture_obstacles
-    from beavr_sim.wire.messages import FixtureMsg
-
     return [
         FixtureMsg(
             name=o.name,
@@ -499,8 +522,6 @@ def fixtures_to_wire(env) -> list:
 
 def obstacles_from_wire(fixtures) -> tuple:
     """:func:`fixtures_to_wire`'s messages back as the operator's obstacles."""
-    from beavr_sim.operator.obstacles import Obstacle, ObstacleGeom
-
     return tuple(
         Obstacle(
             f.name,
@@ -629,12 +650,6 @@ def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Calla
 
 def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
     _leave_ctrl_c_to_the_session()
-    import gymnasium as gym
-
-    import beavr_sim  # noqa: F401
-    from beavr_sim.twin.twin import TwinInterface
-    from beavr_sim.wire.transport import Publisher, Subscriber
-
     context = zmq.Context()
     kwargs: dict = {"control_hz": config.control_hz}
     if config.live:
@@ -652,15 +667,6 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     closers: list[Callable[[], None]] = []
     mirror_reset = None
     if config.mirror_hardware:
-        from beavr_sim.hardware.device import MirrorError
-        from beavr_sim.hardware.mirror import Fixtures
-        from beavr_sim.teleop.mirroring import (
-            MIRROR_SWITCH_INTERVAL_S,
-            RigChoice,
-            RigSync,
-            connect_mirror,
-        )
-
         try:
             mirror, q_measured = connect_mirror(RigChoice.of(config), env, closers)
         except (MirrorError, ValueError, FileNotFoundError) as exc:
@@ -703,9 +709,6 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     state_pub.wait_for_subscribers(2, HANDSHAKE_TIMEOUT_S)  # operator + supervisor
     view = None
     if config.view is not None:
-        from beavr_sim.viz.twin_view import TwinView, subtree_bodies
-        from beavr_sim.viz.view_access import ViewAccess
-
         joints = env.joints
         view = TwinView(
             env.render_model,
@@ -724,12 +727,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         announce_view(view.url, config.view.token or SessionToken("-", False))
     browser_estop = None
     if view is not None and mirror is not None:
-        from beavr_sim.teleop.mirroring import BrowserEstop
-
         browser_estop = BrowserEstop(view, mirror)
     if config.headset_images is not None:
-        from beavr_sim.headset.quest_io import HeadsetImagePublisher
-
         images = config.headset_images
         publisher = HeadsetImagePublisher(context, transport, rate_hz=images.rate_hz)
         closers.append(publisher.close)
@@ -1101,8 +1100,6 @@ class MultiprocessSession:
         return self.twin_config.control_hz
 
     def start(self) -> None:
-        from beavr_sim.wire.transport import Publisher, Subscriber
-
         self.context = zmq.Context()
         self.session_pub = Publisher(self.context, self.transport.endpoint("session", bind=True))
         self.state_sub = Subscriber(
@@ -1131,8 +1128,6 @@ class MultiprocessSession:
             reply = pipe.recv_bytes()
             if reply != b"ready":
                 self.stop()
-                from beavr_sim.hardware.device import MirrorError
-
                 raise MirrorError(reply.decode(errors="replace").removeprefix("error: "))
         self.session_pub.wait_for_subscribers(len(TARGETS), HANDSHAKE_TIMEOUT_S)
         self.send("resume")  # everyone is ready: the operator starts a trace now
@@ -1177,8 +1172,6 @@ class MultiprocessSession:
         self.start()
         requests: list[str] = []  # from the keyboard thread; sent from this one
         if self.mirror_hardware and sys.stdin is not None and sys.stdin.isatty():
-            from beavr_sim.teleop.episodes import KeyboardControl
-
             keyboard = KeyboardControl(
                 None,
                 actions={
@@ -1287,14 +1280,8 @@ def process_configs(
     """The two processes' configs from a :class:`~beavr_sim.teleop.session.SessionOptions`:
     a trace's embodiment and seed where the options leave them open, the env's control rate,
     lockstep on the virtual and paced clocks."""
-    from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
-    from beavr_sim.robots import make_embodiment
-    from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
-
     embodiment, seed = options.embodiment, options.seed
     if options.source == "trace":
-        from beavr_sim.traces.format import TraceReader
-
         meta = TraceReader(options.trace).metadata
         embodiment = embodiment or meta.embodiment or None
         seed = seed if seed is not None else meta.seed

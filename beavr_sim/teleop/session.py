@@ -27,6 +27,7 @@ import numpy as np
 
 from beavr_sim.cameras.poses import rig_placed_cameras
 from beavr_sim.datasets.cli import recording_config
+from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import (
     EpisodeRecorder,
@@ -178,7 +179,10 @@ class SessionOptions:
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
             if self.multiprocess:
-                raise ValueError("--camera runs in one process for now; leave out --multiprocess")
+                raise ValueError(
+                    "--camera runs in one process for now (its frames go to the recorder, which "
+                    "follows the one-process loop); leave out --multiprocess"
+                )
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
@@ -248,6 +252,11 @@ class SessionOptions:
             raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
         if self.repeat < 0 or (self.repeat != 1 and self.source != "trace"):
             raise ValueError("--repeat needs --source trace and a count >= 0 (0: forever)")
+        if self.repeat != 1 and self.multiprocess:
+            raise ValueError(
+                "--repeat runs in one process for now (the processes play one run: the trace "
+                "restarts only in the one-process loop); leave out --multiprocess"
+            )
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
         if self.record is not None:
@@ -954,24 +963,16 @@ def record_episodes(
             fault = recorder.fault
             # Ctrl-C / SIGTERM drops the episode in progress (never saved as if it had ended).
             interrupted = loop.interrupted()
-            written = recorder.end(
-                keep="discard" not in asked
-                and not interrupted
-                and (not fault or options.keep_faulty_episodes),
-                success=bool(summary.success) and not fault and not interrupted,
+            end = EpisodeEnd(
+                fault=fault,
+                interrupted=interrupted,
+                asked=tuple(asked),
                 task_success=bool(summary.success),
-                seed=loop.seed,
-                source=options.source,
-                ended_by="hardware_fault"
-                if fault
-                else "interrupted"
-                if interrupted
-                else asked[0]
-                if asked
-                else "auto",
+                keep_faulty=options.keep_faulty_episodes,
             )
+            written = end_recorded_episode(recorder, end, seed=loop.seed, source=options.source)
             attempts += 1
-            saved += int(written and not fault)
+            saved += int(end.counts_as_saved(written))
             faulty += int(bool(fault))
             in_a_row = in_a_row + 1 if fault else 0
             records.add(
@@ -985,17 +986,7 @@ def record_episodes(
                 )
             )
             if options.progress:
-                outcome = (
-                    ("kept, marked hardware_fault" if written else "discarded")
-                    if fault
-                    else "interrupted, not saved"
-                    if interrupted
-                    else "saved"
-                    if written
-                    else "discarded"
-                    if asked
-                    else "empty, not saved"
-                )
+                outcome = end.outcome(written)
                 print(
                     f"\n{name}: {'success' if summary.success else 'no success'}, "
                     f"{summary.duration_s:.1f} s, "

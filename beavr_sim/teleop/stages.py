@@ -133,7 +133,10 @@ class OperatorStage:
     last target, in one process); None: an empty position vector, which the twin reads as
     "keep the last targets" (the operator process, which does not see the twin's action).
     ``start``: the time of each side's previous command before the first one (-inf: the first
-    command stands for a whole control period)."""
+    command stands for a whole control period). ``source_finished()``: whether the hand source
+    will send no more frames (a trace at its end), told to the operator before each command
+    (its wait for frames then holds as ``"source_ended"``, not ``"tracking_lost"``); None: a
+    live source, never finished."""
 
     def __init__(
         self,
@@ -142,8 +145,10 @@ class OperatorStage:
         *,
         hold_positions: Callable[[str], np.ndarray] | None = None,
         start: float = -math.inf,
+        source_finished: Callable[[], bool] | None = None,
     ):
         self.operator = operator
+        self.source_finished = source_finished
         self.dt = 1.0 / control_hz
         self.hold_positions = hold_positions
         #: Ticks each effector held, by reason (effector -> reason -> ticks).
@@ -173,6 +178,7 @@ class OperatorStage:
         """Every effector's command at ``now`` (a tick of the virtual clock); with ``ok``
         False (the operator failed this tick) every effector holds, reason ``"error"``."""
         if ok:
+            self.note_source_end()
             ok, out = self.call("command", self.operator.command, now)
         if not ok:
             out = self.hold("error", self.operator.effectors)
@@ -192,11 +198,20 @@ class OperatorStage:
             out = self.hold(hold_reason, names)
         else:
             if ok:
+                self.note_source_end()
                 ok, out = self.call("command", self.operator.command, now, side, dt)
             if not ok:
                 out = self.hold("error", names)
         self.count_holds(out)
         return out
+
+    def note_source_end(self) -> None:
+        """Tell the operator whether the source has ended (see the class docstring)."""
+        if self.source_finished is not None:
+            self.call("set_source_ended", self._set_source_ended)
+
+    def _set_source_ended(self) -> None:
+        self.operator.set_source_ended(bool(self.source_finished()))
 
     def hold(self, reason: str, names: Iterable[str]) -> dict[str, JointCommand]:
         """A hold of these effectors (not counted: :meth:`count_holds` does that)."""

@@ -7,6 +7,7 @@ whether the collision guard blocked; at most ``rate_hz`` times per wall second (
 :meth:`~beavr_sim.viz.twin_view.TwinView.due`) it asks the operator for its targets and sends
 one update: poses, hand skeletons, arm target frames, fingertip targets, guard colours,
 success, status and readouts. A guard block between two updates is shown at the next one.
+Its time on every tick goes to the view's cost readout (:class:`~beavr_sim.viz.twin_view.ViewCost`).
 """
 
 from __future__ import annotations
@@ -48,9 +49,17 @@ class ViewListener:
         self._blocked: set[str] = set()
         self.resets = 0
         self._t = -float("inf")
+        self._in_update = 0.0  # this tick's time in view.update (counted by the view)
 
     def __call__(self, tick: Tick) -> None:
         now = time.perf_counter()
+        try:
+            self._tick(tick, now)
+        finally:  # the view's cost outside its update (which counts its own)
+            self.view.account(time.perf_counter() - now - self._in_update)
+            self._in_update = 0.0
+
+    def _tick(self, tick: Tick, now: float) -> None:
         self.rate.tick(now)
         state = tick.state
         if state.t < self._t:  # a new episode (the session replays the trace, or a reset)
@@ -77,18 +86,21 @@ class ViewListener:
         if not view.due(now):
             return
         targets = self.loop.operator.targets()
-        holds = {c.reason for c in tick.commands.values() if c.hold}
+        holds = tuple(sorted({c.reason for c in tick.commands.values() if c.hold}))
         env = self.loop.twin.env
         label = self.progress.label if self.progress is not None else ""
+        paused = self.loop.operator.paused
         status = (
             f"t = {state.t:5.1f} s · "
             + ("**success**" if self.success else "running")
-            + (f" · holding ({', '.join(sorted(holds))})" if holds else "")
-            + (" · **paused**" if self.loop.operator.paused else "")
+            + (f" · holding ({', '.join(holds)})" if holds else "")
+            + (" · **paused**" if paused else "")
         )
+        started = time.perf_counter()
         view.update(
             env.data,
             status=status,
+            status_words=(self.success, holds, paused),
             targets=targets,
             guard_blocked=self._blocked,
             success=self.success,
@@ -96,6 +108,7 @@ class ViewListener:
             latency_ms=recent_p50(self.loop.latencies_ms),
             episode=episode_line(label) if self.control is not None else None,
         )
+        self._in_update = time.perf_counter() - started
         self._blocked = set()
 
 

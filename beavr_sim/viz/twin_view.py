@@ -9,17 +9,22 @@ drawn at the arm target), the arm target frame (axes) and the LEAP fingertip tar
 collision guard's state (the blocked effector's geoms turn red until the guard clears; colours
 are sent on transitions only) and the task's success (a green badge). The control panel has the
 task and embodiment, pause / resume, reset, recording (start / stop, discard, the episode and its
-state) and a readout of loop rate and latency.
+state) and a readout of loop rate, latency and what the view itself costs (:class:`ViewCost`:
+the loop's time in the view per tick, and viser's server thread encoding and sending to the
+connected browsers).
 
 The view never paces the loop: the caller asks :meth:`TwinView.due` (at most ``rate_hz``
 updates per wall second, 30 by default) and only then builds and sends an update; button
-presses are flags the caller takes at its tick boundary.
+presses are flags the caller takes at its tick boundary. Text that only counts (the status's
+clock, the readout's numbers) is sent at most :data:`TEXT_RATE_HZ` times a second; a status
+whose words change (success, paused, a hold) is sent at once.
 """
 
 from __future__ import annotations
 
 import contextlib
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -46,6 +51,8 @@ SIDE_RGB = {"right": (255, 140, 0), "left": (0, 150, 255)}
 FINGERTIP_RGB = (230, 0, 200)
 #: A body pose is sent when a coordinate (m, or quaternion component) changed by more.
 POSE_TOLERANCE = 1e-6
+#: Readout and status-clock text updates per wall second at most (nobody reads faster).
+TEXT_RATE_HZ = 4.0
 
 _BADGE = (
     '<div style="display:inline-block;padding:4px 10px;border-radius:6px;font-weight:600;'
@@ -114,6 +121,80 @@ def recent_p50(values: Sequence[float], n: int = 200) -> float | None:
     return float(np.median(recent)) if len(recent) else None
 
 
+def thread_cpu_clock(thread: threading.Thread | None) -> Callable[[], float] | None:
+    """The CPU time (s) ``thread`` has used so far, as a function; None where the platform
+    cannot tell (no per-thread CPU clocks) or the thread is not running."""
+    try:
+        clock = time.pthread_getcpuclockid(thread.ident)  # type: ignore[union-attr]
+        time.clock_gettime(clock)
+    except (AttributeError, OSError, TypeError, OverflowError):
+        return None
+    return lambda: time.clock_gettime(clock)
+
+
+class ViewCost:
+    """What the view costs, over the last ``window_s`` of wall time.
+
+    ``busy`` (:meth:`add`): wall time the loop's thread spent on the view (taking buttons,
+    asking for targets, building and queuing updates); ``server_cpu()``: the CPU time of
+    viser's server thread so far (encoding and sending to the connected browsers, which
+    competes with the loop for the GIL and the cores), or None when it cannot be read.
+    """
+
+    def __init__(self, window_s: float = 1.0, server_cpu: Callable[[], float] | None = None):
+        self.window_s = float(window_s)
+        self.server_cpu = server_cpu
+        self._busy: deque[tuple[float, float]] = deque()  # (when, seconds)
+        self._server: deque[tuple[float, float]] = deque()  # (when, CPU seconds so far)
+
+    def add(self, busy_s: float, now: float | None = None) -> None:
+        """The loop's thread spent ``busy_s`` on the view (ending ``now``)."""
+        now = time.perf_counter() if now is None else now
+        self._busy.append((now, busy_s))
+        while self._busy and now - self._busy[0][0] > self.window_s:
+            self._busy.popleft()
+
+    def sample_server(self, now: float | None = None) -> None:
+        """Read the server thread's CPU clock (once per update is enough)."""
+        if self.server_cpu is None:
+            return
+        now = time.perf_counter() if now is None else now
+        try:
+            self._server.append((now, self.server_cpu()))
+        except OSError:  # the thread ended
+            self.server_cpu = None
+            return
+        while len(self._server) > 2 and now - self._server[1][0] >= self.window_s:
+            self._server.popleft()
+
+    def per_second(self, now: float | None = None) -> tuple[float, float | None]:
+        """(the loop's seconds in the view, the server thread's CPU seconds) per wall second
+        over the window; the second is None until two samples of it."""
+        now = time.perf_counter() if now is None else now
+        busy = sum(s for t, s in self._busy if now - t <= self.window_s) / self.window_s
+        server = None
+        if len(self._server) >= 2 and self._server[-1][0] > self._server[0][0]:
+            (t0, c0), (t1, c1) = self._server[0], self._server[-1]
+            server = max(c1 - c0, 0.0) / (t1 - t0)
+        return busy, server
+
+    def readout(self, loop_rate_hz: float | None, clients: int, now: float | None = None) -> str:
+        """The panel's line: ms per tick in the loop's thread and sending, and the share of
+        the wall time (at the loop's rate: of each control period)."""
+        busy, server = self.per_second(now)
+        total = busy + (server or 0.0)
+        per_tick = f"**{1e3 * total / loop_rate_hz:.2f} ms/tick**" if loop_rate_hz else "- ms/tick"
+        parts = f"loop {1e3 * busy / loop_rate_hz:.2f}" if loop_rate_hz else ""
+        if server is not None and loop_rate_hz:
+            parts += f", sending {1e3 * server / loop_rate_hz:.2f}"
+        browsers = f"{clients} browser" + ("" if clients == 1 else "s")
+        return (
+            f"view {per_tick} ({parts}; {100 * total:.1f} % of the time) · {browsers}"
+            if parts
+            else f"view {per_tick} · {browsers}"
+        )
+
+
 class Throttle:
     """True at most ``rate_hz`` times per second of wall time (every call when ``rate_hz <= 0``)."""
 
@@ -178,6 +259,13 @@ def subtree_bodies(
                 members.add(b)
         out[name] = members
     return out
+
+
+def _server_thread(server) -> threading.Thread | None:
+    """viser's server thread (its event loop: encodes and sends to the browsers), or None
+    when this viser's internals differ."""
+    thread = getattr(getattr(server, "_websock_server", None), "_server_thread", None)
+    return thread if isinstance(thread, threading.Thread) else None
 
 
 def _pose_setters(handle):
@@ -305,6 +393,12 @@ class TwinView:
         self.host, self.port = host, self.server.get_port()
         self.rate_hz = float(rate_hz)
         self._throttle = Throttle(self.rate_hz)
+        self._status_throttle = Throttle(TEXT_RATE_HZ)
+        self._readout_throttle = Throttle(TEXT_RATE_HZ)
+        self._status_words: object = None  # the status without its clock, last sent
+        #: What the view costs the loop (:class:`ViewCost`); :meth:`update` adds its own time,
+        #: the caller its per-tick time outside it (:meth:`account`).
+        self.cost = ViewCost(1.0, thread_cpu_clock(_server_thread(self.server)))
         self.server.scene.add_grid("/floor", width=4.0, height=4.0, cell_size=0.25)
         self.body_frames: dict[int, object] = {}
         self.geom_handles: list[object] = []
@@ -398,7 +492,7 @@ class TwinView:
                 lambda _: self.set_show_collision(self.collision_checkbox.value)
             )
         with gui.add_folder("Loop"):
-            self.readout = gui.add_markdown("loop rate -  \nlatency p50 -")
+            self.readout = gui.add_markdown("loop rate -  \nlatency p50 -  \nview -")
 
     def _aim_camera(self, robot: set[int]) -> None:
         """Initial camera: the robot (at the model's reference pose) from the front right,
@@ -414,6 +508,19 @@ class TwinView:
         self.server.initial_camera.position = focus + distance * direction / np.linalg.norm(
             direction
         )
+
+    @property
+    def clients(self) -> int:
+        """Browsers connected now."""
+        try:
+            return len(self.server.get_clients())
+        except Exception:  # a server shutting down
+            return 0
+
+    def account(self, busy_s: float, now: float | None = None) -> None:
+        """The loop's thread spent ``busy_s`` on the view outside :meth:`update` (per tick:
+        taking buttons, asking for targets): counted in the panel's view cost."""
+        self.cost.add(busy_s, now)
 
     @property
     def url(self) -> str:
@@ -561,6 +668,7 @@ class TwinView:
         data: mujoco.MjData,
         status: str | None = None,
         *,
+        status_words: object = None,
         targets: Mapping[str, object] | None = None,
         guard_blocked: Iterable[str] = (),
         success: bool | None = None,
@@ -571,8 +679,11 @@ class TwinView:
         """Send every moving body's pose and the given overlays and readouts (one batch).
 
         ``targets``: ``Operator.targets()``; ``guard_blocked``: the effectors the guard blocks
-        (their geoms turn red; colours change only on transitions).
+        (their geoms turn red; colours change only on transitions). ``status`` is sent at most
+        :data:`TEXT_RATE_HZ` times a second unless ``status_words`` (what it says besides
+        numbers, e.g. success, paused, holds) changed, or are not given; so is the readout.
         """
+        start = time.perf_counter()
         with self.server.atomic():
             pos, quat = data.xpos[self._moving], data.xquat[self._moving]
             # NaN (never sent) compares false: sent.
@@ -599,14 +710,24 @@ class TwinView:
         if success is not None and self.success_badge.visible != success:
             self.success_badge.visible = success
         if status is not None and self.status.content != status:
-            self.status.content = status
-        if loop_rate_hz is not None or latency_ms is not None:
+            words_changed = status_words is None or status_words != self._status_words
+            if words_changed or self._status_throttle.due(start):
+                self.status.content = status
+                self._status_words = status_words
+        if (loop_rate_hz is not None or latency_ms is not None) and self._readout_throttle.due(
+            start
+        ):
             rate = "-" if loop_rate_hz is None else f"{loop_rate_hz:.1f} Hz"
             lat = "-" if latency_ms is None else f"{latency_ms:.2f} ms"
-            self.readout.content = f"loop rate **{rate}**  \nlatency p50 **{lat}**"
+            self.cost.sample_server(start)
+            self.readout.content = (
+                f"loop rate **{rate}**  \nlatency p50 **{lat}**  \n"
+                + self.cost.readout(loop_rate_hz, self.clients, start)
+            )
         if episode is not None and self.episode is not None and self.episode.content != episode:
             self.episode.content = episode
         self.updates += 1
+        self.cost.add(time.perf_counter() - start)
 
     def close(self) -> None:
         with contextlib.redirect_stdout(sys.stderr):
