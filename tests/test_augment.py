@@ -142,3 +142,47 @@ def test_without_the_object_transform_the_new_scenes_fail(plan, monkeypatch):
     assert any(run())
     monkeypatch.setattr(execute_module, "carry", lambda *args: np.eye(4))
     assert not any(run())
+
+
+def test_a_source_edited_with_lerobots_tools_keeps_its_seeds(tmp_path):
+    """``lerobot-edit-dataset --operation.type delete_episodes`` (its function, in process) on
+    a 2-episode source drops the episode log; the kept episode's task, embodiment and seed are
+    recovered from what LeRobot carried (task string, robot_type, first environment state)."""
+    from lerobot.datasets.dataset_tools import delete_episodes
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from beavr_sim.datasets.augment.replay import hand_body, hand_pose
+    from beavr_sim.datasets.features import lerobot_features
+    from beavr_sim.datasets.recorder import EpisodeRecorder
+    from beavr_sim.datasets.shards import EPISODE_LOG
+    from beavr_sim.datasets.writer import EpisodeWriter
+    from beavr_sim.wire.records import Tick
+
+    rig = Rig("PickPlace", "xarm7_leap_right")
+    env, (arm,) = rig.env, rig.arms
+    config = RecordingConfig(cameras=(), environment_state=True, tail_seconds=0.0)
+    features = lerobot_features(env.embodiment, config, env.environment_state_names)
+    root = tmp_path / "two"
+    writer = EpisodeWriter(root, "beavr_sim/two", features, config.fps, env.embodiment.name,
+                           use_videos=False)  # fmt: skip
+    recorder = EpisodeRecorder(writer, env, config)
+    for seed in (3, 7):  # a few ticks holding still at each seed's reset
+        rig.reset(seed)
+        target = {arm: hand_pose(env, hand_body(env, arm))}
+        fingers = {arm: rig.twin.action[rig.slice[arm]][rig.ik[arm].n_arm :].copy()}
+        recorder.begin()
+        for _ in range(3):
+            commands, state = rig.tick(target, fingers)
+            recorder(Tick(state.t, (), commands, state))
+        assert recorder.end(keep=True, success=False, seed=seed)
+    recorder.close()
+    assert open_source(root).seeds == (3, 7)
+
+    edited = tmp_path / "edited"
+    delete_episodes(LeRobotDataset("beavr_sim/two", root=root), [0], output_dir=edited,
+                    repo_id="beavr_sim/edited")  # fmt: skip
+    assert not (edited / EPISODE_LOG).exists()  # LeRobot's tool dropped it
+    source = open_source(edited)
+    assert (source.task, source.embodiment) == ("PickPlace", "xarm7_leap_right")
+    assert (source.episodes, source.seeds) == ((0,), (7,))
+    assert load_episode(source, 0).actions.shape == (3, len(rig.twin.action))

@@ -1,7 +1,8 @@
 """One augmented episode, recorded: the per-seed work of ``datasets augment``.
 
 :func:`augment_episode` is what ``datasets generate``'s per-seed work calls when the run has
-a source: the new seed's source episode (:meth:`Source.episode_for`) is
+a source: the new seed's source episode (:meth:`Source.episode_for`; with two arms the one
+whose objects stood nearest the new scene's, :func:`nearest_episode`) is
 replayed and segmented (once per process), the new scene is run (:mod:`.execute`) while the
 recorder writes its frames, and the episode is kept if the task's checker said success. The
 episode's line in ``meta/beavr_episodes.jsonl`` names the new seed, the source dataset, episode
@@ -14,10 +15,12 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
+import numpy as np
+
 from beavr_sim.datasets.augment.execute import ExecuteConfig, Rig, execute
 from beavr_sim.datasets.augment.replay import Trajectory, replay
 from beavr_sim.datasets.augment.segments import Segment, SegmentationError, find_segments
-from beavr_sim.datasets.augment.source import load_episode, open_source
+from beavr_sim.datasets.augment.source import Source, load_episode, open_source
 from beavr_sim.datasets.features import RecordingConfig
 from beavr_sim.datasets.recorder import EpisodeRecorder
 
@@ -43,6 +46,30 @@ def _plan(root: str, index: int) -> tuple[Trajectory, list[Segment]]:
     return traj, find_segments(traj)
 
 
+def nearest_episode(source: Source, rig: Rig) -> int:
+    """The source episode whose free objects stood nearest (summed distance in the table
+    plane) to where they stand in ``rig``'s new scene (MimicGen's nearest-object selection):
+    with two arms, the one that handled them there reaches them."""
+    root = str(source.root.resolve())
+    here = {o: rig.things.pose(rig.env, o)[0][:2] for o in rig.things.objects}
+
+    def distance(index: int) -> float:
+        start = _start(root, index)
+        return sum(float(np.linalg.norm(start[o][:2] - p)) for o, p in here.items())
+
+    return min(source.episodes, key=distance)
+
+
+@cache
+def _start(root: str, index: int) -> dict[str, np.ndarray]:
+    """The free objects' positions at the reset of source episode ``index``."""
+    source = open_source(root)
+    seed = source.seeds[source.episodes.index(index)]
+    rig = _rig(source.task, source.embodiment)
+    rig.env.reset(seed=seed)
+    return {o: rig.things.pose(rig.env, o)[0].copy() for o in rig.things.objects}
+
+
 def augment_episode(
     source_root: str,
     task: str,
@@ -60,13 +87,16 @@ def augment_episode(
         raise ValueError(
             f"{source_root} holds {source.task} on {source.embodiment}, not {task} on {embodiment}"
         )
+    rig = _rig(task, embodiment)
+    rig.reset(seed)
     index = source.episode_for(seed)
+    if len(rig.arms) > 1:  # the source episode whose objects stood nearest: the arm that reaches
+        index = nearest_episode(source, rig)
+        rig.reset(seed)  # the sources' resets were looked at on the same env
     try:
         traj, segments = _plan(str(Path(source_root).resolve()), index)
     except SegmentationError as exc:
         return Augmented(False, False, 0, f"segmenting: {exc}")
-    rig = _rig(task, embodiment)
-    rig.reset(seed)
     if writer is None:
         writer = make_writer()
     recorder = EpisodeRecorder(writer, rig.env, config)

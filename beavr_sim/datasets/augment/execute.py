@@ -1,19 +1,22 @@
-"""One new scene from a segmented source: the palm carried with its references, the arm
+"""One new scene from a segmented source: each palm carried with its references, the arms
 through the operator's IK and the twin's guard, the fingers as in the source.
 
-Pieces: consecutive segments with the same reference (approach and grasp of an object;
-transport and release to its destination) move rigidly together. When a piece starts, its
-transform is T_world_ref_new * inv(T_world_ref_src) (:func:`~.frames.carry`) with the
-reference's pose in the source at that frame and in the new scene now; over the piece's
-first :attr:`ExecuteConfig.blend_fraction` of its first segment (approach, transport) the
-palm target moves from the previous piece's transform of the source palm to this one's
-(:func:`~.frames.blend`): the bridge. Every tick the IK steps towards the target (one
-control period at its joint speed limit) with the fingers where the source's were, and the
-command goes through :class:`~beavr_sim.twin.twin.TwinInterface` (step limit at the joint
-speed caps, collision guard): nothing reaches the twin unguarded. A refused command leaves
-the twin holding; the IK is resynced to the held joints.
+Pieces (:mod:`.coordination`): per arm, consecutive segments with the same reference move
+rigidly together; all arms follow the source's clock (lockstep), and a piece that waits for
+another arm (sequential constraint) or shares its transform (coordination) is anchored there.
+At a piece's anchor its transform is T_world_ref_new * inv(T_world_ref_src)
+(:func:`~.frames.carry`) with the reference's pose in the source at that frame and in the new
+scene now; over :attr:`ExecuteConfig.blend_fraction` of its lead (the frames from the anchor to
+the end of its first segment) the palm target moves from the arm's previous transform of the
+source palm to this one's (:func:`~.frames.blend`): the bridge. Before an arm's first piece
+its palm follows the source's untransformed. Every tick each arm's IK steps towards its
+target (one control period at its joint speed limit) with the fingers where the source's
+were, and the commands go through :class:`~beavr_sim.twin.twin.TwinInterface` (step limit at
+the joint speed caps, collision guard): nothing reaches the twin unguarded. A refused command
+leaves the twin holding; the IKs are resynced to the held joints. A body (RX-1's torso) is not
+commanded: it holds.
 
-After the source's last frame the last command holds for up to
+After the source's last frame the last commands hold for up to
 :attr:`ExecuteConfig.settle_s` while the task's checker decides. A success ticks on for the
 recording's tail; anything else is a failure with one reason (see :func:`failure_reason`).
 """
@@ -24,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from beavr_sim.datasets.augment.coordination import coordinate
 from beavr_sim.datasets.augment.frames import blend, carry, smoothstep
 from beavr_sim.datasets.augment.replay import Things, Trajectory, make_env
 from beavr_sim.datasets.augment.segments import Segment
@@ -47,25 +51,6 @@ class ExecuteConfig:
             raise ValueError(f"blend_fraction must be in (0, 1], got {self.blend_fraction}")
         if min(self.settle_s, self.tail_seconds) < 0:
             raise ValueError("settle_s and tail_seconds must be >= 0")
-
-
-@dataclass(frozen=True)
-class Piece:
-    reference: str
-    start: int
-    stop: int
-    lead: int  # frames of its first segment
-
-
-def pieces_of(segments: list[Segment]) -> list[Piece]:
-    """Consecutive segments with the same reference, joined."""
-    out: list[Piece] = []
-    for seg in segments:
-        if out and out[-1].reference == seg.reference and out[-1].stop == seg.start:
-            out[-1] = Piece(seg.reference, out[-1].start, seg.stop, out[-1].lead)
-        else:
-            out.append(Piece(seg.reference, seg.start, seg.stop, seg.stop - seg.start))
-    return out
 
 
 def checker_details(state: TwinState | None) -> dict:
@@ -103,35 +88,53 @@ class Outcome:
 
 
 class Rig:
-    """The twin (env, guard, step limit) and the operator's arm IK for one task: built once
-    per process, reset per episode."""
+    """The twin (env, guard, step limit) and the operator's arm IK of every effector for one
+    task: built once per process, reset per episode."""
 
     def __init__(self, task: str, embodiment: str):
         self.env = make_env(task, embodiment)
         self.twin = TwinInterface(self.env)
-        self.effector = self.env.embodiment.effectors[0]
-        self.ik = ArmIK(
-            self.env.embodiment, self.effector.name, self.twin.dt, ArmIKConfig(iterations=3)
-        )
-        self.slice = self.env.joints.slices[self.effector.name]
-        self.n_arm = len(self.effector.arm_joints)
+        self.arms = tuple(e.name for e in self.env.embodiment.effectors)
+        self.ik = {
+            a: ArmIK(self.env.embodiment, a, self.twin.dt, ArmIKConfig(iterations=3))
+            for a in self.arms
+        }
+        self.slice = {a: self.env.joints.slices[a] for a in self.arms}
         self.things = Things.of(self.env)
 
     def reset(self, seed: int) -> None:
         q = self.twin.reset(seed)
-        self.ik.reset(q[self.slice])
-        self.ik.set_obstacles(fixture_obstacles(self.env.model, self.env.data))
+        obstacles = fixture_obstacles(self.env.model, self.env.data)
+        for a, ik in self.ik.items():
+            ik.reset(q[self.slice[a]])
+            ik.set_obstacles(obstacles)
 
-    def tick(self, target: np.ndarray, fingers: np.ndarray) -> tuple[JointCommand, TwinState]:
-        """One control period: IK towards ``target`` with ``fingers``, through the twin."""
-        self.ik.set_fingers(fingers)
-        arm = self.ik.step(target)
+    def tick(
+        self, targets: dict[str, np.ndarray], fingers: dict[str, np.ndarray]
+    ) -> tuple[dict[str, JointCommand], TwinState]:
+        """One control period: every arm's IK towards its target with its fingers, through
+        the twin."""
         t = self.env.elapsed_seconds
-        cmd = JointCommand(self.effector.name, np.concatenate([arm, fingers]), t, t)
-        state = self.twin.apply({self.effector.name: cmd})
-        if state.guard_blocked:  # the twin holds: the IK starts again from the held joints
-            self.ik.reset(self.twin.action[self.slice], posture=self.ik.posture)
-        return cmd, state
+        commands = {}
+        for a, ik in self.ik.items():
+            ik.set_fingers(fingers[a])
+            arm = ik.step(targets[a])
+            commands[a] = JointCommand(a, np.concatenate([arm, fingers[a]]), t, t)
+        state = self.twin.apply(commands)
+        if state.guard_blocked:  # the twin holds: the IKs start again from the held joints
+            for a, ik in self.ik.items():
+                ik.reset(self.twin.action[self.slice[a]], posture=ik.posture)
+        return commands, state
+
+
+@dataclass
+class _Arm:
+    """One arm's carrying state during :func:`execute`."""
+
+    T_prev: np.ndarray = field(default_factory=lambda: np.eye(4))
+    T_cur: np.ndarray = field(default_factory=lambda: np.eye(4))
+    anchor: int = 0
+    blend_frames: int = 1
 
 
 def execute(
@@ -146,45 +149,48 @@ def execute(
     tick (the recorder). The rig must be reset at ``seed`` by the caller first."""
     fps = rig.env.control_hz
     actions = traj.episode.actions
-    pieces = pieces_of(segments)
+    pieces = coordinate(segments, traj.speed)
     outcome = Outcome(success=False)
     blocks0 = sum(rig.twin.guard_blocks.values())
     limited0 = sum(rig.twin.step_limited.values())
-    T_prev = T_cur = np.eye(4)
-    blend_frames = 1
-    piece_start = 0
+    arms = {a: _Arm() for a in rig.arms}
+    shared: dict[int, np.ndarray] = {}
     state: TwinState | None = None
-    target = traj.palm[0]
-    fingers = actions[0][traj.hand].astype(np.float64)
-    starts = {p.start: p for p in pieces}
+    targets = {a: traj.palm[a][0] for a in rig.arms}
+    fingers = {a: actions[0][traj.hand[a]].astype(np.float64) for a in rig.arms}
+    anchors: dict[int, list] = {}
+    for p in pieces:
+        anchors.setdefault(p.anchor, []).append(p)
 
     def tick() -> TwinState:
-        cmd, st = rig.tick(target, fingers)
+        cmds, st = rig.tick(targets, fingers)
         outcome.frames += 1
         if listener is not None:
-            listener(Tick(st.t, (), {cmd.effector: cmd}, st))
+            listener(Tick(st.t, (), cmds, st))
         return st
 
     ran_out = False
     for i in range(traj.frames):
-        piece = starts.get(i)
-        if piece is not None:
-            ref = piece.reference
-            at = max(i - 1, 0)
-            src_pos = traj.pos[ref][at] if i else traj.start_pos[ref]
-            src_yaw = traj.yaw[ref][at] if i else traj.start_yaw[ref]
-            new_pos, new_yaw = rig.things.pose(rig.env, ref)
-            T_prev, T_cur = (
-                T_cur,
-                carry(src_pos, src_yaw, new_pos, new_yaw, traj.things.symmetry[ref]),
-            )
-            blend_frames = max(1, int(config.blend_fraction * piece.lead))
-            piece_start = i
-            turn = float(np.arctan2(T_cur[1, 0], T_cur[0, 0]))
-            outcome.transforms.append([*np.round(T_cur[:3, 3], 4).tolist(), round(turn, 4)])
-        w = smoothstep((i - piece_start + 1) / blend_frames)
-        target = blend(T_prev @ traj.palm[i], T_cur @ traj.palm[i], w)
-        fingers = actions[i][traj.hand].astype(np.float64)
+        for piece in anchors.get(i, ()):
+            arm, ref = arms[piece.arm], piece.reference
+            T = shared.get(piece.group) if piece.group is not None else None
+            if T is None:
+                at = max(i - 1, 0)
+                src_pos = traj.pos[ref][at] if i else traj.start_pos[ref]
+                src_yaw = traj.yaw[ref][at] if i else traj.start_yaw[ref]
+                new_pos, new_yaw = rig.things.pose(rig.env, ref)
+                T = carry(src_pos, src_yaw, new_pos, new_yaw, traj.things.symmetry[ref])
+                if piece.group is not None:
+                    shared[piece.group] = T
+            arm.T_prev, arm.T_cur = arm.T_cur, T
+            arm.blend_frames = max(1, int(config.blend_fraction * piece.lead))
+            arm.anchor = i
+            turn = float(np.arctan2(T[1, 0], T[0, 0]))
+            outcome.transforms.append([*np.round(T[:3, 3], 4).tolist(), round(turn, 4)])
+        for a, arm in arms.items():
+            w = smoothstep((i - arm.anchor + 1) / arm.blend_frames)
+            targets[a] = blend(arm.T_prev @ traj.palm[a][i], arm.T_cur @ traj.palm[a][i], w)
+            fingers[a] = actions[i][traj.hand[a]].astype(np.float64)
         state = tick()
         if state.success or state.failure or state.truncated:
             break

@@ -2,8 +2,10 @@
 
 The recorded actions are what the twin was given, so stepping the env from the episode's
 seed with them reproduces the episode (the twin is deterministic). Per frame, after the step:
-the effector's hand pose in the world (the body the operator's IK drives), every thing's pose
-(free objects and fixtures), which objects the robot touches, and the objects' speeds.
+each effector's hand pose in the world (the body the operator's IK drives), every thing's pose
+(free objects and fixtures), which objects each effector touches, and the objects' speeds.
+Any embodiment: one arm, two (``xarm7_leap_bimanual``) or the RX-1 humanoid (its body joints
+are replayed as recorded; augmentation holds them).
 """
 
 from __future__ import annotations
@@ -16,17 +18,11 @@ import numpy as np
 
 from beavr_sim.datasets.augment.frames import body_yaw_symmetry, yaw_of
 from beavr_sim.datasets.augment.source import SourceEpisode
-
-SINGLE_ARM = ("xarm7_leap_right", "xarm7_leap_left")
+from beavr_sim.tasks.checks import in_contact
 
 
 def make_env(task: str, embodiment: str):
-    """The task's env (unwrapped) for a single-arm embodiment; bimanual comes later."""
-    if embodiment not in SINGLE_ARM:
-        raise ValueError(
-            f"augmentation supports single-arm embodiments for now ({', '.join(SINGLE_ARM)}), "
-            f"not {embodiment!r}"
-        )
+    """The task's env (unwrapped) on ``embodiment``."""
     return gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
 
 
@@ -61,9 +57,22 @@ class Things:
         return fixture.pos(data), fixture.yaw(data)
 
 
-def hand_body(env) -> int:
-    effector = env.embodiment.effectors[0]
-    return env.model.body(f"{effector.name}/hand").id
+def hand_body(env, effector: str) -> int:
+    return env.model.body(f"{effector}/hand").id
+
+
+def effector_geoms(env, effector: str) -> np.ndarray:
+    """The robot geoms of ``effector`` (its arm and hand), of the task's robot geoms."""
+    model = env.model
+    prefix = f"{effector}/"
+    return np.array(
+        [
+            g
+            for g in env.task.robot_geoms
+            if model.body(model.geom_bodyid[g]).name.startswith(prefix)
+        ],
+        dtype=int,
+    )
 
 
 def hand_pose(env, body: int) -> np.ndarray:
@@ -79,19 +88,23 @@ class Trajectory:
 
     episode: SourceEpisode
     things: Things
-    palm: np.ndarray  # (T, 4, 4) hand body pose, world
+    palm: dict[str, np.ndarray]  # effector -> (T, 4, 4) hand body pose, world
     pos: dict[str, np.ndarray]  # thing -> (T, 3)
     yaw: dict[str, np.ndarray]  # thing -> (T,)
-    touch: dict[str, np.ndarray]  # object -> (T,) bool: the robot touches it
+    touch: dict[str, dict[str, np.ndarray]]  # effector -> object -> (T,) bool: it touches it
     speed: dict[str, np.ndarray]  # object -> (T,) linear speed, m/s
     start_pos: dict[str, np.ndarray]  # thing -> (3,) at the reset
     start_yaw: dict[str, float]
     success: bool
-    hand: slice  # the hand joints within the action
+    hand: dict[str, slice]  # effector -> its hand joints within the action
+
+    @property
+    def arms(self) -> tuple[str, ...]:
+        return tuple(self.palm)
 
     @property
     def frames(self) -> int:
-        return len(self.palm)
+        return len(self.episode.actions)
 
 
 def replay(episode: SourceEpisode) -> Trajectory:
@@ -100,28 +113,34 @@ def replay(episode: SourceEpisode) -> Trajectory:
     try:
         env.reset(seed=episode.seed)
         things = Things.of(env)
-        body = hand_body(env)
+        arms = [e.name for e in env.embodiment.effectors]
+        bodies = {a: hand_body(env, a) for a in arms}
+        geoms = {a: effector_geoms(env, a) for a in arms}
         start = {n: things.pose(env, n) for n in things.names}
         n = len(episode.actions)
-        palm = np.zeros((n, 4, 4))
+        palm = {a: np.zeros((n, 4, 4)) for a in arms}
         pos = {t: np.zeros((n, 3)) for t in things.names}
         yaw = {t: np.zeros(n) for t in things.names}
-        touch = {o: np.zeros(n, bool) for o in things.objects}
+        touch = {a: {o: np.zeros(n, bool) for o in things.objects} for a in arms}
         speed = {o: np.zeros(n) for o in things.objects}
         success = False
         for i, action in enumerate(episode.actions):
             _, _, info = env.advance(action)
             mujoco.mj_kinematics(env.model, env.data)
-            palm[i] = hand_pose(env, body)
+            for a in arms:
+                palm[a][i] = hand_pose(env, bodies[a])
             for t in things.names:
                 pos[t][i], yaw[t][i] = things.pose(env, t)
             for o in things.objects:
-                touch[o][i] = env.task.touched_by_robot(env.model, env.data, o)
+                obj_geoms = env.task.objects[o].geom_ids
+                for a in arms:
+                    touch[a][o][i] = in_contact(env.model, env.data, obj_geoms, geoms[a])
                 speed[o][i] = env.task.objects[o].linear_speed(env.data)
             success |= bool(info["is_success"])
-        effector = env.embodiment.effectors[0]
-        sl = env.joints.slices[effector.name]
-        hand = slice(sl.start + len(effector.arm_joints), sl.stop)
+        hand = {}
+        for effector in env.embodiment.effectors:
+            sl = env.joints.slices[effector.name]
+            hand[effector.name] = slice(sl.start + len(effector.arm_joints), sl.stop)
     finally:
         env.close()
     return Trajectory(

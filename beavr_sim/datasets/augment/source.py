@@ -3,7 +3,8 @@ recording options that reproduce its features.
 
 Reads ``meta/info.json``, ``meta/beavr_episodes.jsonl`` (kept episodes, by episode index)
 and the action column of ``data/``. A dataset without the episode log (one edited with
-LeRobot's tools drops it) is refused with a clear error: the seeds are not in the frames.
+LeRobot's tools drops it) has its task, embodiment and seeds recovered from what those tools
+carry (:mod:`.recover`), or is refused with the reason.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beavr_sim.datasets.augment.recover import recover
 from beavr_sim.datasets.features import ACTION, ENV_STATE, IMAGE_PREFIX, KEYPOINTS, RecordingConfig
 from beavr_sim.datasets.shards import EPISODE_LOG, read_log
 from beavr_sim.datasets.writer import dataset_exists
@@ -72,12 +74,9 @@ def open_source(root: str | Path) -> Source:
     root = Path(root)
     if not dataset_exists(root):
         raise FileNotFoundError(f"no LeRobot dataset in {root} (meta/info.json is missing)")
-    if not (root / EPISODE_LOG).is_file():
-        raise ValueError(
-            f"{root} has no {EPISODE_LOG} (a dataset edited with LeRobot's tools drops it): "
-            "augmentation needs each episode's seed, task and embodiment"
-        )
     info = json.loads((root / "meta" / "info.json").read_text())
+    if not (root / EPISODE_LOG).is_file():
+        return _recovered_source(root.resolve(), json.dumps(info, sort_keys=True))
     kept = sorted(
         (r for r in read_log(root) if r.get("kept") and isinstance(r.get("seed"), int)),
         key=lambda r: r["episode_index"],
@@ -95,6 +94,22 @@ def open_source(root: str | Path) -> Source:
         fps=int(info["fps"]),
         episodes=tuple(int(r["episode_index"]) for r in kept),
         seeds=tuple(int(r["seed"]) for r in kept),
+        features=info["features"],
+    )
+
+
+@cache
+def _recovered_source(root: Path, info_text: str) -> Source:
+    info = json.loads(info_text)
+    found = recover(root, info)
+    episodes = tuple(sorted(found.seeds))
+    return Source(
+        root=root,
+        task=found.task,
+        embodiment=found.embodiment,
+        fps=int(info["fps"]),
+        episodes=episodes,
+        seeds=tuple(found.seeds[e] for e in episodes),
         features=info["features"],
     )
 
