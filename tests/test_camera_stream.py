@@ -172,7 +172,7 @@ def test_panels_reach_a_viser_client_and_a_dead_camera_reads_no_signal():
 def test_panels_reach_a_webxr_page_with_their_age_or_no_signal():
     from websockets.sync.client import connect
 
-    from beavr_sim.headset.camera_panels import WebXRCameraSink
+    from beavr_sim.cameras.headset_panels import WebXRCameraSink
     from beavr_sim.headset.webxr_server import WebXRConfig, WebXRServer
 
     server = WebXRServer(WebXRConfig(port=0))
@@ -203,7 +203,7 @@ def test_panels_reach_a_webxr_page_with_their_age_or_no_signal():
 
 
 def test_panels_reach_the_quest_camera_socket():
-    from beavr_sim.headset.camera_panels import QuestCameraSink
+    from beavr_sim.cameras.headset_panels import QuestCameraSink
     from beavr_sim.headset.quest_io import HeadsetImagePublisher
     from beavr_sim.wire.ports import PortConfig, TransportConfig
 

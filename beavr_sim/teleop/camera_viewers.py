@@ -33,7 +33,7 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     if real is None or config.rate_hz <= 0:
         return None
     from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
-    from beavr_sim.headset.camera_panels import (  # local: heavy (OpenCV, Pillow)
+    from beavr_sim.cameras.headset_panels import (  # local: heavy (OpenCV, Pillow)
         QuestCameraSink,
         WebXRCameraSink,
     )
