@@ -11,6 +11,10 @@ holds what a minute's does. Beside the RSS it fits what the allocators hold in u
 ``mallinfo2`` (:func:`beavr_sim.heap.in_use_mb`: numpy, MuJoCo, the SDKs) and
 ``sys.getallocatedblocks()`` (Python objects), so that a slope of the RSS alone (a buffer's
 pages first written, allocator arenas) tells itself from a leak (in-use memory that grows).
+It also fits the RSS's anonymous and file-backed parts (``RssAnon``, ``RssFile``: the heap and
+stacks, the libraries' pages) and glibc's free bytes, and reports the thread count; ``--samples
+FILE`` writes every sample. The samples run until the session returns, rig closed included:
+the fit is only as good as its last sample is of the running session.
 JSON on the last stdout line. Figures: docs/hardware.md ("A recording day"),
 docs/benchmarks.md.
 """
