@@ -40,3 +40,11 @@ def in_use_mb() -> float | None:
         return None
     info = _MALLINFO2()
     return (info.uordblks + info.hblkhd) / (1024.0 * 1024.0)
+
+
+def free_mb() -> float | None:
+    """MB glibc holds in its arenas free (``mallinfo2().fordblks``: freed chunks not yet given
+    back to the system); None where that is not available."""
+    if _MALLINFO2 is None:
+        return None
+    return _MALLINFO2().fordblks / (1024.0 * 1024.0)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from beavr_sim.bench.soak import rss_mb
+from beavr_sim.bench.soak import rss_mb, status_fields
 from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
 from beavr_sim.hardware.mirror import WriteLog
 from beavr_sim.teleop.__main__ import hardware_outcome
@@ -283,3 +283,12 @@ def test_watch_allows_the_devices_lag_but_not_a_frozen_state():
     frozen = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
     frozen.begin()
     assert any(frozen.check(np.zeros(1), ramp[k]) for k in range(60))
+
+
+def test_the_soak_splits_resident_memory_into_anonymous_and_file_backed():
+    """The soak's split reads ``/proc/<pid>/status``: VmRSS is the sum of its parts, a gone
+    process reads as nothing."""
+    fields = status_fields()
+    assert fields["VmRSS"] == fields["RssAnon"] + fields["RssFile"] + fields["RssShmem"]
+    assert fields["Threads"] >= 1
+    assert status_fields(2**22 + 12345) == {} and rss_mb(2**22 + 12345) is None

@@ -11,6 +11,10 @@ holds what a minute's does. Beside the RSS it fits what the allocators hold in u
 ``mallinfo2`` (:func:`beavr_sim.heap.in_use_mb`: numpy, MuJoCo, the SDKs) and
 ``sys.getallocatedblocks()`` (Python objects), so that a slope of the RSS alone (a buffer's
 pages first written, allocator arenas) tells itself from a leak (in-use memory that grows).
+It also fits the RSS's anonymous and file-backed parts (``RssAnon``, ``RssFile``: the heap and
+stacks, the libraries' pages) and glibc's free bytes, and reports the thread count; ``--samples
+FILE`` writes every sample. The samples run until the session returns, rig closed included:
+the fit is only as good as its last sample is of the running session.
 JSON on the last stdout line. Figures: docs/hardware.md ("A recording day"),
 docs/benchmarks.md.
 """
@@ -29,22 +33,34 @@ from pathlib import Path
 
 import numpy as np
 
-from beavr_sim.heap import in_use_mb
+from beavr_sim.heap import free_mb, in_use_mb
 from beavr_sim.teleop.session import SessionOptions, run_session
 
 #: The target slope of this process's resident memory after warm-up (MB per hour).
 TARGET_MB_PER_HOUR = 1.0
 
 
+def status_fields(pid: int | str = "self") -> dict[str, int]:
+    """The numeric fields of ``/proc/<pid>/status`` (kB for memory, counts otherwise): VmRSS,
+    RssAnon (heap, stacks: what a leak grows), RssFile (pages of mapped files: libraries' code
+    first run), Threads; empty if the process is gone."""
+    out: dict[str, int] = {}
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return out
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        parts = value.split()
+        if parts and parts[0].isdigit():
+            out[key] = int(parts[0])
+    return out
+
+
 def rss_mb(pid: int | str = "self") -> float | None:
     """Resident memory (MB) of a process from ``/proc/<pid>/status``; None if it is gone."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    kb = status_fields(pid).get("VmRSS")
+    return None if kb is None else kb / 1024.0
 
 
 def child_pids(pid: int | str = "self") -> list[int]:
@@ -92,7 +108,12 @@ class RssSampler:
         self.children: list[float] = []
         #: What the allocators hold in use: malloc'd MB (nan where unknown), Python's blocks.
         self.malloc: list[float] = []
+        self.malloc_free: list[float] = []
         self.py_blocks: list[int] = []
+        #: The RSS split: anonymous (heap, stacks) and file-backed (libraries' pages) MB.
+        self.anon: list[float] = []
+        self.file: list[float] = []
+        self.threads: list[int] = []
         self._stop = threading.Event()
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
@@ -102,16 +123,27 @@ class RssSampler:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            own = rss_mb()
+            status = status_fields()
             kids = [rss_mb(pid) for pid in child_pids()]
-            if own is not None:
+            if "VmRSS" in status:
                 self.t.append(time.monotonic() - self._t0)
-                self.own.append(own)
+                self.own.append(status["VmRSS"] / 1024.0)
+                self.anon.append(status.get("RssAnon", 0) / 1024.0)
+                self.file.append(status.get("RssFile", 0) / 1024.0)
+                self.threads.append(status.get("Threads", 0))
                 self.children.append(sum(k for k in kids if k is not None))
-                in_use = in_use_mb()
+                in_use, free = in_use_mb(), free_mb()
                 self.malloc.append(math.nan if in_use is None else in_use)
+                self.malloc_free.append(math.nan if free is None else free)
                 self.py_blocks.append(sys.getallocatedblocks())
             self._stop.wait(self.period_s)
+
+    def columns(self) -> dict[str, list]:
+        """Every sample, one list per quantity (for ``--samples FILE``)."""
+        names = ("t", "own", "anon", "file", "threads", "children", "malloc", "malloc_free")
+        out: dict[str, list] = {n: [None if v != v else v for v in getattr(self, n)] for n in names}
+        out["py_blocks"] = list(self.py_blocks)
+        return out
 
     def stop(self) -> None:
         self._stop.set()
@@ -124,6 +156,7 @@ def run(
     embodiment: str | None = None,
     warmup_minutes: float | None = None,
     sample_s: float = 5.0,
+    samples_path: Path | None = None,
 ) -> dict:
     """The soak (see the module docstring); warm-up default: a fifth of the run, at least a
     minute where the run is over two."""
@@ -155,6 +188,8 @@ def run(
     finally:
         sampler.stop()
     wall_s = time.monotonic() - t0
+    if samples_path is not None:
+        samples_path.write_text(json.dumps(sampler.columns()))
     t = np.asarray(sampler.t)
     warm = t >= warmup_minutes * 60.0
     own = Slope.fit(t[warm], np.asarray(sampler.own)[warm])
@@ -162,6 +197,12 @@ def run(
     malloc_mb = np.asarray(sampler.malloc)
     known = warm & np.isfinite(malloc_mb)
     malloc = Slope.fit(t[known], malloc_mb[known])
+    free_arr = np.asarray(sampler.malloc_free)
+    free_known = warm & np.isfinite(free_arr)
+    malloc_free = Slope.fit(t[free_known], free_arr[free_known])
+    anon = Slope.fit(t[warm], np.asarray(sampler.anon)[warm])
+    file_backed = Slope.fit(t[warm], np.asarray(sampler.file)[warm])
+    threads = np.asarray(sampler.threads)[warm]
     blocks = Slope.fit(t[warm], np.asarray(sampler.py_blocks, dtype=float)[warm] / 1e3)
     return {
         "benchmark": "soak",
@@ -187,6 +228,13 @@ def run(
         "samples_after_warmup": own.samples,
         "malloc_in_use_slope_mb_per_hour": malloc.mb_per_hour,
         "malloc_in_use_slope_stderr_mb_per_hour": malloc.stderr_mb_per_hour,
+        "rss_anon_slope_mb_per_hour": anon.mb_per_hour,
+        "rss_anon_slope_stderr_mb_per_hour": anon.stderr_mb_per_hour,
+        "rss_file_slope_mb_per_hour": file_backed.mb_per_hour,
+        "rss_file_slope_stderr_mb_per_hour": file_backed.stderr_mb_per_hour,
+        "malloc_free_slope_mb_per_hour": malloc_free.mb_per_hour,
+        "malloc_free_slope_stderr_mb_per_hour": malloc_free.stderr_mb_per_hour,
+        "threads_after_warmup": [int(threads.min()), int(threads.max())] if threads.size else None,
         "python_blocks_slope_k_per_hour": blocks.mb_per_hour,
         "python_blocks_slope_stderr_k_per_hour": blocks.stderr_mb_per_hour,
         "emulator_rss_slope_mb_per_hour": emulators.mb_per_hour,
@@ -207,9 +255,17 @@ def main(argv: list[str] | None = None) -> int:
         help="left out of the fit (default a fifth of the run, at least 1 min over 2 min)",
     )
     p.add_argument("--sample-s", type=float, default=5.0, help="seconds between samples")
+    p.add_argument("--samples", type=Path, default=None, help="write every sample (JSON) here")
     args = p.parse_args(argv)
     try:
-        report = run(args.minutes, args.task, args.embodiment, args.warmup_minutes, args.sample_s)
+        report = run(
+            args.minutes,
+            args.task,
+            args.embodiment,
+            args.warmup_minutes,
+            args.sample_s,
+            args.samples,
+        )
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
