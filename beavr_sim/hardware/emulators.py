@@ -19,6 +19,8 @@ received (see :class:`beavr_sim.hardware.rig.EmulatedRig`): ``[time, targets]`` 
 of an arm, per goal write of a hand (``{motor id: model rad}``) and per sync write of a Feetech
 group (``{servo id: model rad}``, through the RX-1 servo table), then one JSON line of what the
 faults did, ``{name: {"lost": requests, "dropped": replies, "corrupted": replies}}``, and exits.
+* ``close counts``: the same without what they received (an empty ``{}``): a session that
+  rehearses a rig reads back only the fault counts.
 
 Every log an emulator appends to while it runs (:data:`GROWING_LOGS`, and each motor's
 :data:`MOTOR_LOGS`) is kept for its last entries only (:class:`RecentLog`): a rehearsal of
@@ -185,9 +187,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"--faults: {exc}", file=sys.stderr)
             return 2
     print(json.dumps(where), flush=True)
+    keep_received = True
     for line in sys.stdin:
         command, _, rest = line.strip().partition(" ")
         if command == "close":
+            keep_received = rest.strip() != "counts"
             break
         if command == "fault":
             try:
@@ -195,11 +199,15 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError as exc:
                 answer = {"error": str(exc)}
         else:
-            answer = {"error": f"unknown command {line.strip()!r}; valid: 'fault SPEC', 'close'"}
+            answer = {
+                "error": f"unknown command {line.strip()!r}; valid: 'fault SPEC', 'close', 'close counts'"
+            }
         print(json.dumps(answer), flush=True)
     received: dict = {}
     for name, emulator in emulators.items():
-        if isinstance(emulator, XArmEmulator):
+        if not keep_received:
+            pass
+        elif isinstance(emulator, XArmEmulator):
             received[name] = [[t, list(q)] for t, q in emulator.servo_log]
         elif isinstance(emulator, FeetechEmulator):
             received[name] = _feetech_writes(emulator)

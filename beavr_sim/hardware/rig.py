@@ -352,7 +352,11 @@ class EmulatedRig:
         q_start: np.ndarray | None = None,
         leap_variant: str = "full",
         faults: str | Sequence[FaultSpec] = (),
+        keep_received: bool = True,
     ):
+        #: Whether :meth:`close` reads back what every emulator received (tests check it; a
+        #: session leaves it: after hours the logs are hundreds of MB).
+        self.keep_received = keep_received
         q_start = joints.home if q_start is None else np.asarray(q_start, dtype=np.float64)
         plan, groups = [], {}
         for spec, effector in zip(embodiment.spec.effectors, embodiment.effectors, strict=True):
@@ -457,7 +461,7 @@ class EmulatedRig:
         with self._lock:
             if self._process.poll() is None:
                 try:
-                    self._process.stdin.write("close\n")
+                    self._process.stdin.write("close\n" if self.keep_received else "close counts\n")
                     self._process.stdin.flush()
                     line = self._process.stdout.readline()
                     if line:

@@ -65,7 +65,12 @@ def connect_mirror(choice: RigChoice, env, closers: list):
             choice.emulate_faults or "", emulated_device_names(env.embodiment)
         )
         rig = EmulatedRig(
-            env.embodiment, env.joints, env.joints.home, env.hand_variant, faults=faults
+            env.embodiment,
+            env.joints,
+            env.joints.home,
+            env.hand_variant,
+            faults=faults,
+            keep_received=False,  # a session reads back the fault counts only
         )
         closers.append(rig.close)
         config = rig.config
