@@ -328,6 +328,13 @@ def _feetech_start(group: str, q: np.ndarray) -> dict:
     return {"group": group, "counts": [int(c) for c in np.clip(counts, lo, hi)]}
 
 
+#: Serial devices of the emulated rig answer from a process on the same (maybe busy) machine,
+#: not from a servo's own processor: a reply may wait this long (the SDKs assume ~34 ms), and
+#: a connect keeps pinging this long (a rig file's default is 0.5 s).
+EMULATED_REPLY_TIMEOUT_S = 0.25
+EMULATED_CONNECT_TIMEOUT_S = 5.0
+
+
 class EmulatedRig:
     """Protocol emulators for every device of an embodiment, and the rig that uses them.
 
@@ -408,11 +415,18 @@ class EmulatedRig:
             elif kind == "feetech":
                 # The emulated servos' top speed, not the RX-1 driver's calm 1 rad/s.
                 config = FeetechConfig(
-                    port=where[name], group=groups[name], speed_rad_s=None, reply_timeout_s=0.25
+                    port=where[name],
+                    group=groups[name],
+                    speed_rad_s=None,
+                    reply_timeout_s=EMULATED_REPLY_TIMEOUT_S,
+                    timeout_s=EMULATED_CONNECT_TIMEOUT_S,
                 )
             else:
                 config = LeapHandConfig(
-                    port=where[name], variant=leap_variant, reply_timeout_s=0.25
+                    port=where[name],
+                    variant=leap_variant,
+                    reply_timeout_s=EMULATED_REPLY_TIMEOUT_S,
+                    timeout_s=EMULATED_CONNECT_TIMEOUT_S,
                 )
             devices.append(DeviceEntry(name, kind, effector, config))
         # The mirror's own limits (hand_divergence_rad 0.8, docs/hardware.md): the divergence
