@@ -43,8 +43,9 @@ sends the newest target and reads the measured joints back. The mirror:
 Threads: the twin's thread (submit, health, in_sync), one writer per device, and the operator's
 inputs (estop, release, rearm: keyboard, browser) share one lock (``_cond``); every counter and
 every device state is written under it, and a writer works from a frozen
-:class:`~beavr_sim.hardware.mirror.dispatch.Orders` snapshot taken under it. Device state is a :class:`LinkState` plus a :class:`HoldReason` and a
-one-line detail for people (never parsed). Statistics are bounded (a ring of the last writes).
+:class:`~beavr_sim.hardware.mirror.dispatch.Orders` snapshot taken under it. Device state is
+a :class:`LinkState` plus a :class:`HoldReason` and a one-line detail for people (never
+parsed). Statistics are bounded (a ring of the last writes).
 
 Called once per control period it does what lockstep mirroring did (each step at most one
 period's motion, catch-up at one period's catch-up step, streams over a whole period).
