@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
@@ -29,12 +29,27 @@ from beavr_sim.hardware.mirror.errors import log, log_error, one_line
 from beavr_sim.hardware.mirror.speed import stream_steps
 from beavr_sim.hardware.mirror.state import MOVING, HoldReason, LinkState
 from beavr_sim.hardware.mirror.stats import DeviceStats
-
-if TYPE_CHECKING:  # the facade owns its links: a type only
-    from beavr_sim.hardware.mirror.hardware_mirror import HardwareMirror
+from beavr_sim.hardware.rig import RigConfig
 
 #: Time (s) between reconnection attempts of a device in outage.
 RECONNECT_INTERVAL_S = 0.2
+
+
+class Mirror(Protocol):
+    """What a link's writer sees of the mirror that owns it (the shared lock and what is
+    read under it)."""
+
+    rig: RigConfig
+    dry_run: bool
+    _period: float
+    _cond: threading.Condition
+    _stopping: threading.Event
+    _dispatch: Dispatch
+
+    def _wakes(self, link: Link) -> bool: ...
+    def _interrupts(self, link: Link, seq: int) -> bool: ...
+    def _orders(self, link: Link) -> Orders: ...
+    def _fault(self, line: str) -> None: ...
 
 
 class Link:
@@ -43,9 +58,7 @@ class Link:
     Fields below the lock line are the mirror's shared state (read and written under
     ``mirror._cond``); the rest belong to the writer thread."""
 
-    def __init__(
-        self, mirror: HardwareMirror, k: int, device: Device, index: np.ndarray, part: str
-    ):
+    def __init__(self, mirror: Mirror, k: int, device: Device, index: np.ndarray, part: str):
         self.mirror = mirror
         self.k = k  # its place in the mirror's links
         self.device = device
