@@ -110,6 +110,11 @@ class Link:
         return self.device.name
 
     @property
+    def divergence_limit(self) -> float:
+        """How far (rad) its measured joints may stay from what it was sent."""
+        return self.divergence.limit
+
+    @property
     def retries(self) -> int:
         """Packets the driver asked for again (its bounded retries)."""
         return int(getattr(self.device, "retries", getattr(self.device, "comm_retries", 0)))
