@@ -106,15 +106,15 @@ def test_mirror_catch_up_follows_the_detour_every_target_guarded():
         )
         mirror = HardwareMirror(rig, env.embodiment, env.joints, env.model, env.control_hz)
         guard = mirror.guard
-        mirror._qpos = env.data.qpos.copy()
-        start, goal = blocked_pair(guard, mirror._qpos, env.joints.home.astype(float), 3)
+        mirror.catch_up.qpos = env.data.qpos.copy()
+        start, goal = blocked_pair(guard, mirror.catch_up.qpos, env.joints.home.astype(float), 3)
         interval = mirror._period  # one control period per step
-        cap = np.asarray(mirror._catch_up_limit.max_velocity) * interval
+        cap = np.asarray(mirror.catch_up.limit.max_velocity) * interval
         q, sent = start.copy(), []
         for _ in range(20000):
             if np.array_equal(q, goal):
                 break
-            target, verdict = mirror._catch_up_step(goal, q, interval)
+            target, verdict = mirror.catch_up.step(goal, q, interval)
             if verdict.ok:
                 assert np.all(np.abs(target - q) <= cap * (1 + 1e-9))
                 sent.append((q.copy(), target.copy()))
@@ -125,6 +125,6 @@ def test_mirror_catch_up_follows_the_detour_every_target_guarded():
         assert mirror.detours and mirror.detours[-1].found
         guard.dt = None
         for a, b in sent:  # every target sent passes the guard along its step
-            assert guard.check(b, mirror._qpos, a).ok
+            assert guard.check(b, mirror.catch_up.qpos, a).ok
     finally:
         env.close()

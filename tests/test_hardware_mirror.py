@@ -832,7 +832,7 @@ def test_submits_at_90_hz_are_each_written_as_submitted(clocked):
 def test_bunched_submits_are_slowed_to_the_speed_cap(clocked):
     bench, clock = clocked
     mirror = bench.mirror
-    vmax = np.array(mirror._speed_limit.max_velocity)
+    vmax = np.array(mirror.speeds.reach.max_velocity)
     n_arm = len(bench.arm_targets())
     target = bench.twin.action.copy()
     times, dispatched = [clock()], [target.copy()]

@@ -88,7 +88,7 @@ def _catch_up(
             config, env.embodiment, env.joints, env.model, env.control_hz, clock=clock
         )
         if not detour:
-            mirror._detour_config = DetourConfig(max_checks=1)
+            mirror.catch_up.config = DetourConfig(max_checks=1)
         try:
             measured = mirror.connect()
             np.testing.assert_allclose(measured[ARM], start[ARM], atol=1e-4)

@@ -235,7 +235,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "mirror-catch-up-refusal",
         "mirror: a catch-up target its guard refuses is not sent",
-        "beavr_sim/hardware/mirror.py",
+        "beavr_sim/hardware/mirror/hardware_mirror.py",
         "            if not verdict.ok:\n"
         "                for name in verdict.blocked:\n"
         "                    sl = self.joints.slices[name]\n"
@@ -249,23 +249,23 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "mirror-rate-limit",
         "mirror: bunched submits are slowed to the speed cap over their spacing",
-        "beavr_sim/hardware/mirror.py",
-        "            limited = self._rate_limit.clamp(previous, action, interval)",
-        "            limited = self._rate_limit.clamp(previous, action, 10 * interval)",
+        "beavr_sim/hardware/mirror/hardware_mirror.py",
+        "            limited = self.speeds.rate.clamp(previous, action, interval)",
+        "            limited = self.speeds.rate.clamp(previous, action, 10 * interval)",
         ("tests/test_hardware_mirror.py::test_bunched_submits_are_slowed_to_the_speed_cap",),
     ),
     Mutation(
         "mirror-catch-up-speed",
         "mirror: a catch-up moves at the catch-up speed, whatever the submit rate",
-        "beavr_sim/hardware/mirror.py",
-        "            target = self._catch_up_limit.clamp(previous, action, interval).target",
-        "            target = self._catch_up_limit.clamp(previous, action, 10 * interval).target",
+        "beavr_sim/hardware/mirror/catch_up.py",
+        "        target = self.limit.clamp(previous, action, interval).target",
+        "        target = self.limit.clamp(previous, action, 10 * interval).target",
         ("tests/test_hardware_mirror.py::test_catch_up_speed_is_the_same_at_any_submit_rate",),
     ),
     Mutation(
         "mirror-timeout-hold",
         "mirror: every device holds when no fresh command came within the timeout",
-        "beavr_sim/hardware/mirror.py",
+        "beavr_sim/hardware/mirror/link.py",
         "                if time.monotonic() - d.t_submit > timeout:",
         "                if time.monotonic() - d.t_submit > 100 * timeout:",
         _MIRROR_HOLDS,
@@ -273,7 +273,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "mirror-estop-latch",
         "mirror: an e-stop holds every device until released",
-        "beavr_sim/hardware/mirror.py",
+        "beavr_sim/hardware/mirror/hardware_mirror.py",
         "        if self._estop:\n            return HoldReason.ESTOP,",
         "        if False:\n            return HoldReason.ESTOP,",
         _MIRROR_HOLDS,
@@ -281,23 +281,23 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "mirror-failure-holds-others",
         "mirror: one device failing holds every other",
-        "beavr_sim/hardware/mirror.py",
-        "            if other is not link and other.state in _OUT:",
+        "beavr_sim/hardware/mirror/hardware_mirror.py",
+        "            if other is not link and other.state in OUT:",
         "            if False:",
         _MIRROR_HOLDS,
     ),
     Mutation(
         "mirror-divergence-hold",
         "mirror: a device whose measured joints stay far from the twin's holds",
-        "beavr_sim/hardware/mirror.py",
-        "        if divergence <= self.divergence_limit:",
-        "        if divergence <= 10 * self.divergence_limit:",
+        "beavr_sim/hardware/mirror/divergence.py",
+        "        if divergence <= self.limit:",
+        "        if divergence <= 10 * self.limit:",
         ("tests/test_hardware_mirror.py::test_divergence_holds_the_device",),
     ),
     Mutation(
         "mirror-episode-fixtures",
         "mirror: its guard checks catch-ups against this episode's fixtures (begin_episode)",
-        "beavr_sim/hardware/mirror.py",
+        "beavr_sim/hardware/mirror/hardware_mirror.py",
         "            self.guard.set_fixtures(fixtures.mocap_pos, fixtures.mocap_quat)",
         "            pass",
         ("tests/test_safety_mutations_mirror.py", "tests/test_mirror_sessions.py"),
