@@ -32,11 +32,11 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     the caller closes it before the cameras."""
     if real is None or config.rate_hz <= 0:
         return None
-    from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
     from beavr_sim.cameras.headset_panels import (  # local: heavy (OpenCV, Pillow)
         QuestCameraSink,
         WebXRCameraSink,
     )
+    from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
 
     shapes = {name: real.frame_shape(name) for name in real.names}
     sinks = []
