@@ -456,17 +456,17 @@ variant = "lite"
 def test_pour_trace_mirrored_on_emulated_hardware(tmp_path, capsys, monkeypatch):
     """The bundled pour trace, in real time, mirrored to emulated xArm and LEAP: success, every
     device wrote at the control rate, nothing refused, no errors."""
-    import beavr_sim.teleop.mirroring as mirroring
+    import beavr_sim.teleop.session as session
 
     measured = []
-    connect = mirroring.connect_mirror
+    connect = session.connect_mirror
 
     def connect_and_keep(*args, **kwargs):
         mirror, q_measured = connect(*args, **kwargs)
         measured.append(np.asarray(q_measured, dtype=np.float64).copy())
         return mirror, q_measured
 
-    monkeypatch.setattr(mirroring, "connect_mirror", connect_and_keep)
+    monkeypatch.setattr(session, "connect_mirror", connect_and_keep)  # where the session calls it
     out = tmp_path / "summary.json"
     code = teleop_main(
         [
