@@ -2,7 +2,7 @@
 
 Plays a bundled trace in a loop (``teleop --repeat 0``) mirrored to the emulated rig (the
 protocol emulators in a child process, driven through the vendors' SDKs), every run from a
-synced rig as a recording day's episodes are, for ``--minutes`` of session time, and samples
+synced rig as a recording day's episodes are, for ``--minutes`` of wall time, and samples
 the resident memory (``VmRSS`` of ``/proc/<pid>/status``) of this process and of the emulator
 process every ``--sample-s`` seconds. Reports the slope of a least-squares line through the
 samples after the warm-up (MB per hour; its standard error), target <= 1 MB per hour for this
@@ -13,8 +13,8 @@ holds what a minute's does. Beside the RSS it fits what the allocators hold in u
 pages first written, allocator arenas) tells itself from a leak (in-use memory that grows).
 It also fits the RSS's anonymous and file-backed parts (``RssAnon``, ``RssFile``: the heap and
 stacks, the libraries' pages) and glibc's free bytes, and reports the thread count; ``--samples
-FILE`` writes every sample. The samples run until the session returns, rig closed included:
-the fit is only as good as its last sample is of the running session.
+FILE`` writes every sample. Sampling ends when the time is up, before the session is told to
+stop: no sample is of the session closing (the rig, the recorder), only of it running.
 JSON on the last stdout line. Figures: docs/hardware.md ("A recording day"),
 docs/benchmarks.md.
 """
@@ -176,15 +176,22 @@ def run(
         headless=True,
         progress=False,
         repeat=0,
-        max_seconds=minutes * 60.0,
         mirror_hardware=True,
         hardware_config="emulated",
     )
     sampler = RssSampler(sample_s)
     sampler.start()
     t0 = time.monotonic()
+    deadline = t0 + minutes * 60.0
+
+    def time_is_up() -> bool:
+        if time.monotonic() < deadline:
+            return False
+        sampler.stop()  # the last sample is of the session running, not closing
+        return True
+
     try:
-        summary = run_session(options)
+        summary = run_session(options, interrupted=time_is_up)
     finally:
         sampler.stop()
     wall_s = time.monotonic() - t0
@@ -245,7 +252,7 @@ def run(
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m beavr_sim.bench soak", description=__doc__)
-    p.add_argument("--minutes", type=float, default=10.0, help="session time (default 10)")
+    p.add_argument("--minutes", type=float, default=10.0, help="wall minutes (default 10)")
     p.add_argument("--task", default="pour", help="bundled trace's task (default pour)")
     p.add_argument("--embodiment", default=None, help="robot (default the trace's)")
     p.add_argument(
