@@ -395,6 +395,7 @@ class TwinView:
         self._throttle = Throttle(self.rate_hz)
         self._status_throttle = Throttle(TEXT_RATE_HZ)
         self._readout_throttle = Throttle(TEXT_RATE_HZ)
+        self._readout_known: tuple[bool, bool] | None = None  # which numbers the readout has
         self._status_words: object = None  # the status without its clock, last sent
         #: What the view costs the loop (:class:`ViewCost`); :meth:`update` adds its own time,
         #: the caller its per-tick time outside it (:meth:`account`).
@@ -681,7 +682,8 @@ class TwinView:
         ``targets``: ``Operator.targets()``; ``guard_blocked``: the effectors the guard blocks
         (their geoms turn red; colours change only on transitions). ``status`` is sent at most
         :data:`TEXT_RATE_HZ` times a second unless ``status_words`` (what it says besides
-        numbers, e.g. success, paused, holds) changed, or are not given; so is the readout.
+        numbers, e.g. success, paused, holds) changed, or are not given; so is the readout, unless
+        one of its numbers appeared or went.
         """
         start = time.perf_counter()
         with self.server.atomic():
@@ -714,9 +716,10 @@ class TwinView:
             if words_changed or self._status_throttle.due(start):
                 self.status.content = status
                 self._status_words = status_words
-        if (loop_rate_hz is not None or latency_ms is not None) and self._readout_throttle.due(
-            start
-        ):
+        # A number that appears (or goes) is sent at once, as changed status words are.
+        known = (loop_rate_hz is not None, latency_ms is not None)
+        if any(known) and (known != self._readout_known or self._readout_throttle.due(start)):
+            self._readout_known = known
             rate = "-" if loop_rate_hz is None else f"{loop_rate_hz:.1f} Hz"
             lat = "-" if latency_ms is None else f"{latency_ms:.2f} ms"
             self.cost.sample_server(start)
