@@ -29,7 +29,7 @@ import json
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,8 +49,8 @@ from beavr_sim.datasets.features import (
 )
 from beavr_sim.datasets.writer import EpisodeWriter
 from beavr_sim.envs.cameras import OffscreenCameras
-from beavr_sim.wire.hand import N_JOINTS
-from beavr_sim.wire.records import Tick
+from beavr_sim.wire.hand import N_JOINTS, HandFrame
+from beavr_sim.wire.records import Tick, TwinState
 
 
 class CameraSet:
@@ -301,18 +301,27 @@ class EpisodeRecorder:
         return obs
 
     def __call__(self, tick: Tick) -> None:
+        """The single-process loop's tick: :meth:`record` of its state and frames."""
+        self.record(tick.state, tick.frames)
+
+    def record(self, state: TwinState, frames: Iterable[HandFrame] = ()) -> None:
+        """One frame: the observation made before the twin's step, the action it took
+        (``state.action``), and the hands' keypoints: ``frames`` (the hand frames that
+        reached the operator since the last frame, oldest first; the newest of each side is
+        kept). Both layouts call this: the single-process loop's tick and the twin process's
+        ``after_step`` hook, with the operator's keypoints of the same tick."""
         if not self.recording or self._observation is None or self._camera_fault:
             return  # a dead camera's frame is never written (the episode ends on the fault)
-        for frame in tick.frames:
+        for frame in frames:
             i = self.sides.index(frame.side) if frame.side in self.sides else None
             if i is None:
                 continue
             self._keypoints[i] = np.where(frame.tracked[:, None], frame.joints, 0.0)
             self._tracked[i] = frame.tracked
         row = dict(self._observation)
-        row[ACTION] = np.asarray(tick.state.action, dtype=np.float32)
+        row[ACTION] = np.asarray(state.action, dtype=np.float32)
         if self.watch is not None:
-            self.watch.check(row[STATE], tick.state.action)
+            self.watch.check(row[STATE], state.action)
         if self.config.hand_keypoints:
             row[KEYPOINTS] = self._keypoints.reshape(-1).copy()
             row[TRACKED] = self._tracked.reshape(-1).copy()

@@ -68,13 +68,12 @@ from beavr_sim.teleop.mirroring import (
     hardware_summary,
 )
 from beavr_sim.teleop.pipeline import (
-    RunRecord,
-    RunTally,
     TeleopLoop,
     TeleopSummary,
     ThreadedListener,
 )
 from beavr_sim.teleop.processes import run_multiprocess
+from beavr_sim.teleop.runs import RunPlan, SessionRuns
 from beavr_sim.teleop.view import attach_view
 from beavr_sim.traces.bundled import find_bundled_trace
 from beavr_sim.twin.twin import TwinInterface
@@ -84,8 +83,6 @@ from beavr_sim.wire.records import Tick
 
 SOURCES = ("quest", "trace", "webxr")
 
-#: Recording: this many episodes in a row spoilt by the hardware end the session.
-MAX_FAULTS_IN_A_ROW = 3
 #: The longest ``--emulate-faults`` spec accepted (it is one line of the emulators' language).
 MAX_FAULT_SPEC_CHARS = 500
 
@@ -756,15 +753,13 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
     times (0: until Ctrl-C or ``--max-seconds``), each from a fresh reset and, mirrored, from a
     synced rig. Returns the last run's summary with every run counted."""
 
-    records = RunTally()
-    stopped = ""
-    run, played = 0, 0.0
+    runs = SessionRuns(RunPlan.of(options))
     summary = None
     stop_when = _hardware_stop(mirror, sync is not None and sync.interactive)
-    while True:
-        if run > 0:  # play the trace again from the start on a fresh episode
+    while runs.more():
+        if runs.attempts > 0:  # play the trace again from the start on a fresh episode
             loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
-        if sync is not None or run > 0:
+        if sync is not None or runs.attempts > 0:
             loop.reset(loop.seed)
         progress.success = False
         sync_s = None
@@ -774,37 +769,27 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
             if loop.interrupted():
                 break
             if fault:
-                records.add(RunRecord(run + 1, False, 0.0, fault, sync_s=sync_s))
-                stopped = f"run {run + 1}: {fault}"
+                runs.sync_failed(fault, sync_s)
                 break
-        remaining = None if options.max_seconds is None else options.max_seconds - played
         summary = loop.run(
-            max_seconds=remaining,
+            max_seconds=runs.remaining(),
             stop_on_success=options.source == "trace",
             progress=progress,
             stop_when=stop_when,
         )
-        run += 1
-        played += summary.duration_s
         fault = episode_fault(mirror) if mirror is not None else ""
-        records.add(RunRecord(run, bool(summary.success), summary.duration_s, fault, sync_s=sync_s))
+        record = runs.played_run(bool(summary.success), summary.duration_s, fault, sync_s)
         if options.progress:
-            print(
-                f"\nrun {run}: {'success' if summary.success else 'no success'}, "
-                f"{summary.duration_s:.1f} s" + (f"; HARDWARE FAULT: {fault}" if fault else ""),
-                file=sys.stderr,
-            )
+            print("\n" + runs.run_line(record), file=sys.stderr)
         if mirror is not None and failed_for_good(mirror) and stop_when is not None:
-            stopped = f"run {run}: {fault}"
+            runs.stop(f"run {record.run}: {fault}")
             break
-        if loop.interrupted() or (options.repeat and run >= options.repeat):
-            break
-        if remaining is not None and played >= options.max_seconds - 1e-9:
+        if loop.interrupted():
             break
     if summary is None:
         summary = loop.summary(False)
-    summary.count_runs(records)
-    summary.stopped_early = stopped
+    summary.count_runs(runs.tally)
+    summary.stopped_early = runs.stopped
     return summary
 
 
@@ -917,27 +902,16 @@ def record_episodes(
         writer, env, config, state_source=state_source, watch=watch, real_cameras=real
     )
     summary = None
-    attempts = saved = 0
-    records = RunTally()
-    stopped = ""
-    # A trace's episode the hardware spoilt is played again (it does not count towards
-    # --episodes), but a rig that spoils MAX_FAULTS_IN_A_ROW in a row ends the session.
-    faulty = in_a_row = 0
-    # --max-seconds bounds the whole session: idle waits and recorded episodes alike.
-    played = 0.0
-
-    def remaining() -> float | None:
-        return None if options.max_seconds is None else max(options.max_seconds - played, 0.0)
+    runs = SessionRuns(RunPlan.of(options))
 
     def out_of_time() -> bool:
-        left = remaining()
-        return loop.interrupted() or (left is not None and left <= 1e-9)
+        return loop.interrupted() or runs.time_up()
 
     def fresh_episode() -> str:
         """Reset (and, mirrored, sync) for the next episode; the sync's fault or ""."""
-        if trace and attempts > 0:
+        if trace and runs.attempts > 0:
             loop.replace_source(TraceSource(options.trace, real_time=options.clock == "real"))
-        loop.reset(seed_of(attempts))
+        loop.reset(seed_of(runs.attempts))
         progress.success = False
         return sync.run() if sync is not None else ""
 
@@ -945,94 +919,70 @@ def record_episodes(
         return sync.last_sync_s if sync is not None else None
 
     try:
-        while saved < options.episodes and not (trace and attempts - faulty >= options.episodes):
-            name = f"episode {saved + 1}/{options.episodes}"
+        while runs.more():
+            name = runs.name()
             if not options.auto_start:
                 progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
                 while True:
                     idle = loop.run(
-                        max_seconds=remaining(),
+                        max_seconds=runs.remaining(),
                         stop_on_success=False,
                         progress=progress,
                         stop_when=requests.taker("toggle", "start", "quit"),
                     )
-                    played += idle.duration_s
+                    runs.played += idle.duration_s
                     if requests.last or (trace and loop.source.finished) or out_of_time():
                         break
                     loop.reset(loop.seed)  # the scene failed or timed out while idle
                 if "quit" in requests.last or not requests.last or out_of_time():
                     break
-            if attempts > 0 or not options.auto_start or sync is not None:
+            if runs.attempts > 0 or not options.auto_start or sync is not None:
                 progress.label = f"{name}: sync"
                 fault = fresh_episode()
                 if loop.interrupted():
                     break
                 if fault:
-                    records.add(
-                        RunRecord(attempts + 1, False, 0.0, fault, saved=False, sync_s=sync_s())
-                    )
-                    stopped = f"{name}: {fault}"
+                    runs.sync_failed(fault, sync_s())
                     if options.progress:
                         print(
                             f"\n{name}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr
                         )
                     break
             progress.label = f"{name}: REC"
+            remaining = runs.remaining()
             summary = run_recorded_episode(
                 loop,
                 recorder,
                 config,
                 progress=progress,
                 stop_when=requests.taker("toggle", "stop", "discard", "quit"),
-                max_seconds=remaining(),
+                max_seconds=remaining,
             )
-            played += summary.duration_s
             asked = requests.last
             fault = recorder.fault
             # Ctrl-C / SIGTERM drops the episode in progress (never saved as if it had ended).
-            interrupted = loop.interrupted()
             end = EpisodeEnd(
                 fault=fault,
-                interrupted=interrupted,
+                interrupted=loop.interrupted(),
                 asked=tuple(asked),
                 task_success=bool(summary.success),
                 keep_faulty=options.keep_faulty_episodes,
             )
             written = end_recorded_episode(recorder, end, seed=loop.seed, source=options.source)
-            attempts += 1
-            saved += int(end.counts_as_saved(written))
-            faulty += int(bool(fault))
-            in_a_row = in_a_row + 1 if fault else 0
-            records.add(
-                RunRecord(
-                    attempts,
-                    bool(summary.success),
-                    summary.duration_s,
-                    fault,
-                    written,
-                    sync_s=sync_s(),
-                )
-            )
+            record = runs.recorded(end, written, summary.duration_s, sync_s())
             if options.progress:
-                outcome = end.outcome(written)
-                print(
-                    f"\n{name}: {'success' if summary.success else 'no success'}, "
-                    f"{summary.duration_s:.1f} s, "
-                    + (f"HARDWARE FAULT: {fault}, " if fault else "")
-                    + f"{outcome} ({writer.num_episodes} in {options.record})",
-                    file=sys.stderr,
-                )
+                where = f"{writer.num_episodes} in {options.record}"
+                print("\n" + runs.episode_line(name, record, end, written, where), file=sys.stderr)
             progress.status = f"last episode: HARDWARE FAULT ({fault})" if fault else ""
             if "quit" in asked or out_of_time():
                 break
             if mirror is not None and failed_for_good(mirror) and not (sync and sync.interactive):
-                stopped = f"{name}: {fault or episode_fault(mirror)}"
+                runs.stop(f"{name}: {fault or episode_fault(mirror)}")
                 break
             if real is not None and real.failed_for_good():
-                stopped = f"{name}: camera {', '.join(real.failed_for_good())} stopped for good"
+                runs.stop(f"{name}: camera {', '.join(real.failed_for_good())} stopped for good")
                 break
-            if in_a_row >= MAX_FAULTS_IN_A_ROW:
-                stopped = f"{in_a_row} episodes in a row spoilt by the hardware; the last: {fault}"
+            if runs.too_many_faults():
                 break
     finally:
         recorder.close()
@@ -1043,8 +993,8 @@ def record_episodes(
             real.close()
     if summary is None:
         summary = loop.summary(False)
-    summary.count_runs(records)
-    summary.stopped_early = stopped
+    summary.count_runs(runs.tally)
+    summary.stopped_early = runs.stopped
     return summary
 
 
