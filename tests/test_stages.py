@@ -271,7 +271,7 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("real control rate")
     if clock in ("virtual", "paced") and source != "trace":
         reasons.append("recorded source")
-    if multiprocess and feature == "record":
+    if multiprocess and feature == "record" and source != "trace":
         reasons.append("--record")
     if multiprocess and feature == "rerun":
         reasons.append("--rerun")
@@ -279,8 +279,6 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("--camera")
     if feature == "repeat" and source != "trace":
         reasons.append("--source trace")
-    if multiprocess and feature == "repeat":
-        reasons.append("--repeat")
     if multiprocess and source == "webxr" and feature == "headset_images":
         reasons.append("--headless")
     return tuple(reasons)
@@ -325,6 +323,11 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "headset_images": (twin.headset_images is not None)
             == (feature == "headset_images" and source == "quest"),
             "control_rate": op.stage.control_hz == twin.control_hz,
+            "record": (twin.recording is not None) == (feature == "record"),
+            "keypoints": op.keypoints == (feature == "record"),
+            "repeat": twin.plan.repeat == options.repeat and twin.ends_runs >= (
+                feature == "repeat"
+            ),
         }
         wrong += [f"{case}: {what} not carried" for what, ok in carried.items() if not ok]
     assert not wrong, "\n".join(wrong)

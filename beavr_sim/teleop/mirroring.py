@@ -10,6 +10,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
+from beavr_sim.datasets.recorder import FollowLimits
 from beavr_sim.hardware.faults import parse_fault_specs
 from beavr_sim.wire.records import Tick
 
@@ -262,3 +265,18 @@ class BrowserEstop:
         elif self._held() != self._shown:  # latched, failed, released or re-armed elsewhere
             self._shown = self._held()
             self.view.set_estop(self._shown)
+
+
+def follow_limits(mirror, env):
+    """The rig's divergence limits per joint of the action (``inf`` where no device measures
+    a joint) and its window: what the recorder holds the measured state to."""
+
+    limit = np.full(env.joints.size, np.inf)
+    for link in mirror.links:
+        limit[link.index] = link.divergence_limit
+    return FollowLimits(
+        limit_rad=limit,
+        window_s=float(mirror.rig.mirror.divergence_window_s),
+        joint_names=tuple(env.joints.names),
+        lag_s=float(mirror.rig.mirror.device_lag_s),
+    )

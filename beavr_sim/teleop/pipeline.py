@@ -384,6 +384,20 @@ class RunTally:
         """The kept runs' lines, oldest first."""
         return self._first + list(self._last)
 
+    def report(self) -> dict:
+        """The summary's run fields (plain data: JSON between processes), with the last
+        run's line as ``last`` (None before the first)."""
+        return {
+            "runs": self.runs,
+            "successes": self.successes,
+            "hardware_faults": self.hardware_faults,
+            "per_run": self.lines(),
+            "per_run_kept": self.kept,
+            "per_run_dropped": self.dropped,
+            "run_totals": self.totals(),
+            "last": self.last.to_dict() if self.last is not None else None,
+        }
+
     def totals(self) -> dict:
         """Aggregates over every run (the summary's ``run_totals``)."""
         out: dict = {
@@ -455,15 +469,21 @@ class TeleopSummary:
 
     def count_runs(self, tally: RunTally) -> None:
         """Describe the session's runs (the session runner's :class:`RunTally`)."""
-        self.runs, self.successes = tally.runs, tally.successes
-        if tally.last is not None:
-            self.task_success = bool(tally.last.success)
-            if tally.last.hardware_fault:
+        self.take_runs(tally.report())
+
+    def take_runs(self, report: dict) -> None:
+        """Describe the session's runs from :meth:`RunTally.report` (which crosses from the
+        ``--multiprocess`` twin as JSON)."""
+        self.runs, self.successes = report["runs"], report["successes"]
+        last = report["last"]
+        if last is not None:
+            self.task_success = bool(last["task_success"])
+            if last["hardware_fault"]:
                 self.success = False
-        self.hardware_faults = tally.hardware_faults
-        self.per_run = tally.lines()
-        self.per_run_kept, self.per_run_dropped = tally.kept, tally.dropped
-        self.run_totals = tally.totals()
+        self.hardware_faults = report["hardware_faults"]
+        self.per_run = list(report["per_run"])
+        self.per_run_kept, self.per_run_dropped = report["per_run_kept"], report["per_run_dropped"]
+        self.run_totals = dict(report["run_totals"])
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -66,7 +66,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
 import gymnasium as gym
@@ -103,14 +103,14 @@ from beavr_sim.teleop.mirroring import (
 )
 from beavr_sim.teleop.pipeline import (
     LatencyLog,
-    RunRecord,
-    RunTally,
     TeleopSummary,
     ThreadedListener,
     TickSchedule,
     _percentiles,
 )
+from beavr_sim.teleop.runs import RunPlan
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
+from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns
 from beavr_sim.traces.format import TraceReader
 from beavr_sim.twin.twin import CommandOutcome, TwinInterface
 from beavr_sim.viz.twin_view import TwinView, subtree_bodies
@@ -118,6 +118,8 @@ from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.messages import (
     FixtureMsg,
+    HandFrameMsg,
+    HandKeypointsMsg,
     JointCommandMsg,
     OperatorEventMsg,
     RobotStateMsg,
@@ -147,6 +149,8 @@ WEBXR_WAIT_MS = 5
 #: The topic of the operator's session events on its command stream: no effector's name (never
 #: with "/") is a prefix of it.
 OPERATOR_EVENT_TOPIC = b"/operator_event"
+#: The topic of the hands' keypoints (for the twin's recorder) on the command stream.
+KEYPOINTS_TOPIC = b"/keypoints"
 
 
 @dataclass(frozen=True)
@@ -202,6 +206,8 @@ class OperatorProcessConfig:
     lockstep: bool = False
     #: ``source="webxr"``: the page server this process hosts.
     webxr: WebXRConfig | None = None
+    #: Send the hands' newest frames to the twin (its recorder's ``hand.keypoints``).
+    keypoints: bool = False
 
 
 @dataclass(frozen=True)
@@ -223,8 +229,12 @@ class TwinProcessConfig:
     lockstep: bool = False
     paced: bool = False
     stop_on_success: bool = True
-    max_seconds: float | None = None
-    tail_seconds: float = 2.0
+    #: The session's runs (how many, the session's time limit) and ``--record`` (None: no
+    #: recording): played by the twin (:class:`~beavr_sim.teleop.twin_runs.TwinRuns`).
+    plan: RunPlan = field(default_factory=RunPlan)
+    recording: TwinRecording | None = None
+    #: Say each run's line on stderr.
+    progress: bool = False
     mirror_hardware: bool = False
     hardware_config: str | None = None
     dry_run: bool = False
@@ -235,6 +245,12 @@ class TwinProcessConfig:
     view: ViewConfig | None = None
     headset_images: HeadsetImagesConfig | None = None
     attach: tuple[Attachment, ...] = ()
+
+    @property
+    def ends_runs(self) -> bool:
+        """The twin ends the session's runs (lockstep, a recording, several runs); else, a
+        single real-time run, the supervisor ends it (success, ``--max-seconds``)."""
+        return self.lockstep or self.recording is not None or self.plan.several
 
 
 def effector_slices(embodiment) -> dict[str, slice]:
@@ -282,6 +298,27 @@ def command_from_wire(msg: JointCommandMsg, held: np.ndarray | None = None) -> J
     )
 
 
+def keypoints_to_wire(frames, sides, epoch: int, tick: int = -1) -> HandKeypointsMsg:
+    """The newest of ``frames`` (oldest first) of each of ``sides``, for the twin's recorder;
+    a frame the wire refuses (it never should: they were validated) is left out, logged."""
+    newest = {}
+    for frame in frames:
+        if frame.side in sides:
+            newest[frame.side] = frame
+    out = []
+    for frame in newest.values():
+        try:
+            out.append(HandFrameMsg.from_frame(frame))
+        except (TypeError, ValueError) as exc:
+            log.warning("a %s hand frame not sent to the recorder: %s", frame.side, exc)
+    return HandKeypointsMsg(frames=out, epoch=epoch, tick=tick)
+
+
+def keypoints_from_wire(msg: HandKeypointsMsg) -> list:
+    """:func:`keypoints_to_wire`'s frames back as hand frames (the recorder's input)."""
+    return [frame.to_frame() for frame in msg.frames]
+
+
 # ---------------------------------------------------------------------------- operator
 def _leave_ctrl_c_to_the_session() -> None:
     """A worker ignores Ctrl-C: a terminal sends it to the whole process group, and the
@@ -327,8 +364,10 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     commands = Publisher(context, transport.endpoint("commands", bind=True))
-    # the twin's command subscribers and its operator-event subscriber
-    commands.wait_for_subscribers(len(embodiment.effectors) + 1, HANDSHAKE_TIMEOUT_S)
+    # the twin's command subscribers, its operator-event subscriber (and its keypoints one)
+    commands.wait_for_subscribers(
+        len(embodiment.effectors) + 1 + int(config.keypoints), HANDSHAKE_TIMEOUT_S
+    )
     # Start from the twin's measured joints.
     first = state.recv(HANDSHAKE_TIMEOUT_S)
     rehome = OperatorRehome(operator, effector_slices(embodiment))
@@ -346,6 +385,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     view_paused = False
     estop_events = 0
     answered: tuple[int, int] | None = None  # lockstep: (epoch, tick) last commanded
+    run_seen: int | None = None  # the twin's run of the last state (a new one: the trace over)
 
     def set_paused() -> None:
         stage.set_paused(session_paused or view_paused)
@@ -353,6 +393,22 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     def send(out: dict[str, JointCommand], now: float, **lockstep) -> None:
         for name, cmd in out.items():
             commands.send(name.encode(), command_to_wire(cmd, now, rehome.epoch, **lockstep))
+
+    def send_keypoints(frames: list, tick: int = -1) -> None:
+        """The newest frame of each side among ``frames``, for the twin's recorder."""
+        if config.keypoints:
+            message = keypoints_to_wire(frames, sides, rehome.epoch, tick)
+            commands.send(KEYPOINTS_TOPIC, message)
+
+    def restart_on_new_run(msg: RobotStateMsg) -> None:
+        """The twin started a new run (a recorded episode, a --repeat play): a trace plays
+        from its start again (a browser Reset is a new epoch of the same run: not)."""
+        nonlocal source, run_seen
+        if run_seen is not None and msg.run > run_seen and config.source == "trace":
+            source.close()
+            source = TraceSource(config.trace, real_time=not config.lockstep)
+            validator.reset()
+        run_seen = msg.run if run_seen is None else max(run_seen, msg.run)
 
     def forward_events(now: float) -> None:
         """The both-hands pinch latches the twin's mirror (the e-stop gesture)."""
@@ -364,13 +420,14 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     def command_side(side: str, ok: bool) -> None:
         """Command ``side``'s effectors now, from what the operator has observed."""
         now = time.monotonic()
+        finished = {"source_finished": True} if source.finished else {}
         hold = None
         if rehome.waiting:
             # Hold until the twin's state after the reset comes: re-homing to a state from
             # before it would drive the robot back where it was.
             rehome.warn_if_late(now)
             hold = "resetting"
-        send(stage.command_side(side, now, ok, hold_reason=hold), now)
+        send(stage.command_side(side, now, ok, hold_reason=hold), now, **finished)
 
     def lockstep_tick(msg: RobotStateMsg) -> None:
         """Answer the twin's state of tick k as one process's tick k: the frames up to
@@ -387,6 +444,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             if source.validates or validator.check(frame) is None:
                 used.append(frame)
         out = stage.command(now, stage.observe(used))
+        send_keypoints(used, msg.tick)
         send(out, t0, tick=msg.tick, source_finished=source.finished)
         forward_events(t0)
         compute_ms.append((time.monotonic() - t0) * 1e3)
@@ -395,6 +453,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         nonlocal view_paused
         if config.lockstep and answered == (msg.epoch, msg.tick) and not msg.done:
             return  # the twin asked again for a tick already answered
+        restart_on_new_run(msg)
         stage.call("reset", rehome.on_state, msg)
         if msg.paused != view_paused:
             view_paused = msg.paused
@@ -457,6 +516,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                 command_side(side, ok)
                 compute_ms.append((time.perf_counter() - t0) * 1e3)
             if by_side:
+                send_keypoints([frames[-1] for frames in by_side.values()])
                 forward_events(time.monotonic())
             now = time.monotonic()
             for side in sides:
@@ -684,6 +744,23 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         sync = RigSync(mirror, config.sync_timeout_s or mirror.rig.mirror.sync_timeout_s)
         positions = twin.reset(episode_seed)
         mirror_reset = follow_with_mirror(stage, mirror, positions)
+    try:  # the session's runs; recording: the dataset opened (a bad folder fails here)
+        runs = TwinRuns(
+            config.plan,
+            env,
+            stage,
+            mirror,
+            config.recording,
+            stop_on_success=config.stop_on_success,
+            progress=config.progress,
+        )
+    except (ValueError, OSError) as exc:
+        for close in reversed(closers):
+            close()
+        conn.send_bytes(f"error: {exc}".encode())
+        env.close()
+        return
+    closers.append(runs.close)
     fixtures = fixtures_to_wire(env)
     subs = {
         e.name: Subscriber(
@@ -702,6 +779,15 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         OperatorEventMsg,
         conflate=False,
     )
+    keypoints = None
+    if config.recording is not None and config.recording.config.hand_keypoints:
+        keypoints = Subscriber(
+            context,
+            transport.endpoint("commands", bind=False),
+            KEYPOINTS_TOPIC,
+            HandKeypointsMsg,
+            conflate=False,
+        )
     session = Subscriber(
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
@@ -755,7 +841,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         if finish is not None:
             finishers.append(finish)
     poller = zmq.Poller()
-    for sub in (*subs.values(), session, events):
+    for sub in (*subs.values(), session, events, *([keypoints] if keypoints else [])):
         poller.register(sub.socket, zmq.POLLIN)
     conn.send_bytes(b"ready")
     blocked: set[str] = set()  # effectors the guard blocked since the last view update
@@ -774,11 +860,17 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     for sub in subs.values():
         command_poller.register(sub.socket, zmq.POLLIN)
     slices = twin.slices
-    # Lockstep: the tick whose commands the twin waits for, those arrived, the episode's end.
+    # Lockstep: the tick whose commands (and keypoints) the twin waits for, those arrived,
+    # the episode's end.
     tick = 0
     pending: dict[str, JointCommandMsg] = {}
-    finished_at: float | None = None
+    pending_keypoints: HandKeypointsMsg | None = None
     done = False
+    #: The session's runs: the run the states carry (a new one: the operator restarts a
+    #: trace), whether the next episode start begins a new run, the source's end (real time).
+    run = 0
+    new_run_due = True
+    source_finished_rt = False
     last_state: RobotStateMsg | None = None
     asked_at = -math.inf
 
@@ -794,6 +886,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 epoch=epoch,
                 fixtures=fixtures,
                 paused=paused,
+                run=run,
                 **lockstep,
             )
         return RobotStateMsg(
@@ -807,6 +900,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             epoch=epoch,
             fixtures=fixtures if st.t < FIXTURES_FOR_S else [],
             paused=paused,
+            run=run,
             **lockstep,
         )
 
@@ -815,11 +909,25 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         last_state, asked_at = msg, time.monotonic()
         state_pub.send(b"state", msg)
 
+    def take_keypoints() -> None:
+        """The operator's keypoints: real time, this epoch's (for the next recorded step);
+        lockstep, those of the tick the twin waits for."""
+        nonlocal pending_keypoints
+        msg = keypoints.recv(0.0) if keypoints is not None else None
+        while msg is not None:
+            if msg.epoch == epoch and not config.lockstep:
+                runs.take_keypoints(keypoints_from_wire(msg))
+            elif msg.epoch == epoch and msg.tick == tick:
+                pending_keypoints = msg
+            msg = keypoints.recv(0.0)
+
     def take_commands() -> None:
         """Real time: every effector's newest command, guarded, written to the actuators'
         targets and handed to the hooks (the mirror) at once."""
+        nonlocal source_finished_rt
         t_take = time.monotonic()
         applied = {}
+        take_keypoints()
         for name, sub in subs.items():
             msg = sub.recv_latest(0.0)
             if msg is None:
@@ -827,6 +935,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             if msg.epoch < epoch:  # computed from the pose before a reset: hold
                 stale[name] = stale.get(name, 0) + 1
                 continue
+            source_finished_rt = source_finished_rt or msg.source_finished
             cmd = command_from_wire(msg)
             if cmd is None:
                 continue  # holding without targets: keep the last ones
@@ -836,7 +945,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             stage.command(applied)
 
     def take_tick_commands() -> None:
-        """Lockstep: the commands answering this tick's state."""
+        """Lockstep: the commands (and keypoints) answering this tick's state."""
+        take_keypoints()
         for name, sub in subs.items():
             msg = sub.recv_latest(0.0)
             if msg is None:
@@ -847,9 +957,13 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 pending[name] = msg
                 process.received[name] = (msg.t_command, time.monotonic())
 
+    def tick_ready() -> bool:
+        """Lockstep: every effector's command (and the keypoints) of this tick came."""
+        return len(pending) == len(subs) and (keypoints is None or pending_keypoints is not None)
+
     def lockstep_step() -> TwinState:
         """One process's tick: every effector's command guarded and written, one step."""
-        nonlocal tick, finished_at, done
+        nonlocal tick, done, pending_keypoints
         cmds = {
             name: command_from_wire(msg, held=twin.action[slices[name]])
             for name, msg in sorted(pending.items())
@@ -857,22 +971,16 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         source_finished = any(msg.source_finished for msg in pending.values())
         t_command = min(msg.t_command for msg in pending.values())
         pending.clear()
+        if pending_keypoints is not None:  # recorded with this tick's step
+            runs.take_keypoints(keypoints_from_wire(pending_keypoints))
+            pending_keypoints = None
         process.tick_commands = cmds
         st = stage.apply(cmds, entered_perf=0.0, latency=False)
         for name, cmd in cmds.items():
             if not (cmd.hold or name in st.guard_blocked_effectors) and cmd.t_source > 0:
                 stage.latencies_ms.append((twin.applied_monotonic - t_command) * 1e3)
         tick += 1
-        elapsed = tick * dt
-        done = bool(
-            (st.success and config.stop_on_success)
-            or st.failure
-            or st.truncated
-            or (config.max_seconds is not None and elapsed >= config.max_seconds)
-        )
-        if source_finished:
-            finished_at = elapsed if finished_at is None else finished_at
-            done = done or elapsed - finished_at >= config.tail_seconds
+        done = runs.stepped(st, source_finished) if runs.playing else False
         return st
 
     def between_substeps() -> None:
@@ -888,21 +996,51 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         for name, sub in subs.items():
             if sub.recv_latest(0.0) is not None:
                 held_for_sync[name] = held_for_sync.get(name, 0) + 1
+        take_keypoints()  # (of frames before the episode's start: never recorded)
         now = time.monotonic()
         if now < schedule.next:
             return None
         schedule.take(now)
         return stage.step()
 
+    def begin_run() -> None:
+        """A run of the session starts here (after its reset and, mirrored, its sync)."""
+        nonlocal run, new_run_due, source_finished_rt, success
+        run, new_run_due, source_finished_rt, success = run + 1, False, False, False
+        runs.begin(episode_seed)
+
     def start_episode() -> None:
-        """After a reset, or a sync that completed: the episode starts (lockstep: tick 0)."""
-        nonlocal tick, finished_at, done, success
-        tick, finished_at, done, success = 0, None, False, False
+        """After a reset, or a sync that completed: the episode starts (lockstep: tick 0;
+        a new run where one is due, else the run goes on from a reset)."""
+        nonlocal tick, done, success, pending_keypoints
+        tick, done, success, pending_keypoints = 0, False, False, None
         pending.clear()
+        if new_run_due:
+            begin_run()
         if config.paced:
             schedule.restart()
             schedule.wait()
         publish(state_message(None, tick=0))
+
+    def next_run() -> None:
+        """The session's next run: the seeded start again (a new epoch); mirrored, once the
+        rig is there."""
+        nonlocal positions, epoch, fixtures, done, new_run_due
+        done, new_run_due = False, True
+        positions = twin.reset(episode_seed)
+        epoch += 1
+        fixtures = fixtures_to_wire(env)
+        if sync is not None:
+            sync.begin(twin.action.copy(), Fixtures.of(env.data))
+            mirror_reset(positions)
+            publish(state_message(None))  # tick -1: the operator waits for the rig
+        elif config.lockstep:
+            start_episode()
+        else:
+            begin_run()
+
+    def sync_s() -> float | None:
+        return sync.last_sync_s if sync is not None else None
 
     held_for_sync: dict[str, int] = {}
     sync_fault = ""
@@ -910,6 +1048,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         sync.begin(twin.action.copy(), Fixtures.of(env.data))
     if not config.lockstep:
         env.between_substeps = between_substeps
+        if sync is None:
+            begin_run()
     elif sync is None or not sync.syncing:
         start_episode()
     else:
@@ -959,6 +1099,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 result = sync.poll()
                 if result:
                     sync_fault = result
+                    runs.sync_failed(result, sync.last_sync_s)
                     publish(state_message(st, done=True))
                 elif result == "":  # in sync: the seeded start again, a new epoch
                     positions = twin.reset(episode_seed)
@@ -967,24 +1108,22 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     mirror_reset(positions)
                     if config.lockstep:
                         start_episode()
-                    else:
-                        success = False
+                    elif new_run_due:
+                        begin_run()
                 else:
                     publish(state_message(st))
                 continue
+            if done:  # the session's runs are over: the supervisor stops on the done state
+                if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
+                    publish(last_state)  # the end, again
+                continue
             if config.lockstep:
-                if done:
-                    if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
-                        publish(last_state)  # the end, again: the supervisor stops on it
-                    continue
                 take_tick_commands()
-                if len(pending) < len(subs):
+                if not tick_ready():
                     if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
                         publish(last_state)  # ask again: a lost message never stalls
                     continue
                 st = lockstep_step()
-                if config.paced and not done:
-                    schedule.wait()
             else:
                 take_commands()
                 now = time.monotonic()
@@ -992,15 +1131,22 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     continue
                 schedule.take(now)
                 st = stage.step()
+                ended = runs.stepped(st, source_finished_rt) if runs.playing else False
+                done = ended and config.ends_runs
             positions = st.positions
             if browser_estop is not None:
                 browser_estop(None)
             success = success or st.success
             details = {k: v for k, v in st.info.items() if k.startswith("task/")}
+            if done and runs.end(sync_s()):  # the run ended; the next one follows
+                next_run()
+                continue
+            if config.paced and not done:
+                schedule.wait()
             if config.lockstep:
                 publish(state_message(st, tick=tick, done=done))
             else:
-                publish(state_message(st))
+                publish(state_message(st, done=done))
             if view is not None:
                 if st.guard_blocked:  # shown at the next update even if it cleared since
                     blocked |= set(st.guard_blocked_effectors or view.guard.geoms)
@@ -1014,6 +1160,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     blocked = set()
     finally:
         env.between_substeps = None
+        if runs.playing:  # stopped by the supervisor: a run it ended, or one cut short
+            runs.end(sync_s(), interrupted=config.recording is not None)
         hardware = {}
         if mirror is not None:
             mirror.close()
@@ -1045,7 +1193,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     "stale_commands": stale,
                     "held_for_sync": held_for_sync,
                     "sync_s": sync.last_sync_s if sync is not None else None,
-                    "stopped_early": sync_fault,
+                    "stopped_early": sync_fault or runs.runs.stopped,
+                    "runs": runs.report(),
                     "hardware_fault": sync_fault or (episode_fault(mirror) if mirror else ""),
                     "failed_devices": list(mirror.failed_devices) if mirror is not None else [],
                     "reset_epoch": epoch,
@@ -1063,7 +1212,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         if view is not None:
             view.close()
         state_pub.close()
-        for s in (*subs.values(), session, events):
+        for s in (*subs.values(), session, events, *([keypoints] if keypoints else [])):
             s.close()
         env.close()
         context.term()
@@ -1202,12 +1351,13 @@ class MultiprocessSession:
                             self.processes[name].exitcode,
                         )
                 elapsed = time.monotonic() - t0
-                if not self.lockstep and (
+                ends_runs = self.twin_config.ends_runs  # else a single real-time run
+                if not ends_runs and (
                     (success and stop_on_success) or (max_seconds and elapsed >= max_seconds)
                 ):
                     break
-                if "twin" in reported or (self.lockstep and reported) or interrupted():
-                    break  # lockstep: no tick follows without both processes
+                if "twin" in reported or (ends_runs and reported) or interrupted():
+                    break  # the twin's runs need both processes (lockstep: every tick)
         finally:
             self.stop()
         return self.summary(success, died=reported)
@@ -1241,19 +1391,8 @@ class MultiprocessSession:
             failed_devices=list(twin.get("failed_devices", [])),
             stopped_early=twin.get("stopped_early", ""),
         )
-        if twin.get("sync_s") is not None:  # mirrored: the run's line, as one process's
-            tally = RunTally()
-            fault = twin.get("hardware_fault", "")
-            tally.add(
-                RunRecord(
-                    1,
-                    summary.success,
-                    0.0 if twin.get("stopped_early") else summary.duration_s,
-                    fault,
-                    sync_s=twin["sync_s"],
-                )
-            )
-            summary.count_runs(tally)
+        if "runs" in twin:  # every run, as one process counts them (the twin played them)
+            summary.take_runs(twin["runs"])
         return summary
 
 
@@ -1298,12 +1437,22 @@ def process_configs(
             show_collision=options.show_collision,
             token=options.session_token(options.viser_host),
         )
+    recording = None
+    if options.record is not None:
+        recording = TwinRecording(
+            root=str(options.record),
+            repo_id=options.repo_id,
+            config=options.recording,
+            keep_faulty=options.keep_faulty_episodes,
+            source=options.source,
+        )
     operator = OperatorProcessConfig(
         stage=stage,
         source=options.source,
         trace=str(options.trace) if options.trace is not None else None,
         lockstep=lockstep,
         webxr=options.webxr_config() if options.source == "webxr" else None,
+        keypoints=recording is not None and recording.config.hand_keypoints,
     )
     twin = TwinProcessConfig(
         task=options.task,
@@ -1315,7 +1464,9 @@ def process_configs(
         lockstep=lockstep,
         paced=options.clock == "paced",
         stop_on_success=options.source == "trace",
-        max_seconds=options.max_seconds,
+        plan=RunPlan.of(options),
+        recording=recording,
+        progress=options.progress,
         mirror_hardware=options.mirror_hardware,
         hardware_config=options.hardware_config,
         dry_run=options.dry_run,

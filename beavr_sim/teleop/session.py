@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 
 from beavr_sim.cameras.poses import rig_placed_cameras
 from beavr_sim.datasets.cli import recording_config
@@ -31,7 +30,6 @@ from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import (
     EpisodeRecorder,
-    FollowLimits,
     HardwareWatch,
     run_recorded_episode,
 )
@@ -65,6 +63,7 @@ from beavr_sim.teleop.mirroring import (
     connect_mirror,
     episode_fault,
     failed_for_good,
+    follow_limits,
     hardware_summary,
 )
 from beavr_sim.teleop.pipeline import (
@@ -257,21 +256,11 @@ class SessionOptions:
             raise ValueError(f"max_seconds must be positive, got {self.max_seconds}")
         if self.repeat < 0 or (self.repeat != 1 and self.source != "trace"):
             raise ValueError("--repeat needs --source trace and a count >= 0 (0: forever)")
-        if self.repeat != 1 and self.multiprocess:
-            raise ValueError(
-                "--repeat runs in one process for now (the processes play one run: the trace "
-                "restarts only in the one-process loop); leave out --multiprocess"
-            )
         if not self.headset_image_hz > 0:
             raise ValueError(f"headset image rate must be positive, got {self.headset_image_hz}")
         if self.record is not None:
             self.record = Path(self.record)
             self.recording = self.recording or RecordingConfig()
-            if self.multiprocess:
-                raise ValueError(
-                    "--record runs in one process for now (the recorder and its per-frame "
-                    "checks follow the one-process loop); leave out --multiprocess"
-                )
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
@@ -282,6 +271,14 @@ class SessionOptions:
             )
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
+        if self.record is not None and self.multiprocess and not (
+            self.source == "trace" and self.auto_start
+        ):
+            raise ValueError(
+                "--record --multiprocess records a trace's episodes, each started at once; "
+                "live episodes (started and stopped by keyboard, browser or gesture) record in "
+                "one process for now: leave out --multiprocess"
+            )
         if self.rerun is not None:
             from beavr_sim.viz.rerun_log import check_rrd_path  # local: heavy (rerun, ~360 ms)
 
@@ -1010,21 +1007,6 @@ def repeated_trace_note(options: SessionOptions, seed: int | None) -> str:
         f"(seed {seed}, the trace's hand motion: identical episodes); for varied "
         f"demonstrations use python -m beavr_sim.datasets generate --task {options.task} "
         f"--episodes {options.episodes} --out DIR (a synthesized trace per seed)"
-    )
-
-
-def follow_limits(mirror, env):
-    """The rig's divergence limits per joint of the action (``inf`` where no device measures
-    a joint) and its window: what the recorder holds the measured state to."""
-
-    limit = np.full(env.joints.size, np.inf)
-    for link in mirror.links:
-        limit[link.index] = link.divergence_limit
-    return FollowLimits(
-        limit_rad=limit,
-        window_s=float(mirror.rig.mirror.divergence_window_s),
-        joint_names=tuple(env.joints.names),
-        lag_s=float(mirror.rig.mirror.device_lag_s),
     )
 
 

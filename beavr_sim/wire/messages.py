@@ -147,7 +147,7 @@ class JointCommandMsg(msgspec.Struct, tag="joint_command", kw_only=True, frozen=
     #: Lockstep (virtual and paced clocks): the tick of the twin's state the command answers
     #: (-1: real time, the command applies when it arrives).
     tick: int = -1
-    #: Lockstep: the operator's source has ended (the twin plays the tail, then stops).
+    #: The operator's source has ended (the twin plays the tail, then ends the run).
     source_finished: bool = False
 
     def __post_init__(self) -> None:
@@ -226,10 +226,15 @@ class RobotStateMsg(msgspec.Struct, tag="robot_state", kw_only=True, frozen=True
     #: for (-1: real time); ``done``: the episode ended, no tick follows.
     tick: int = -1
     done: bool = False
+    #: The session's run this state belongs to (a recorded episode, a ``--repeat`` play;
+    #: 0 before the first starts): on a new run the operator plays a trace from its start.
+    run: int = 0
 
     def __post_init__(self) -> None:
         _coerce(self, ("t",), ("positions", "velocities", "action"))
         _check_epoch(self.epoch)
+        if isinstance(self.run, bool) or not isinstance(self.run, int) or self.run < 0:
+            raise ValueError(f"run must be an integer >= 0, got {self.run!r}")
         if self.tick < -1:
             raise ValueError(f"tick must be >= -1 (-1: real time), got {self.tick}")
         _check_finite("t", self.t)
@@ -277,9 +282,37 @@ class OperatorEventMsg(msgspec.Struct, tag="operator_event", kw_only=True, froze
         _check_finite("t", self.t)
 
 
-Message = HandFrameMsg | JointCommandMsg | RobotStateMsg | SessionMsg | OperatorEventMsg
+class HandKeypointsMsg(msgspec.Struct, tag="hand_keypoints", kw_only=True, frozen=True):
+    """The hands' newest frames as the operator observed them (operator -> twin, for the
+    recorder's ``hand.keypoints``): per side at most one frame, the newest since the last
+    message. Sent only when the recording wants keypoints. ``epoch``: as
+    :class:`JointCommandMsg`'s; ``tick``: lockstep, the tick whose frames these are (the twin
+    records tick k with tick k's keypoints; -1: real time, taken when it arrives)."""
+
+    frames: list[HandFrameMsg] = []
+    epoch: int = 0
+    tick: int = -1
+
+    def __post_init__(self) -> None:
+        _check_epoch(self.epoch)
+        if self.tick < -1:
+            raise ValueError(f"tick must be >= -1 (-1: real time), got {self.tick}")
+        sides = [f.side for f in self.frames]
+        if len(set(sides)) != len(sides):
+            raise ValueError(f"one frame per side at most, got sides {sides}")
+
+
+Message = (
+    HandFrameMsg
+    | JointCommandMsg
+    | RobotStateMsg
+    | SessionMsg
+    | OperatorEventMsg
+    | HandKeypointsMsg
+)
 MESSAGE_TYPES: tuple[type, ...] = (
     HandFrameMsg,
+    HandKeypointsMsg,
     JointCommandMsg,
     RobotStateMsg,
     SessionMsg,

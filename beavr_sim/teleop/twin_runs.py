@@ -1,0 +1,250 @@
+"""The twin process's runs under ``--multiprocess``: the episode loop and the recorder.
+
+The twin process owns the env, the hardware mirror and (``--record``) the dataset, so a
+session's runs are played there: reset -> (mirrored) sync -> episode -> end, as often as the
+session's :class:`~beavr_sim.teleop.runs.RunPlan` says, every decision taken by the same
+:class:`~beavr_sim.teleop.runs.SessionRuns` the single-process session uses. The twin stamps
+its states with the run; the operator process restarts a trace on a new run.
+
+:class:`TwinRuns` contract:
+
+- :meth:`TwinRuns.begin` starts an episode at the twin's current state (after the reset and,
+  mirrored, after the sync: no frame from before the sync is recorded);
+- the recorder is the twin stage's ``after_step`` hook: each step is recorded with the
+  keypoints the operator observed for that tick (:meth:`TwinRuns.take_keypoints`; lockstep:
+  the twin steps only once they came) through the same
+  :meth:`~beavr_sim.datasets.recorder.EpisodeRecorder.record` as one process, and checked by
+  the same :class:`~beavr_sim.datasets.recorder.HardwareWatch` when mirrored;
+- :meth:`TwinRuns.stepped` says when the episode ends, by the single-process loop's rules
+  (success, failure, the time limit, the end of a trace plus its tail, a hardware fault;
+  recording: the recording's tail after success);
+- :meth:`TwinRuns.end` ends it through :func:`~beavr_sim.datasets.episode_end.end_recorded_episode`
+  (a faulty episode discarded, or kept marked ``hardware_fault``; an interrupted one never
+  saved) and says whether another run follows.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
+from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch
+from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.teleop.mirroring import episode_fault, failed_for_good, follow_limits
+from beavr_sim.teleop.runs import RunPlan, SessionRuns
+from beavr_sim.wire.hand import HandFrame
+from beavr_sim.wire.records import TwinState
+
+#: Seconds a trace's episode plays on after its last frame (objects settle), as one process.
+SOURCE_TAIL_S = 2.0
+
+
+@dataclass(frozen=True)
+class TwinRecording:
+    """``--record`` in the twin process: the dataset's folder and repo id, what to record,
+    whether a hardware-fault episode is kept (marked), and the source's name for the log."""
+
+    root: str
+    repo_id: str
+    config: RecordingConfig
+    keep_faulty: bool = False
+    source: str = "trace"
+
+
+class TwinRuns:
+    """The runs of the twin process; see the module docstring. ``stop_on_success``: a run
+    ends at task success (a trace); ``progress``: say each run's line on stderr."""
+
+    def __init__(
+        self,
+        plan: RunPlan,
+        env,
+        stage,
+        mirror=None,
+        recording: TwinRecording | None = None,
+        *,
+        stop_on_success: bool = True,
+        progress: bool = False,
+    ):
+        self.plan = plan
+        self.runs = SessionRuns(plan)
+        self.env = env
+        self.mirror = mirror
+        self.recording = recording
+        self.stop_on_success = stop_on_success
+        self.progress = progress
+        self.dt = 1.0 / env.control_hz
+        self.recorder: EpisodeRecorder | None = None
+        self.writer: EpisodeWriter | None = None
+        if recording is not None:
+            self._open_recorder(recording, stage)
+        #: Hand frames taken for the next step (its keypoints).
+        self.frames: list[HandFrame] = []
+        #: The current episode: playing, its ticks, its success, when the source ended, the
+        #: recording's tail left (None: not in it), its ticks when the run part ended.
+        self.playing = False
+        self.ticks = 0
+        self.success = False
+        self._finished_at: float | None = None
+        self._tail: int | None = None
+        self._run_ticks = 0
+        self._limit: float | None = None
+        self.seed: int | None = None
+
+    def _open_recorder(self, recording: TwinRecording, stage) -> None:
+        config = recording.config
+        env = self.env
+        if int(round(env.control_hz)) != config.fps:
+            raise ValueError(f"--fps must equal the env's control rate ({env.control_hz:g} Hz)")
+        self.writer = EpisodeWriter(
+            recording.root,
+            recording.repo_id,
+            lerobot_features(env.embodiment, config, env.environment_state_names),
+            config.fps,
+            robot_type=env.embodiment.name,
+            use_videos=config.use_videos,
+        )
+        if self.writer.num_episodes:
+            print(
+                f"{recording.root}: appending to the {self.writer.num_episodes} episodes "
+                "already there (a new folder starts a new dataset)",
+                file=sys.stderr,
+            )
+        watch = None
+        if self.mirror is not None:
+            watch = HardwareWatch(self.mirror.health, follow_limits(self.mirror, env), config.fps)
+        self.recorder = EpisodeRecorder(
+            self.writer,
+            env,
+            config,
+            state_source=self.mirror.latest_measured if self.mirror is not None else None,
+            watch=watch,
+        )
+        stage.after_step.append(self._record)
+
+    # ------------------------------------------------------------------ frames
+    def take_keypoints(self, frames: Iterable[HandFrame]) -> None:
+        """The operator's newest frames (oldest first), recorded with the next step."""
+        self.frames.extend(frames)
+
+    def _record(self, state: TwinState) -> None:
+        frames, self.frames = self.frames, []
+        if self.recorder is not None and self.playing:
+            self.recorder.record(state, frames)
+
+    # ------------------------------------------------------------------ an episode
+    @property
+    def fault(self) -> str:
+        """The episode's hardware fault so far (recording: the recorder's per-frame check)."""
+        return self.recorder.fault if self.recorder is not None else ""
+
+    @property
+    def name(self) -> str:
+        return self.runs.name()
+
+    def begin(self, seed: int | None) -> None:
+        """An episode starts at the twin's current state (reset and, mirrored, synced)."""
+        self.seed = seed
+        self.playing = True
+        self.ticks = 0
+        self.success = False
+        self._finished_at = None
+        self._tail = None
+        self._run_ticks = 0
+        self.frames = []
+        limit = self.recording.config.episode_seconds if self.recording is not None else None
+        self._limit = self.runs.episode_limit(limit)
+        if self.recorder is not None:
+            self.recorder.begin()
+
+    def stepped(self, state: TwinState, source_finished: bool) -> bool:
+        """One step of the episode happened: whether the episode ended (the single-process
+        loop's rules; see the module docstring)."""
+        self.ticks += 1
+        if self._tail is not None:  # the recording's tail after success
+            self._tail -= 1
+            return self._tail <= 0 or bool(self.fault)
+        self.success = self.success or bool(state.success)
+        elapsed = self.ticks * self.dt
+        ended = (state.success and self.stop_on_success) or state.failure or bool(self.fault)
+        # not recording: a device failed for good ends the run (nobody re-arms it here)
+        ended = ended or (self.recorder is None and self._failed())
+        ended = ended or state.truncated or (self._limit is not None and elapsed >= self._limit)
+        if source_finished and not ended:
+            self._finished_at = elapsed if self._finished_at is None else self._finished_at
+            ended = elapsed - self._finished_at >= SOURCE_TAIL_S
+        if not ended:
+            return False
+        self._run_ticks = self.ticks
+        if self.recording is not None and self.success and not self.fault:
+            tail = int(round(self.recording.config.tail_seconds * self.recording.config.fps))
+            if tail > 0:
+                self._tail = tail
+                return False
+        return True
+
+    def _failed(self) -> bool:
+        return self.mirror is not None and bool(failed_for_good(self.mirror))
+
+    @property
+    def duration_s(self) -> float:
+        """The episode's play time (s; a recording's tail not included, as one process)."""
+        return (self._run_ticks or self.ticks) * self.dt
+
+    def end(self, sync_s: float | None = None, interrupted: bool = False) -> bool:
+        """End the episode in progress (``interrupted``: cut by Ctrl-C / the session's stop:
+        never saved); returns whether another run follows."""
+        if not self.playing:
+            return False
+        self.playing = False
+        runs = self.runs
+        name = runs.name()
+        if self._run_ticks == 0:
+            self._run_ticks = self.ticks
+        if self.recorder is not None:
+            end = EpisodeEnd(
+                fault=self.recorder.fault,
+                interrupted=interrupted,
+                task_success=self.success,
+                keep_faulty=self.recording.keep_faulty,
+            )
+            written = end_recorded_episode(
+                self.recorder, end, seed=self.seed, source=self.recording.source
+            )
+            record = runs.recorded(end, written, self.duration_s, sync_s)
+            line = runs.episode_line(
+                name, record, end, written, f"{self.writer.num_episodes} in {self.recording.root}"
+            )
+        else:
+            fault = episode_fault(self.mirror) if self.mirror is not None else ""
+            record = runs.played_run(self.success, self.duration_s, fault, sync_s)
+            line = runs.run_line(record)
+        if self.progress:
+            print("\n" + line, file=sys.stderr)
+        if interrupted:
+            return False
+        if self.mirror is not None and failed_for_good(self.mirror):
+            runs.stop(f"{name}: {record.hardware_fault or episode_fault(self.mirror)}")
+            return False
+        if self.recorder is not None and runs.too_many_faults():
+            return False
+        return runs.more()
+
+    def sync_failed(self, fault: str, sync_s: float | None) -> None:
+        """The rig did not reach the next run's start: counted; the session ends."""
+        self.runs.sync_failed(fault, sync_s)
+        if self.progress:
+            print(f"\n{self.runs.name()}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr)
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.writer is not None:
+            self.writer.close()
+
+    def report(self) -> dict:
+        """The runs for the session's summary (:meth:`TeleopSummary.take_runs`)."""
+        return {**self.runs.tally.report(), "stopped_early": self.runs.stopped}
