@@ -1,0 +1,151 @@
+"""``--record`` and ``--repeat`` under ``--multiprocess`` (issue 37): the twin process plays the
+session's runs (``teleop/twin_runs.py``) with the same per-run decisions as one process
+(``teleop/runs.py``), its recorder fed the operator's keypoints of each tick over the wire.
+
+On the virtual clock the layouts are compared frame for frame: the same trace recorded in
+one process and in two gives the same ``action``, ``observation.state`` and hand keypoints,
+bit for bit, episode by episode, and a ``--repeat`` session the same commands every tick.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from beavr_sim.datasets.features import ACTION, KEYPOINTS, STATE, TRACKED, RecordingConfig
+from beavr_sim.teleop.session import SessionOptions, run_session
+from beavr_sim.wire.ports import PortConfig, TransportConfig
+
+#: Seconds of the bundled PickupBox trace kept: each run is this plus the 2 s a run plays on
+#: after its source ended.
+CUT_S = 0.7
+RECORDING = RecordingConfig(cameras=(), use_videos=False)
+
+
+@pytest.fixture(scope="module")
+def short_trace(tmp_path_factory):
+    """The bundled PickupBox trace cut after :data:`CUT_S` seconds."""
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.traces.format import TraceReader, TraceWriter
+
+    reader = TraceReader(bundled_trace("PickupBox"))
+    path = tmp_path_factory.mktemp("trace") / "short.mcap"
+    with TraceWriter(path, reader.metadata) as writer:
+        t0 = None
+        for _t, kind, payload in reader.events():
+            if kind == "hand":
+                t0 = payload.t_source if t0 is None else t0
+                if payload.t_source - t0 <= CUT_S:
+                    writer.write_hand(payload)
+    return path
+
+
+def options(trace, multiprocess: bool, **kwargs) -> SessionOptions:
+    return SessionOptions(
+        task="PickupBox",
+        source="trace",
+        trace=trace,
+        clock="virtual",
+        viser=False,
+        headless=True,
+        progress=False,
+        multiprocess=multiprocess,
+        transport=TransportConfig(ports=PortConfig.free()),
+        **kwargs,
+    )
+
+
+def recorded(root) -> dict[str, np.ndarray]:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("test/mp", root=root, video_backend="pyav")
+    keys = (ACTION, STATE, KEYPOINTS, TRACKED, "episode_index", "frame_index")
+    return {k: np.array(ds.hf_dataset[k]) for k in keys}
+
+
+def episode_log(root) -> list[dict]:
+    lines = (root / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
+    return [json.loads(line) for line in lines]
+
+
+def test_a_trace_records_the_same_episodes_in_both_layouts(short_trace, tmp_path):
+    """Two recorded episodes of a trace (each from a reset, the trace played from its start)
+    in one process and with --multiprocess: the same frames, bit for bit (main refused
+    --record with --multiprocess)."""
+    summaries, data = {}, {}
+    for multiprocess in (False, True):
+        root = tmp_path / f"multi{int(multiprocess)}"
+        opts = options(
+            short_trace,
+            multiprocess,
+            record=root,
+            repo_id="test/mp",
+            episodes=2,
+            recording=RECORDING,
+        )
+        summaries[multiprocess] = run_session(opts)
+        data[multiprocess] = recorded(root)
+        assert [r["kept"] for r in episode_log(root)] == [True, True]
+    one, multi = summaries[False], summaries[True]
+    assert multi.processes == {"twin": "ok", "operator": "ok"}
+    assert np.unique(data[True]["episode_index"]).tolist() == [0, 1]
+    assert data[True][TRACKED].any(), "the hands were tracked: keypoints were recorded"
+    for key, expected in data[False].items():
+        np.testing.assert_array_equal(data[True][key], expected, err_msg=key)
+    # each episode is the trace from its start: the two are the same demonstration
+    first = data[True]["episode_index"] == 0
+    np.testing.assert_array_equal(data[True][KEYPOINTS][first], data[True][KEYPOINTS][~first])
+    assert (multi.runs, multi.successes, multi.per_run) == (one.runs, one.successes, one.per_run)
+    assert multi.runs == 2 and multi.stopped_early == ""
+
+
+def digest_ticks(process, path: str):
+    """An attachment: the digest of every lockstep tick's commands, written at the end."""
+    digest = hashlib.sha256()
+
+    def after_step(state) -> None:
+        for name in sorted(process.tick_commands):
+            command = process.tick_commands[name]
+            digest.update(np.asarray(command.positions, dtype=np.float64).tobytes())
+            digest.update(bytes([command.hold]) + command.reason.encode())
+
+    process.stage.after_step.append(after_step)
+
+    def finish() -> None:
+        with open(path, "w") as f:
+            f.write(digest.hexdigest())
+
+    return finish
+
+
+def test_a_repeated_trace_plays_the_same_runs_in_both_layouts(short_trace, tmp_path):
+    """``--repeat 2`` with --multiprocess (main refused it): the trace played twice from a
+    reset, every tick's commands as in one process, the summary's runs the same."""
+    from beavr_sim.teleop.processes import Attachment, MultiprocessSession
+
+    digest = hashlib.sha256()
+
+    def on_loop(loop) -> None:
+        def listener(tick) -> None:
+            for name in sorted(tick.commands):
+                command = tick.commands[name]
+                digest.update(np.asarray(command.positions, dtype=np.float64).tobytes())
+                digest.update(bytes([command.hold]) + command.reason.encode())
+
+        loop.listeners.append(listener)
+
+    one = run_session(options(short_trace, False, repeat=2), on_loop=on_loop)
+    multi_options = options(short_trace, True, repeat=2)
+    path = tmp_path / "digest.txt"
+    session = MultiprocessSession(
+        multi_options, attach=(Attachment(f"{__name__}:digest_ticks", str(path)),)
+    )
+    multi = session.run(multi_options.max_seconds, stop_on_success=True)
+    assert multi.processes == {"twin": "ok", "operator": "ok"}
+    assert path.read_text() == digest.hexdigest()
+    assert multi.runs == one.runs == 2
+    assert multi.per_run == one.per_run
+    assert multi.run_totals == one.run_totals
