@@ -11,14 +11,39 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import beavr_sim
 from beavr_sim.datasets.features import ACTION, KEYPOINTS, STATE, TRACKED, RecordingConfig
 from beavr_sim.teleop.session import SessionOptions, run_session
 from beavr_sim.wire.ports import PortConfig, TransportConfig
 
+#: The checkout whose package these tests import (subprocesses run the same code).
+REPO = Path(beavr_sim.__file__).resolve().parents[1]
+#: The mirrored session of the frozen-rig test, run in a process of its own (free ports: the
+#: CLI's standard ones may be taken by another session on this machine).
+FROZEN_RIG_SESSION = """
+import json, sys
+from pathlib import Path
+from beavr_sim.datasets.features import RecordingConfig
+from beavr_sim.teleop.session import SessionOptions, run_session
+from beavr_sim.wire.ports import PortConfig, TransportConfig
+options = SessionOptions(
+    task="PickupBox", source="trace", mirror_hardware=True, hardware_config="emulated",
+    viser=False, headless=True, multiprocess=True, clock="paced", record=Path(sys.argv[1]),
+    repo_id="test/frozen", episodes=1,
+    recording=RecordingConfig(cameras=(), episode_seconds=3.0, use_videos=False),
+    transport=TransportConfig(ports=PortConfig.free()),
+)
+print(json.dumps(run_session(options).to_dict()))
+"""
 #: Seconds of the bundled PickupBox trace kept: each run is this plus the 2 s a run plays on
 #: after its source ended.
 CUT_S = 0.7
@@ -149,3 +174,85 @@ def test_a_repeated_trace_plays_the_same_runs_in_both_layouts(short_trace, tmp_p
     assert multi.runs == one.runs == 2
     assert multi.per_run == one.per_run
     assert multi.run_totals == one.run_totals
+
+
+# ------------------------------------------------------------------ on the emulated rig
+def _descendants(pid: int) -> list[int]:
+    out, todo = [], [pid]
+    while todo:
+        for task in Path(f"/proc/{todo.pop()}/task").glob("*"):
+            try:
+                children = [int(p) for p in (task / "children").read_text().split()]
+            except (OSError, ValueError):
+                continue
+            out += children
+            todo += children
+    return out
+
+
+def _emulator_pid(session_pid: int) -> int | None:
+    """The emulated rig's process (a child of the twin process)."""
+    for pid in _descendants(session_pid):
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"emulators" in cmdline:
+            return pid
+    return None
+
+
+def test_a_frozen_rig_spoils_the_episode_it_records_and_the_next_starts_synced(tmp_path):
+    """Mirrored --multiprocess recording (main refused it): the emulated rig's process is
+    frozen (SIGSTOP) the moment the first episode starts recording and let go (SIGCONT) when
+    the session says the episode was spoilt. That episode is discarded, never saved; the
+    rig recovers, syncs, and the episode is recorded again from its start, true (its measured
+    state follows its commands) and as long as asked (no frame of the sync in it)."""
+    root = tmp_path / "D"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", FROZEN_RIG_SESSION, str(root)],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    err, frozen, released = b"", None, False
+    try:
+        while not released:  # the session's own words: recording, then the fault
+            chunk = proc.stderr.read1(4096)
+            if not chunk:
+                break
+            err += chunk
+            if frozen is None and b"episode 1/1: REC\n" in err:
+                frozen = _emulator_pid(proc.pid)
+                assert frozen is not None, "the emulator process was not found"
+                os.kill(frozen, signal.SIGSTOP)
+            if frozen is not None and b"HARDWARE FAULT" in err:
+                os.kill(frozen, signal.SIGCONT)
+                released = True
+        out, rest = proc.communicate(timeout=300)
+    finally:
+        if frozen is not None and not released:
+            os.kill(frozen, signal.SIGCONT)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = (err + rest).decode(errors="replace")
+    assert released and proc.returncode == 0, text[-3000:]
+    summary = json.loads(out.decode().strip().splitlines()[-1])
+    log = episode_log(root)
+    assert [(r["kept"], bool(r["hardware_fault"])) for r in log] == [(False, True), (True, False)]
+    assert log[1]["frames"] == 3 * 30, log[1]  # the episode only: nothing of the sync
+    runs = summary["per_run"]
+    assert [(r["saved"], bool(r["hardware_fault"])) for r in runs] == [(False, True), (True, False)]
+    assert all(r["sync_s"] >= 0 for r in runs), runs  # each run started from a synced rig
+    assert summary["failed_devices"] == [] and summary["stopped_early"] == ""
+    state, action = recorded_state_and_action(root, "test/frozen")
+    gap = np.abs(state - action)
+    assert np.ptp(action, axis=0).max() > 0.3, "the episode should move the robot"
+    assert gap[:, :7].max() < 0.5, gap[:, :7].max()  # the arm followed (its limit 0.3 rad)
+
+
+def recorded_state_and_action(root, repo_id: str) -> tuple[np.ndarray, np.ndarray]:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset(repo_id, root=root, video_backend="pyav")
+    return np.array(ds.hf_dataset[STATE]), np.array(ds.hf_dataset[ACTION])

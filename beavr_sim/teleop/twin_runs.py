@@ -159,6 +159,8 @@ class TwinRuns:
         self._limit = self.runs.episode_limit(limit)
         if self.recorder is not None:
             self.recorder.begin()
+            if self.progress:
+                print(f"\n{self.runs.name()}: REC", file=sys.stderr)
 
     def stepped(self, state: TwinState, source_finished: bool) -> bool:
         """One step of the episode happened: whether the episode ended (the single-process
