@@ -325,9 +325,8 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "control_rate": op.stage.control_hz == twin.control_hz,
             "record": (twin.recording is not None) == (feature == "record"),
             "keypoints": op.keypoints == (feature == "record"),
-            "repeat": twin.plan.repeat == options.repeat and twin.ends_runs >= (
-                feature == "repeat"
-            ),
+            "repeat": twin.plan.repeat == options.repeat
+            and twin.ends_runs >= (feature == "repeat"),
         }
         wrong += [f"{case}: {what} not carried" for what, ok in carried.items() if not ok]
     assert not wrong, "\n".join(wrong)

@@ -47,6 +47,13 @@ every effector commanded), and the twin applies those commands and steps only on
 effector's arrived; paced, each tick's state is published at its wall deadline. A replay is
 then the same episode as in one process, command for command.
 
+The twin process plays the session's runs (a ``--repeat`` trace, recorded ``--episodes``:
+:class:`~beavr_sim.teleop.twin_runs.TwinRuns`, with the single-process session's per-run
+decisions) and records them (the recorder on its stage's ``after_step`` hook, fed the hands'
+keypoints the operator sends on the command stream, :class:`~beavr_sim.wire.messages.HandKeypointsMsg`);
+its states carry the run, and the operator plays a trace from its start on a new run. A
+single real-time run without recording is ended by the supervisor (success, ``--max-seconds``).
+
 Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
 of an older one; the operator re-homes from the first state of a newer epoch only, and after
 a reset request holds until that state comes (:class:`OperatorRehome`). The twin's physics

@@ -271,8 +271,10 @@ class SessionOptions:
             )
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
-        if self.record is not None and self.multiprocess and not (
-            self.source == "trace" and self.auto_start
+        if (
+            self.record is not None
+            and self.multiprocess
+            and not (self.source == "trace" and self.auto_start)
         ):
             raise ValueError(
                 "--record --multiprocess records a trace's episodes, each started at once; "

@@ -239,7 +239,9 @@ class TwinRuns:
         """The rig did not reach the next run's start: counted; the session ends."""
         self.runs.sync_failed(fault, sync_s)
         if self.progress:
-            print(f"\n{self.runs.name()}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr)
+            print(
+                f"\n{self.runs.name()}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr
+            )
 
     def close(self) -> None:
         if self.recorder is not None:
