@@ -145,6 +145,8 @@ PROCESS_NAMES = ("operator", "twin")
 #: Seconds without a message after which a stream's producer counts as dead.
 LIVENESS_TIMEOUT_S = 0.5
 HANDSHAKE_TIMEOUT_S = 10.0
+#: Seconds a recording twin process gets to close its dataset and report when stopped.
+STOP_RECORDING_S = 60.0
 #: A side without a hand frame for this many control periods is commanded on the clock (its
 #: holds). More than one: a 30 Hz headset's frames come a period apart, with jitter, and a
 #: clock command just before each would repeat the last frame's.
@@ -1306,7 +1308,9 @@ class MultiprocessSession:
         self.send("stop")
         for name, proc in self.processes.items():
             pipe = self.pipes[name]
-            if pipe.poll(5.0 if proc.is_alive() else 0.1):
+            # a recording twin closes its dataset first: never killed while it writes
+            patience = STOP_RECORDING_S if name == "twin" and self.twin_config.recording else 5.0
+            if pipe.poll(patience if proc.is_alive() else 0.1):
                 try:
                     self.results[name] = json.loads(pipe.recv_bytes())
                 except (EOFError, ValueError):

@@ -184,8 +184,9 @@ class SessionOptions:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
             if self.multiprocess:
                 raise ValueError(
-                    "--camera runs in one process for now (its frames go to the recorder, which "
-                    "follows the one-process loop); leave out --multiprocess"
+                    "--camera runs in one process for now (real cameras are read next to the "
+                    "one-process recorder; --multiprocess records the twin's cameras only); "
+                    "leave out --multiprocess"
                 )
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
