@@ -678,8 +678,11 @@ class TwinProcess:
     """What an :class:`Attachment` gets in the twin process: the config, the env, the twin
     stage (attach to its ``after_command`` / ``after_step`` hooks), the mirror (None when not
     mirroring), per effector the newest command's operator stamp and the moment the twin took
-    it (:attr:`received`: ``(t_command, t_take)``, monotonic), and the commands of the last
-    lockstep tick (:attr:`tick_commands`)."""
+    it (:attr:`received`: ``(t_command, t_take)``, monotonic), and for the step just made
+    (read them in an ``after_step`` hook) its commands (:attr:`tick_commands`: the lockstep
+    tick's; real time: those applied since the step before) and its hand frames
+    (:attr:`frames`, oldest first: sent by the operator only when the session records
+    keypoints or logs to Rerun)."""
 
     def __init__(self, config: TwinProcessConfig, env, stage: TwinStage, mirror):
         self.config = config
@@ -688,6 +691,7 @@ class TwinProcess:
         self.mirror = mirror
         self.received: dict[str, tuple[float, float]] = {}
         self.tick_commands: dict[str, JointCommand] = {}
+        self.frames: list = []
 
 
 def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Callable[[], None]:
@@ -760,6 +764,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             stage,
             mirror,
             config.recording,
+            frames=lambda: process.frames,
             stop_on_success=config.stop_on_success,
             progress=config.progress,
         )
@@ -874,6 +879,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     tick = 0
     pending: dict[str, JointCommandMsg] = {}
     pending_keypoints: HandKeypointsMsg | None = None
+    # Real time: the hand frames and commands taken since the last step (the next step's).
+    pending_frames: list = []
+    step_commands: dict[str, JointCommand] = {}
     done = False
     #: The session's runs: the run the states carry (a new one: the operator restarts a
     #: trace), whether the next episode start begins a new run, the source's end (real time).
@@ -925,7 +933,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         msg = keypoints.recv(0.0) if keypoints is not None else None
         while msg is not None:
             if msg.epoch == epoch and not config.lockstep:
-                runs.take_keypoints(keypoints_from_wire(msg))
+                pending_frames.extend(keypoints_from_wire(msg))
             elif msg.epoch == epoch and msg.tick == tick:
                 pending_keypoints = msg
             msg = keypoints.recv(0.0)
@@ -952,6 +960,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             process.received[name] = (msg.t_command, t_take)
         if applied:
             stage.command(applied)
+            step_commands.update(applied)
 
     def take_tick_commands() -> None:
         """Lockstep: the commands (and keypoints) answering this tick's state."""
@@ -980,9 +989,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         source_finished = any(msg.source_finished for msg in pending.values())
         t_command = min(msg.t_command for msg in pending.values())
         pending.clear()
-        if pending_keypoints is not None:  # recorded with this tick's step
-            runs.take_keypoints(keypoints_from_wire(pending_keypoints))
-            pending_keypoints = None
+        # this tick's hand frames, for the hooks that record or log the step
+        process.frames = keypoints_from_wire(pending_keypoints) if pending_keypoints else []
+        pending_keypoints = None
         process.tick_commands = cmds
         st = stage.apply(cmds, entered_perf=0.0, latency=False)
         for name, cmd in cmds.items():
@@ -1006,10 +1015,12 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             if sub.recv_latest(0.0) is not None:
                 held_for_sync[name] = held_for_sync.get(name, 0) + 1
         take_keypoints()  # (of frames before the episode's start: never recorded)
+        pending_frames.clear()
         now = time.monotonic()
         if now < schedule.next:
             return None
         schedule.take(now)
+        process.frames, process.tick_commands = [], {}
         return stage.step()
 
     def begin_run() -> None:
@@ -1139,6 +1150,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 if now < schedule.next:
                     continue
                 schedule.take(now)
+                process.frames, process.tick_commands = list(pending_frames), dict(step_commands)
+                pending_frames.clear()
+                step_commands.clear()
                 st = stage.step()
                 ended = runs.stepped(st, source_finished_rt) if runs.playing else False
                 done = ended and config.ends_runs

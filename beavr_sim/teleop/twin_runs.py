@@ -11,8 +11,8 @@ its states with the run; the operator process restarts a trace on a new run.
 - :meth:`TwinRuns.begin` starts an episode at the twin's current state (after the reset and,
   mirrored, after the sync: no frame from before the sync is recorded);
 - the recorder is the twin stage's ``after_step`` hook: each step is recorded with the
-  keypoints the operator observed for that tick (:meth:`TwinRuns.take_keypoints`; lockstep:
-  the twin steps only once they came) through the same
+  hand frames the operator observed for that tick (``frames()``, set by the twin process
+  before the step; lockstep: the twin steps only once they came) through the same
   :meth:`~beavr_sim.datasets.recorder.EpisodeRecorder.record` as one process, and checked by
   the same :class:`~beavr_sim.datasets.recorder.HardwareWatch` when mirrored;
 - :meth:`TwinRuns.stepped` says when the episode ends, by the single-process loop's rules
@@ -26,7 +26,7 @@ its states with the run; the operator process restarts a trace on a new run.
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
@@ -55,8 +55,9 @@ class TwinRecording:
 
 
 class TwinRuns:
-    """The runs of the twin process; see the module docstring. ``stop_on_success``: a run
-    ends at task success (a trace); ``progress``: say each run's line on stderr."""
+    """The runs of the twin process; see the module docstring. ``frames()``: the hand frames
+    of the step just made (the recorder's keypoints); ``stop_on_success``: a run ends at task
+    success (a trace); ``progress``: say each run's line on stderr."""
 
     def __init__(
         self,
@@ -66,6 +67,7 @@ class TwinRuns:
         mirror=None,
         recording: TwinRecording | None = None,
         *,
+        frames: Callable[[], Sequence[HandFrame]] = tuple,
         stop_on_success: bool = True,
         progress: bool = False,
     ):
@@ -76,13 +78,12 @@ class TwinRuns:
         self.recording = recording
         self.stop_on_success = stop_on_success
         self.progress = progress
+        self.frames = frames
         self.dt = 1.0 / env.control_hz
         self.recorder: EpisodeRecorder | None = None
         self.writer: EpisodeWriter | None = None
         if recording is not None:
             self._open_recorder(recording, stage)
-        #: Hand frames taken for the next step (its keypoints).
-        self.frames: list[HandFrame] = []
         #: The current episode: playing, its ticks, its success, when the source ended, the
         #: recording's tail left (None: not in it), its ticks when the run part ended.
         self.playing = False
@@ -126,14 +127,9 @@ class TwinRuns:
         stage.after_step.append(self._record)
 
     # ------------------------------------------------------------------ frames
-    def take_keypoints(self, frames: Iterable[HandFrame]) -> None:
-        """The operator's newest frames (oldest first), recorded with the next step."""
-        self.frames.extend(frames)
-
     def _record(self, state: TwinState) -> None:
-        frames, self.frames = self.frames, []
         if self.recorder is not None and self.playing:
-            self.recorder.record(state, frames)
+            self.recorder.record(state, self.frames())
 
     # ------------------------------------------------------------------ an episode
     @property
@@ -154,7 +150,6 @@ class TwinRuns:
         self._finished_at = None
         self._tail = None
         self._run_ticks = 0
-        self.frames = []
         limit = self.recording.config.episode_seconds if self.recording is not None else None
         self._limit = self.runs.episode_limit(limit)
         if self.recorder is not None:
