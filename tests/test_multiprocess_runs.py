@@ -256,3 +256,48 @@ def recorded_state_and_action(root, repo_id: str) -> tuple[np.ndarray, np.ndarra
 
     ds = LeRobotDataset(repo_id, root=root, video_backend="pyav")
     return np.array(ds.hf_dataset[STATE]), np.array(ds.hf_dataset[ACTION])
+
+
+def _rerun_rows(path) -> tuple[dict[str, int], dict[str, list]]:
+    """Rows per entity path on the timelines, and each entity's values (``Scalars`` or
+    ``Points3D`` positions) in tick order."""
+    import rerun as rr
+
+    rows: dict[str, int] = {}
+    values: dict[str, list] = {}
+    for chunk in rr.chunk.RrdReader(path).stream().to_chunks():
+        if chunk.is_static:
+            continue
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        batch = chunk.to_record_batch()
+        for column in ("Scalars:scalars", "Points3D:positions"):
+            if column in batch.schema.names:
+                ticks = batch.column("tick").to_pylist()
+                got = values.setdefault(chunk.entity_path, [])
+                got += list(zip(ticks, batch.column(column).to_pylist(), strict=True))
+    return rows, {k: [v for _, v in sorted(vs, key=lambda x: x[0])] for k, vs in values.items()}
+
+
+def test_a_rerun_log_of_the_twin_process_holds_what_one_process_logs(short_trace, tmp_path):
+    """``--rerun`` with --multiprocess (main refused it): the logger follows the twin stage's
+    ``after_step`` hook. On the virtual clock the log holds every tick's joints, commands and
+    holds, and the hands the operator saw, with the values one process logs."""
+    logs = {}
+    for multiprocess in (False, True):
+        path = tmp_path / f"session{int(multiprocess)}.rrd"
+        opts = options(short_trace, multiprocess, rerun=path, rerun_image_hz=0, rerun_twin_hz=0)
+        summary = run_session(opts)
+        logs[multiprocess] = _rerun_rows(path)
+    (rows_one, one), (rows_multi, multi) = logs[False], logs[True]
+    ticks = summary.ticks
+    for entity in (
+        "/robot/joints/right/joint1/position",
+        "/robot/joints/right/leap_15/command",
+        "/robot/hold/right",
+        "/task/success",
+    ):
+        assert rows_multi.get(entity) == rows_one.get(entity) == ticks, entity
+        assert multi[entity] == one[entity], entity
+    hands = "/world/hands/right/keypoints"
+    assert rows_multi.get(hands) == rows_one.get(hands) > ticks // 4
+    assert multi[hands] == one[hands]

@@ -273,8 +273,6 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("recorded source")
     if multiprocess and feature == "record" and source != "trace":
         reasons.append("--record")
-    if multiprocess and feature == "rerun":
-        reasons.append("--rerun")
     if multiprocess and feature == "camera":
         reasons.append("--camera")
     if feature == "repeat" and source != "trace":
@@ -324,7 +322,8 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             == (feature == "headset_images" and source == "quest"),
             "control_rate": op.stage.control_hz == twin.control_hz,
             "record": (twin.recording is not None) == (feature == "record"),
-            "keypoints": op.keypoints == (feature == "record"),
+            "keypoints": op.keypoints == (feature in ("record", "rerun")),
+            "rerun": (twin.rerun is not None) == (feature == "rerun"),
             "repeat": twin.plan.repeat == options.repeat
             and twin.ends_runs >= (feature == "repeat"),
         }

@@ -64,6 +64,7 @@ command (reason ``"error"``), it never ends the process.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import logging
@@ -117,6 +118,7 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.runs import RunPlan
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
+from beavr_sim.teleop.twin_rerun import TwinRerun, attach_rerun
 from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns
 from beavr_sim.traces.format import TraceReader
 from beavr_sim.twin.twin import CommandOutcome, TwinInterface
@@ -242,6 +244,8 @@ class TwinProcessConfig:
     #: recording): played by the twin (:class:`~beavr_sim.teleop.twin_runs.TwinRuns`).
     plan: RunPlan = field(default_factory=RunPlan)
     recording: TwinRecording | None = None
+    #: ``--rerun``: the Rerun log, a hook of the twin stage (None: no log).
+    rerun: TwinRerun | None = None
     #: Say each run's line on stderr.
     progress: bool = False
     mirror_hardware: bool = False
@@ -254,6 +258,13 @@ class TwinProcessConfig:
     view: ViewConfig | None = None
     headset_images: HeadsetImagesConfig | None = None
     attach: tuple[Attachment, ...] = ()
+
+    @property
+    def wants_keypoints(self) -> bool:
+        """The operator sends the hands' frames: the recording stores keypoints, or the
+        Rerun log draws the hands."""
+        keypoints = self.recording is not None and self.recording.config.hand_keypoints
+        return keypoints or self.rerun is not None
 
     @property
     def ends_runs(self) -> bool:
@@ -794,7 +805,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         conflate=False,
     )
     keypoints = None
-    if config.recording is not None and config.recording.config.hand_keypoints:
+    if config.wants_keypoints:
         keypoints = Subscriber(
             context,
             transport.endpoint("commands", bind=False),
@@ -849,6 +860,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         closers.append(headset.close)
         stage.after_step.append(headset)
     process = TwinProcess(config, env, stage, mirror)
+    if config.rerun is not None:
+        closers.append(attach_rerun(process, config.rerun, real_time=not config.lockstep))
     finishers: list[Callable[[], None]] = []
     for attachment in config.attach:
         finish = attachment.resolve()(process, attachment.argument)
@@ -1477,7 +1490,6 @@ def process_configs(
         trace=str(options.trace) if options.trace is not None else None,
         lockstep=lockstep,
         webxr=options.webxr_config() if options.source == "webxr" else None,
-        keypoints=recording is not None and recording.config.hand_keypoints,
     )
     twin = TwinProcessConfig(
         task=options.task,
@@ -1491,6 +1503,13 @@ def process_configs(
         stop_on_success=options.source == "trace",
         plan=RunPlan.of(options),
         recording=recording,
+        rerun=(
+            TwinRerun(
+                str(options.rerun), options.rerun_image_hz, options.rerun_twin_hz, options.source
+            )
+            if options.rerun is not None
+            else None
+        ),
         progress=options.progress,
         mirror_hardware=options.mirror_hardware,
         hardware_config=options.hardware_config,
@@ -1505,7 +1524,7 @@ def process_configs(
         ),
         attach=tuple(attach),
     )
-    return operator, twin
+    return dataclasses.replace(operator, keypoints=twin.wants_keypoints), twin
 
 
 def run_multiprocess(options, interrupted=lambda: False) -> TeleopSummary:

@@ -286,11 +286,6 @@ class SessionOptions:
             from beavr_sim.viz.rerun_log import check_rrd_path  # local: heavy (rerun, ~360 ms)
 
             self.rerun = check_rrd_path(self.rerun)
-            if self.multiprocess:
-                raise ValueError(
-                    "--rerun runs in one process for now (the logger follows the one-process "
-                    "loop); leave out --multiprocess"
-                )
         if not 0 <= self.rerun_image_hz < float("inf"):
             raise ValueError(f"--rerun-image-hz must be >= 0 (0: none), got {self.rerun_image_hz}")
         if not 0 <= self.rerun_twin_hz < float("inf"):
