@@ -230,9 +230,24 @@ def test_camera_dying_mid_episode_is_reported_dead(server):
 # --- recorded sessions -----------------------------------------------------------------------
 
 
-def _record(tmp_path, port: int, episode_s: float, listener=None, stream_hz=0.0, viewers=None):
+def _record(
+    tmp_path,
+    port: int,
+    episode_s: float,
+    listener=None,
+    stream_hz=0.0,
+    viewers=None,
+    multiprocess: bool = False,
+):
     from beavr_sim.datasets.features import RecordingConfig
-    from beavr_sim.teleop.session import ProgressLine, SessionOptions, build_loop, record_episodes
+    from beavr_sim.teleop.session import (
+        ProgressLine,
+        SessionOptions,
+        build_loop,
+        record_episodes,
+        run_session,
+    )
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
 
     options = SessionOptions(
         task="PickupBox",
@@ -248,19 +263,26 @@ def _record(tmp_path, port: int, episode_s: float, listener=None, stream_hz=0.0,
         auto_start=True,
         real_cameras=(f"front=zmq:127.0.0.1:{port}",),
         camera_stream_hz=stream_hz,
+        multiprocess=multiprocess,
+        transport=TransportConfig(ports=PortConfig.free()),
     )
-    loop = build_loop(options)
-    if listener is not None:
-        loop.listeners.append(listener)
-    record_episodes(options, loop, ProgressLine(loop, enabled=False), viewers=viewers)
+    if multiprocess:  # the real camera read in the twin process, next to its recorder
+        run_session(options)
+    else:
+        loop = build_loop(options)
+        if listener is not None:
+            loop.listeners.append(listener)
+        record_episodes(options, loop, ProgressLine(loop, enabled=False), viewers=viewers)
     lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
     return [json.loads(x) for x in lines]
 
 
-def test_recorded_frames_are_live_camera_frames(tmp_path, server):
+@pytest.mark.parametrize("multiprocess", [False, True], ids=["one_process", "multiprocess"])
+def test_recorded_frames_are_live_camera_frames(tmp_path, server, multiprocess):
+    """In both layouts (main refused --camera with --multiprocess)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    (record,) = _record(tmp_path, server.port, episode_s=1.0)
+    (record,) = _record(tmp_path, server.port, episode_s=1.0, multiprocess=multiprocess)
     assert record["kept"] and record["hardware_fault"] is None
     cams = record["cameras"]["front"]
     assert cams["frames"] >= record["frames"] and cams["repeats"] < cams["frames"] / 2
@@ -318,6 +340,7 @@ def test_camera_flag_errors():
             multiprocess=True,
             record=Path("x"),
             real_cameras=("front=opencv:0",),
+            camera_stream_hz=5.0,
         )
     with pytest.raises(CameraSpecError, match="opencv:INDEX_OR_PATH"):
         SessionOptions(

@@ -271,10 +271,8 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("real control rate")
     if clock in ("virtual", "paced") and source != "trace":
         reasons.append("recorded source")
-    if multiprocess and feature == "record" and source != "trace":
+    if multiprocess and feature in ("record", "camera") and source != "trace":
         reasons.append("--record")
-    if multiprocess and feature == "camera":
-        reasons.append("--camera")
     if feature == "repeat" and source != "trace":
         reasons.append("--source trace")
     if multiprocess and source == "webxr" and feature == "headset_images":
@@ -321,8 +319,10 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "headset_images": (twin.headset_images is not None)
             == (feature == "headset_images" and source == "quest"),
             "control_rate": op.stage.control_hz == twin.control_hz,
-            "record": (twin.recording is not None) == (feature == "record"),
-            "keypoints": op.keypoints == (feature in ("record", "rerun")),
+            "record": (twin.recording is not None) == (feature in ("record", "camera")),
+            "camera": (twin.recording.real_cameras if twin.recording else ())
+            == options.real_cameras,
+            "keypoints": op.keypoints == (feature in ("record", "camera", "rerun")),
             "rerun": (twin.rerun is not None) == (feature == "rerun"),
             "repeat": twin.plan.repeat == options.repeat
             and twin.ends_runs >= (feature == "repeat"),

@@ -82,6 +82,7 @@ import numpy as np
 import zmq
 
 import beavr_sim  # noqa: F401  (registers the envs the twin process makes)
+from beavr_sim.cameras.errors import CameraError
 from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
 from beavr_sim.hardware.device import MirrorError
 from beavr_sim.hardware.mirror import Fixtures
@@ -779,7 +780,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             stop_on_success=config.stop_on_success,
             progress=config.progress,
         )
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, CameraError) as exc:
         for close in reversed(closers):
             close()
         conn.send_bytes(f"error: {exc}".encode())
@@ -1483,6 +1484,8 @@ def process_configs(
             config=options.recording,
             keep_faulty=options.keep_faulty_episodes,
             source=options.source,
+            real_cameras=tuple(options.real_cameras),
+            rig_file=options.camera_rig_file(),
         )
     operator = OperatorProcessConfig(
         stage=stage,

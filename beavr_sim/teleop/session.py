@@ -73,6 +73,7 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.processes import run_multiprocess
 from beavr_sim.teleop.runs import RunPlan, SessionRuns
+from beavr_sim.teleop.twin_runs import connect_real_cameras
 from beavr_sim.teleop.view import attach_view
 from beavr_sim.traces.bundled import find_bundled_trace
 from beavr_sim.twin.twin import TwinInterface
@@ -175,6 +176,11 @@ class SessionOptions:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
         if self.camera_stream_hz > 0 and self.record is None:
             raise ValueError("--camera-stream-hz streams a recording's real cameras; add --record")
+        if self.camera_stream_hz > 0 and self.multiprocess:
+            raise ValueError(
+                "--camera-stream-hz streams to the one-process viewers for now (the real "
+                "cameras are read in the twin process); leave out --multiprocess"
+            )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
@@ -182,12 +188,6 @@ class SessionOptions:
 
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
-            if self.multiprocess:
-                raise ValueError(
-                    "--camera runs in one process for now (real cameras are read next to the "
-                    "one-process recorder; --multiprocess records the twin's cameras only); "
-                    "leave out --multiprocess"
-                )
             if self.record is None:
                 raise ValueError("--camera records real cameras into a dataset; add --record")
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
@@ -339,6 +339,12 @@ class SessionOptions:
                     file=sys.stderr,
                 )
         return allowed
+
+    def camera_rig_file(self) -> str | None:
+        """The mirrored rig file whose ``[cameras.NAME]`` tables are real cameras (None:
+        not mirroring, or the emulated rig)."""
+        rig = self.hardware_config if self.mirror_hardware else None
+        return None if rig == "emulated" else rig
 
     @property
     def placed_cameras(self) -> tuple[PlacedCamera, ...]:
@@ -810,18 +816,7 @@ class _EpisodeRequests:
 def _real_cameras(options: SessionOptions, fps: int):
     """The session's real cameras, connected (None when there are none); a camera that does
     not open fails here with one line naming it."""
-
-    rig = options.hardware_config if options.mirror_hardware else None
-    from beavr_sim.cameras.spec import session_cameras  # local: heavy (lerobot + torch, ~1 s)
-
-    configs = session_cameras(options.real_cameras, None if rig == "emulated" else rig, fps)
-    if not configs:
-        return None
-    from beavr_sim.cameras.real import RealCameras  # local: heavy (lerobot + torch, ~1 s)
-
-    cameras = RealCameras(configs, control_period_s=1.0 / fps)
-    cameras.connect()
-    return cameras
+    return connect_real_cameras(options.real_cameras, options.camera_rig_file(), fps)
 
 
 def record_episodes(

@@ -52,6 +52,25 @@ class TwinRecording:
     config: RecordingConfig
     keep_faulty: bool = False
     source: str = "trace"
+    #: ``--camera NAME=SPEC`` real cameras, and the mirrored rig file whose ``[cameras.NAME]``
+    #: tables add more (None: not a rig file).
+    real_cameras: tuple[str, ...] = ()
+    rig_file: str | None = None
+
+
+def connect_real_cameras(camera_args: tuple[str, ...], rig_file: str | None, fps: int):
+    """A recording's real cameras, connected (None when there are none); a camera that does
+    not open fails here with one line naming it (``CameraError``)."""
+    from beavr_sim.cameras.spec import session_cameras  # local: heavy (lerobot + torch, ~1 s)
+
+    configs = session_cameras(camera_args, rig_file, fps)
+    if not configs:
+        return None
+    from beavr_sim.cameras.real import RealCameras  # local: heavy (lerobot + torch, ~1 s)
+
+    cameras = RealCameras(configs, control_period_s=1.0 / fps)
+    cameras.connect()
+    return cameras
 
 
 class TwinRuns:
@@ -82,6 +101,7 @@ class TwinRuns:
         self.dt = 1.0 / env.control_hz
         self.recorder: EpisodeRecorder | None = None
         self.writer: EpisodeWriter | None = None
+        self.real_cameras = None
         if recording is not None:
             self._open_recorder(recording, stage)
         #: The current episode: playing, its ticks, its success, when the source ended, the
@@ -100,14 +120,24 @@ class TwinRuns:
         env = self.env
         if int(round(env.control_hz)) != config.fps:
             raise ValueError(f"--fps must equal the env's control rate ({env.control_hz:g} Hz)")
-        self.writer = EpisodeWriter(
-            recording.root,
-            recording.repo_id,
-            lerobot_features(env.embodiment, config, env.environment_state_names),
-            config.fps,
-            robot_type=env.embodiment.name,
-            use_videos=config.use_videos,
-        )
+        real = connect_real_cameras(recording.real_cameras, recording.rig_file, config.fps)
+        self.real_cameras = real
+        shapes = {n: real.frame_shape(n) for n in real.names} if real is not None else None
+        try:
+            self.writer = EpisodeWriter(
+                recording.root,
+                recording.repo_id,
+                lerobot_features(
+                    env.embodiment, config, env.environment_state_names, real_cameras=shapes
+                ),
+                config.fps,
+                robot_type=env.embodiment.name,
+                use_videos=config.use_videos,
+            )
+        except BaseException:
+            if real is not None:
+                real.close()
+            raise
         if self.writer.num_episodes:
             print(
                 f"{recording.root}: appending to the {self.writer.num_episodes} episodes "
@@ -123,6 +153,7 @@ class TwinRuns:
             config,
             state_source=self.mirror.latest_measured if self.mirror is not None else None,
             watch=watch,
+            real_cameras=real,
         )
         stage.after_step.append(self._record)
 
@@ -226,6 +257,10 @@ class TwinRuns:
         if self.mirror is not None and failed_for_good(self.mirror):
             runs.stop(f"{name}: {record.hardware_fault or episode_fault(self.mirror)}")
             return False
+        real = self.real_cameras
+        if real is not None and real.failed_for_good():
+            runs.stop(f"{name}: camera {', '.join(real.failed_for_good())} stopped for good")
+            return False
         if self.recorder is not None and runs.too_many_faults():
             return False
         return runs.more()
@@ -243,6 +278,8 @@ class TwinRuns:
             self.recorder.close()
         if self.writer is not None:
             self.writer.close()
+        if self.real_cameras is not None:
+            self.real_cameras.close()
 
     def report(self) -> dict:
         """The runs for the session's summary (:meth:`TeleopSummary.take_runs`)."""
