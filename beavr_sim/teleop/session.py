@@ -270,6 +270,7 @@ class SessionOptions:
         if self.record is not None:
             self.record = Path(self.record)
             self.recording = self.recording or RecordingConfig()
+            self._check_placed_recordable()
             if self.multiprocess:
                 raise ValueError(
                     "--record runs in one process for now (the recorder and its per-frame "
@@ -315,6 +316,17 @@ class SessionOptions:
                     f"{MAX_FAULT_SPEC_CHARS} characters), got {self.emulate_faults!r}"
                 )
             self.emulate_faults = spec
+
+    def _check_placed_recordable(self) -> None:
+        """The recording's placed cameras are the ones ``--camera-poses`` places."""
+        placed = {c.name for c in self._placed_cameras}
+        unplaced = [n for n in self.recording.placed_cameras if n not in placed]
+        if unplaced:
+            raise ValueError(
+                f"--cameras {', '.join(unplaced)}: no such twin camera; a camera of a new name "
+                "is recordable where --camera-poses places it (a [cameras.NAME] table with "
+                f"T_world_camera; placed here: {', '.join(sorted(placed)) or 'none'})"
+            )
 
     def camera_stream_config(self):
         """The real cameras' stream to the viewers (``CameraStream``'s config)."""
@@ -383,6 +395,9 @@ class SessionOptions:
             raise ValueError(
                 f"--headset-image-size must be WxH, e.g. 640x360, got {args.headset_image_size!r}"
             )
+        poses = getattr(args, "camera_poses", None)
+        # --cameras may name a camera --camera-poses places (read again, validated, below).
+        placed = tuple(c.name for c in rig_placed_cameras(poses)) if poses is not None else ()
         return cls(
             task=args.task,
             embodiment=args.embodiment,
@@ -406,7 +421,7 @@ class SessionOptions:
             record=args.record,
             repo_id=args.repo_id,
             episodes=args.episodes,
-            recording=recording_config(args) if args.record is not None else None,
+            recording=recording_config(args, placed) if args.record is not None else None,
             auto_start=args.auto_start,
             rerun=getattr(args, "rerun", None),
             rerun_image_hz=getattr(args, "rerun_image_hz", 5.0),
@@ -425,7 +440,7 @@ class SessionOptions:
             real_cameras=tuple(getattr(args, "camera", None) or ()),
             camera_stream_hz=getattr(args, "camera_stream_hz", 0.0),
             camera_view=getattr(args, "camera_view", "real"),
-            camera_poses=getattr(args, "camera_poses", None),
+            camera_poses=poses,
         )
 
 
