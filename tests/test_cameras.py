@@ -301,10 +301,10 @@ def test_camera_flag_errors():
             headless=True,
             real_cameras=("front=opencv:0",),
         )
-    with pytest.raises(ValueError, match="add --record"):
-        SessionOptions(
-            task="PickupBox", source="trace", viser=False, headless=True, camera_stream_hz=5.0
-        )
+    streams = SessionOptions(  # without --record: the twin's cameras are streamed
+        task="PickupBox", source="trace", viser=False, headless=True, camera_stream_hz=5.0
+    )
+    assert streams.camera_stream_config().view == "auto"
     with pytest.raises(ValueError, match="real, twin, both, overlay"):
         SessionOptions(
             task="PickupBox", source="trace", viser=False, headless=True, camera_view="side"

@@ -170,15 +170,13 @@ class SessionOptions:
     #: ``--camera-stream-hz``: real-camera panels per second to the viewers (0: off) and
     #: ``--camera-view`` (``beavr_sim.cameras.stream.VIEWS``).
     camera_stream_hz: float = 0.0
-    camera_view: str = "real"
+    camera_view: str = "auto"
     #: ``--camera-poses F.toml``: a file of ``[cameras.NAME]`` tables (a rig file) whose
     #: ``T_world_camera`` poses place the twin's cameras (``beavr_sim.cameras.poses``).
     camera_poses: str | Path | None = None
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
-        if self.camera_stream_hz > 0 and self.record is None:
-            raise ValueError("--camera-stream-hz streams a recording's real cameras; add --record")
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
@@ -439,7 +437,7 @@ class SessionOptions:
             emulate_faults=getattr(args, "emulate_faults", None),
             real_cameras=tuple(getattr(args, "camera", None) or ()),
             camera_stream_hz=getattr(args, "camera_stream_hz", 0.0),
-            camera_view=getattr(args, "camera_view", "real"),
+            camera_view=getattr(args, "camera_view", "auto"),
             camera_poses=poses,
         )
 
@@ -722,6 +720,8 @@ def run_session(
             )
             closers.append(images.close)  # before the publisher: its thread sends
             loop.listeners.append(images)
+        if options.camera_stream_hz > 0:
+            viewers.update(twin_camera_panels(options, loop))
         if options.record is not None:
             summary = record_episodes(
                 options,
@@ -734,6 +734,11 @@ def run_session(
                 viewers=CameraViewers(**viewers),
             )
         else:
+            stream = start_camera_stream(
+                None, options.camera_stream_config(), CameraViewers(**viewers)
+            )
+            if stream is not None:
+                closers.append(stream.close)  # before the viewers it sends to
             summary = _play_runs(options, loop, progress, mirror, sync)
         CONSOLE.end_line()
         if mirror is not None:
@@ -746,6 +751,20 @@ def run_session(
             close()
         if context is not None:
             context.term()
+
+
+def twin_camera_panels(options: SessionOptions, loop: TeleopLoop) -> dict[str, object]:
+    """The twin's renders for the streamed camera panels: a tick listener of ``loop`` copying
+    the pose at the stream's rate, and the twin-only panels (the cameras ``--camera-poses``
+    places, else the headset's camera) shown when the session has no real camera."""
+    from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed  # local: only when streaming
+
+    env = loop.twin.env
+    fallback = headset_camera(env.embodiment)
+    feed = TwinCameraFeed(env.render_model, env.data, fallback, options.camera_stream_hz)
+    loop.listeners.append(feed)
+    panels = tuple(c.name for c in options.placed_cameras) or (fallback,)
+    return {"twin": feed, "twin_panels": panels}
 
 
 def rearm(mirror) -> None:
