@@ -230,9 +230,19 @@ def test_camera_dying_mid_episode_is_reported_dead(server):
 # --- recorded sessions -----------------------------------------------------------------------
 
 
-def _record(tmp_path, port: int, episode_s: float, listener=None, stream_hz=0.0, viewers=None):
+def _record(
+    tmp_path, port: int, episode_s: float, listener=None, stream_hz=0.0, viewers=None, twin=False
+):
+    from dataclasses import replace
+
     from beavr_sim.datasets.features import RecordingConfig
-    from beavr_sim.teleop.session import ProgressLine, SessionOptions, build_loop, record_episodes
+    from beavr_sim.teleop.session import (
+        ProgressLine,
+        SessionOptions,
+        build_loop,
+        record_episodes,
+        twin_camera_panels,
+    )
 
     options = SessionOptions(
         task="PickupBox",
@@ -252,6 +262,8 @@ def _record(tmp_path, port: int, episode_s: float, listener=None, stream_hz=0.0,
     loop = build_loop(options)
     if listener is not None:
         loop.listeners.append(listener)
+    if twin:  # the twin's renders of the camera, as run_session adds them when streaming
+        viewers = replace(viewers, **twin_camera_panels(options, loop))
     record_episodes(options, loop, ProgressLine(loop, enabled=False), viewers=viewers)
     lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
     return [json.loads(x) for x in lines]
@@ -353,35 +365,107 @@ def test_stream_reads_a_live_zmq_camera_and_shows_no_signal_once_it_dies(server)
         cams.close()
 
 
+class _View:  # the browser view's part the stream uses
+    def __init__(self, shapes=None) -> None:
+        self.shapes = shapes
+        self.panels = []
+        self.arrived = threading.Event()
+        self.panel = None
+
+    def add_camera_panel(self, shapes):
+        assert self.shapes is None or shapes == self.shapes
+        self.panel = _Panel(self)
+        return self.panel
+
+    def wait_until(self, predicate, n: int = 1):
+        """A tick listener holding the control loop at tick ``n`` until a panel arrived that
+        ``predicate`` accepts (readiness, never a timing bound: the first twin render makes
+        its GL context)."""
+        ticks = [0]
+
+        def listener(tick) -> None:
+            ticks[0] += 1
+            if ticks[0] == n:
+                _wait_for(lambda: any(predicate(p) for p in self.panels), "a panel")
+
+        return listener
+
+
+class _Panel:
+    def __init__(self, view) -> None:
+        self.view = view
+        self.stream = None
+
+    def attach(self, stream) -> None:
+        self.stream = stream
+
+    def __call__(self, frame) -> None:
+        self.view.panels.append(frame)
+
+
 def test_a_recording_session_streams_its_camera_to_the_viewers(tmp_path, server):
     from beavr_sim.teleop.camera_viewers import CameraViewers
 
-    class _View:  # the browser view's part the stream uses
-        def __init__(self) -> None:
-            self.panels = []
-
-        def add_camera_panel(self, shapes):
-            assert shapes == {"front": (24, 32, 3)}
-            return _Panel(self.panels)
-
-    class _Panel(list):
-        def __init__(self, panels) -> None:
-            self.panels = panels
-            self.stream = None
-
-        def attach(self, stream) -> None:
-            self.stream = stream
-
-        def __call__(self, frame) -> None:
-            self.panels.append(frame)
-
-    view = _View()
+    view = _View({"front": (24, 32, 3)})
     (record,) = _record(
         tmp_path, server.port, 1.0, stream_hz=20.0, viewers=CameraViewers(view=view)
     )
     assert record["kept"] and record["hardware_fault"] is None
     assert any(p.state == "live" and p.image.shape == (24, 32, 3) for p in view.panels)
     assert record["cameras"]["front"]["frames"] >= record["frames"]  # the recorder's own grabs
+
+
+def test_a_recording_session_streams_the_real_camera_and_the_twin_side_by_side(tmp_path, server):
+    from beavr_sim.teleop.camera_viewers import CameraViewers
+
+    view = _View({"front": (24, 32, 3)})
+
+    def both(p) -> bool:
+        return p.state == "live" and p.image.shape == (24, 64, 3) and p.note == "twin"
+
+    (record,) = _record(
+        tmp_path, server.port, 1.0, listener=view.wait_until(both, 5), stream_hz=20.0,
+        viewers=CameraViewers(view=view), twin=True,
+    )  # fmt: skip
+    assert record["kept"] and record["hardware_fault"] is None
+    stream = view.panel.stream
+    assert stream.view == "both"  # auto: the twin has a camera of the real camera's name
+    panel = next(p for p in view.panels if both(p))
+    real, twin = panel.image[:, :32].astype(float), panel.image[:, 32:].astype(float)
+    assert real.std() < 3 and twin.std() > 10  # the server's flat grey | the twin's scene
+    assert stream.twin_renders > 0 and stream.twin_errors == 0
+
+
+def test_a_session_without_cameras_streams_the_twins_camera(monkeypatch):
+    from dataclasses import replace
+
+    from beavr_sim.teleop import session
+
+    view = _View()
+    started = []
+
+    def start(real, config, viewers):  # the session's own viewers plus the test's browser view
+        stream = real_start(real, config, replace(viewers, view=view))
+        started.append(stream)
+        return stream
+
+    real_start = session.start_camera_stream
+    monkeypatch.setattr(session, "start_camera_stream", start)
+    options = session.SessionOptions(
+        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
+        progress=False, max_seconds=0.5, camera_stream_hz=20.0,
+    )  # fmt: skip
+
+    def live_twin(p) -> bool:
+        return p.state == "live" and p.image.shape == (480, 640, 3)
+
+    session.run_session(
+        options, on_loop=lambda loop: loop.listeners.append(view.wait_until(live_twin, 3))
+    )
+    (stream,) = started
+    assert not stream.running  # closed with the session
+    assert {p.name for p in view.panels} == {"front"}  # no real camera: the twin's front
+    assert stream.real == () and stream.twin_renders > 0 and stream.twin_errors == 0
 
 
 def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):

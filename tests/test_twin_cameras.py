@@ -290,3 +290,45 @@ def test_a_placed_camera_of_a_new_name_is_recorded_as_its_render(tmp_path):
     np.testing.assert_allclose(placed_at, [0.4, -0.9, 1.1], atol=1e-9)
     depth = frame["observation.images.side_depth"]
     assert depth.shape == (48, 64, 1) and np.isfinite(depth).all()
+
+
+def test_twin_camera_feed_copies_the_pose_on_the_tick_and_renders_it_later(tmp_path):
+    from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    env = gym.make("beavr_sim/Playground-v0", placed_cameras=rig_placed_cameras(rig)).unwrapped
+    env.reset(seed=0)
+    now = [100.0]
+    feed = TwinCameraFeed(env.render_model, env.data, "front", rate_hz=10.0, clock=lambda: now[0])
+    shapes = {"side": (48, 64, 3), "wrist": (48, 64, 3), "big": (960, 1280, 3)}
+    assert feed.render(shapes) == ({}, None)  # no tick yet: nothing to draw
+    assert feed.camera_for("side") == "side" and feed.camera_for("wrist") == "front"
+    assert feed.panel_shape("front") == (480, 640, 3)  # its intrinsics' size
+    assert feed.panel_shape("side") == (480, 640, 3)  # a field of view only: the default size
+
+    tick = Tick(t=0.0, frames=(), commands={}, state=None)  # type: ignore[arg-type]
+    feed(tick)
+    now[0] += 0.05
+    feed(tick)  # within the period: no copy
+    assert feed.copies == 1
+    direct = mujoco.Renderer(env.render_model, 48, 64)
+
+    def render(camera: str) -> np.ndarray:
+        direct.update_scene(env.render_data(), camera=camera, scene_option=render_option())
+        direct.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        direct.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return direct.render().copy()
+
+    expected = {"side": render("side"), "wrist": render("front")}
+    env.data.qpos[env.joints.qpos_adr[0]] += 0.5  # the twin moves on; no tick copies it
+    images, age_s = feed.render(shapes)
+    moved = render("front")
+    direct.close()
+    feed.close()
+    env.close()
+    np.testing.assert_array_equal(images["side"], expected["side"])
+    np.testing.assert_array_equal(images["wrist"], expected["wrist"])  # the pose copied
+    assert not np.array_equal(moved, expected["wrist"])  # (the move shows in a live render)
+    assert images["big"].shape == (480, 640, 3)  # scaled into the offscreen buffer
+    assert age_s == pytest.approx(0.05)

@@ -305,7 +305,9 @@ class CameraStream:
         except Exception as exc:  # a render failing: the twin's part reads NO SIGNAL
             self.twin_errors += 1
             if self.twin_errors == 1 or self.twin_errors % 100 == 0:
-                log.warning("camera stream: the twin's render failed (%d): %r", self.twin_errors, exc)
+                log.warning(
+                    "camera stream: the twin's render failed (%d): %r", self.twin_errors, exc
+                )
             return {}, None
         self.twin_renders += len(images)
         return images, age_s

@@ -67,4 +67,3 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     if panel is not None:
         panel.attach(stream)
     return stream
-

@@ -74,8 +74,8 @@ class TwinCameraFeed:
     def panel_shape(self, panel: str) -> tuple[int, int, int]:
         """A twin-only panel's shape: its camera's resolution where it has one (a placed
         camera's intrinsics), else :data:`TWIN_PANEL_SIZE`."""
-        cam = self.model.camera(self.camera_for(panel))
-        width, height = (int(v) for v in cam.resolution)
+        cam = self.model.camera(self.camera_for(panel)).id
+        width, height = (int(v) for v in self.model.cam_resolution[cam])
         if width > 1 and height > 1:
             return (height, width, 3)
         return (*TWIN_PANEL_SIZE, 3)
