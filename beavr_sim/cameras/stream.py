@@ -91,6 +91,8 @@ class StreamFrame:
     seq: int
     #: What else the panel shows (e.g. ``twin front``, ``twin NO SIGNAL``), after the label.
     note: str = ""
+    #: When it was composed, on the stream's clock (s; ``time.perf_counter`` by default).
+    t_s: float = 0.0
 
     @property
     def label(self) -> str:
@@ -318,7 +320,8 @@ class CameraStream:
         """Each panel for a grab offered at ``offered_at`` (the worker's job). ``twin``: the
         twin's renders by panel name offered with the grab (``twin_age_s`` old; default: as
         old as the grab's offer); with a :class:`TwinSource` the stream renders its own."""
-        waited = max(0.0, self._clock() - offered_at)
+        composed = self._clock()
+        waited = max(0.0, composed - offered_at)
         if self.twin is not None:
             twin, twin_age_s = self._render_twin()
         elif twin_age_s is None:
@@ -349,7 +352,7 @@ class CameraStream:
             out.append(
                 StreamFrame(
                     name, frame.image, frame.state, age_s if frame.state == LIVE else None,
-                    self._seq, note,
+                    self._seq, note, composed,
                 )
             )  # fmt: skip
         return out
