@@ -305,7 +305,7 @@ def test_camera_dying_mid_episode_ends_it_as_a_hardware_fault(tmp_path, server):
 def test_camera_flag_errors():
     from beavr_sim.teleop.session import SessionOptions
 
-    with pytest.raises(ValueError, match="add --record"):
+    with pytest.raises(ValueError, match="add --record or --camera-stream-hz"):
         SessionOptions(
             task="PickupBox",
             source="trace",
@@ -466,6 +466,42 @@ def test_a_session_without_cameras_streams_the_twins_camera(monkeypatch):
     assert not stream.running  # closed with the session
     assert {p.name for p in view.panels} == {"front"}  # no real camera: the twin's front
     assert stream.real == () and stream.twin_renders > 0 and stream.twin_errors == 0
+
+
+def test_a_session_without_recording_streams_its_real_camera(monkeypatch, server):
+    """``--camera front=zmq:... --camera-stream-hz`` without ``--record``: a camera watching
+    a sim-only session, shown next to the twin's ``front``."""
+    from dataclasses import replace
+
+    from beavr_sim.teleop import session
+
+    view = _View({"front": (24, 32, 3)})
+    started = []
+
+    def start(real, config, viewers):  # the session's own viewers plus the test's browser view
+        started.append((real, real_start(real, config, replace(viewers, view=view))))
+        return started[-1][1]
+
+    real_start = session.start_camera_stream
+    monkeypatch.setattr(session, "start_camera_stream", start)
+    options = session.SessionOptions(
+        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
+        progress=False, max_seconds=0.5, camera_stream_hz=20.0,
+        real_cameras=(f"front=zmq:127.0.0.1:{server.port}",),
+    )  # fmt: skip
+
+    def both(p) -> bool:
+        return p.state == "live" and p.image.shape == (24, 64, 3) and p.note == "twin"
+
+    session.run_session(
+        options, on_loop=lambda loop: loop.listeners.append(view.wait_until(both, 3))
+    )
+    ((real, stream),) = started
+    assert tuple(real.names) == ("front",)
+    assert not stream.running and stream.view == "both"
+    panel = next(p for p in view.panels if both(p))
+    assert panel.image[:, :32].std() < 3 and panel.image[:, 32:].std() > 10  # real | twin
+    assert real.stats["front"].frames == 0  # the stream's reads count nothing
 
 
 def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):

@@ -189,8 +189,11 @@ class SessionOptions:
                     "--camera runs in one process for now (its frames go to the recorder, which "
                     "follows the one-process loop); leave out --multiprocess"
                 )
-            if self.record is None:
-                raise ValueError("--camera records real cameras into a dataset; add --record")
+            if self.record is None and not self.camera_stream_hz > 0:
+                raise ValueError(
+                    "--camera records real cameras into a dataset or streams them to the "
+                    "viewers; add --record or --camera-stream-hz HZ"
+                )
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
         if self.camera_poses is not None:
             if self.multiprocess:
@@ -734,11 +737,16 @@ def run_session(
                 viewers=CameraViewers(**viewers),
             )
         else:
+            real = None
+            if options.camera_stream_hz > 0:  # the cameras watch a session that records nothing
+                real = _real_cameras(options, int(round(loop.twin.env.control_hz)))
+            if real is not None:
+                closers.append(real.close)
             stream = start_camera_stream(
-                None, options.camera_stream_config(), CameraViewers(**viewers)
+                real, options.camera_stream_config(), CameraViewers(**viewers)
             )
             if stream is not None:
-                closers.append(stream.close)  # before the viewers it sends to
+                closers.append(stream.close)  # before the cameras and viewers it reads, sends to
             summary = _play_runs(options, loop, progress, mirror, sync)
         CONSOLE.end_line()
         if mirror is not None:
