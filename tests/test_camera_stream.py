@@ -162,8 +162,9 @@ def test_panels_reach_a_viser_client_and_a_dead_camera_reads_no_signal():
 
             until(b"front: live, age", _live())
             until(b"front: NO SIGNAL**", DEAD)
-        panel.view.value = "overlay"  # the panel's control sets the stream's view
-        assert stream.view == "overlay"
+        panel.view.value = "overlay"  # the panel's controls set the stream's view and blend
+        panel.blend.value = 0.25
+        assert stream.view == "overlay" and stream.blend == 0.25
     finally:
         stream.close()
         server.stop()

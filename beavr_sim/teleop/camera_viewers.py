@@ -5,7 +5,7 @@ session's :class:`~beavr_sim.cameras.real.RealCameras` (if any), the twin's rend
 (a :class:`~beavr_sim.teleop.twin_camera_feed.TwinCameraFeed`, if given: the panels' ``twin``,
 ``both`` and ``overlay`` views, and twin-only panels in a session without real cameras) and
 the viewers it has: the browser view's camera panel, the WebXR page, the Quest app's camera
-panel (the first real camera, in place of the twin's images). The stream reads the cameras'
+panel (the first panel: a real camera's, in place of the twin's images). The stream reads the cameras'
 newest frames itself (``RealCameras.peek``, counting nothing) and renders, composes and sends
 on its own thread at the rate asked, dropping what its viewers cannot take; the control thread
 only copies the twin's pose for it. Nothing is started when the rate is 0 (off).
@@ -58,8 +58,8 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
         sinks.append(panel)
     if viewers.webxr is not None:
         sinks.append(WebXRCameraSink(viewers.webxr))
-    if viewers.quest is not None and names:
-        sinks.append(QuestCameraSink(viewers.quest, names[0]))
+    if viewers.quest is not None and shapes:  # the first real camera, else the twin's panel
+        sinks.append(QuestCameraSink(viewers.quest, next(iter(shapes))))
     if not sinks or not shapes:
         return None
     source = real.peek if real is not None else None  # twin-only: the stream's own clock
