@@ -75,6 +75,7 @@ from beavr_sim.teleop.pipeline import (
     ThreadedListener,
 )
 from beavr_sim.teleop.processes import run_multiprocess
+from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed
 from beavr_sim.teleop.view import attach_view
 from beavr_sim.traces.bundled import find_bundled_trace
 from beavr_sim.twin.twin import TwinInterface
@@ -765,8 +766,6 @@ def twin_camera_panels(options: SessionOptions, loop: TeleopLoop) -> dict[str, o
     """The twin's renders for the streamed camera panels: a tick listener of ``loop`` copying
     the pose at the stream's rate, and the twin-only panels (the cameras ``--camera-poses``
     places, else the headset's camera) shown when the session has no real camera."""
-    from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed  # local: only when streaming
-
     env = loop.twin.env
     fallback = headset_camera(env.embodiment)
     feed = TwinCameraFeed(env.render_model, env.data, fallback, options.camera_stream_hz)
