@@ -317,6 +317,11 @@ def test_camera_flag_errors():
         task="PickupBox", source="trace", viser=False, headless=True, camera_stream_hz=5.0
     )
     assert streams.camera_stream_config().view == "auto"
+    with pytest.raises(ValueError, match="--camera-stream-hz runs in one process"):
+        SessionOptions(
+            task="PickupBox", source="trace", headless=True, multiprocess=True,
+            camera_stream_hz=5.0,
+        )  # fmt: skip
     with pytest.raises(ValueError, match="real, twin, both, overlay"):
         SessionOptions(
             task="PickupBox", source="trace", viser=False, headless=True, camera_view="side"

@@ -178,6 +178,11 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
+        if self.camera_stream_hz > 0 and self.multiprocess:
+            raise ValueError(
+                "--camera-stream-hz runs in one process for now (the twin's renders follow the "
+                "one-process loop); leave out --multiprocess"
+            )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
