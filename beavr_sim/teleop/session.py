@@ -168,8 +168,9 @@ class SessionOptions:
     #: ``--camera NAME=SPEC`` (``beavr_sim.cameras.spec``): real cameras recorded next to the
     #: twin's renders (plus a mirrored rig file's ``[cameras.NAME]`` tables).
     real_cameras: tuple[str, ...] = ()
-    #: ``--camera-stream-hz``: real-camera panels per second to the viewers (0: off) and
-    #: ``--camera-view`` (``beavr_sim.cameras.stream.VIEWS``).
+    #: ``--camera-stream-hz``: camera panels per second to the viewers (0: off; the real
+    #: cameras and the twin's renders of them, or the twin's cameras alone) and
+    #: ``--camera-view`` (``auto`` or one of ``beavr_sim.cameras.stream.VIEWS``).
     camera_stream_hz: float = 0.0
     camera_view: str = "auto"
     #: ``--camera-poses F.toml``: a file of ``[cameras.NAME]`` tables (a rig file) whose
