@@ -558,3 +558,150 @@ def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):
     assert record["cameras"]["front"]["frames"] >= record["frames"] > 0
     info = json.loads((tmp_path / "rec" / "meta" / "info.json").read_text())
     assert info["features"]["observation.images.front"]["shape"] == [24, 32, 3]
+
+
+# --- the LeRobot robot's cameras (--robot.type=beavr_sim --robot.cameras) ---------------------
+
+
+def _robot_config(cameras: dict, twin: tuple[str, ...] = (), **kwargs):
+    from beavr_sim.integrations.config_robot import BeavrSimRobotConfig
+
+    return BeavrSimRobotConfig(
+        task="PickupBox", camera_names=list(twin), cameras=cameras, use_guard=False, **kwargs
+    )
+
+
+def _zmq_robot_camera(port: int) -> ZMQCameraConfig:
+    return ZMQCameraConfig(
+        server_address="127.0.0.1", port=port, camera_name="front", width=32, height=24, fps=30,
+        timeout_ms=200,
+    )  # fmt: skip
+
+
+def test_robot_observation_has_the_real_cameras_newest_frames(server, tmp_path):
+    from lerobot.utils.feature_utils import hw_to_dataset_features
+
+    from beavr_sim.cameras.errors import CameraStoppedError
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    robot = BeavrSimRobot(
+        _robot_config(
+            {"wrist": _zmq_robot_camera(server.port)},
+            twin=("front",),  # the twin's front beside the real wrist camera
+            calibration_dir=tmp_path,
+            image_height=24,
+            image_width=32,
+        )
+    )
+    features = hw_to_dataset_features(robot.observation_features, "observation", use_video=True)
+    assert features["observation.images.wrist"]["shape"] == (24, 32, 3)
+    robot.connect()
+    try:
+        obs = robot.get_observation()
+        assert obs["wrist"].shape == (24, 32, 3) and obs["front"].shape == (24, 32, 3)
+        first = float(obs["wrist"].mean())
+        sent = server.sent
+        _wait_for(lambda: server.sent >= sent + 5, "the server to publish")
+        _wait_for(lambda: float(robot.get_observation()["wrist"].mean()) != first, "a new frame")
+        server.stop.set()  # the camera goes silent: no frozen frame is observed as live
+
+        def raised() -> bool:
+            try:
+                robot.get_observation()
+            except CameraStoppedError as exc:
+                raised.message = str(exc)  # type: ignore[attr-defined]
+                return True
+            return False
+
+        _wait_for(raised, "get_observation to refuse the silent camera")
+        message = raised.message  # type: ignore[attr-defined]
+        assert "camera 'wrist' stopped delivering frames (no frame for over 0.5 s)" in message
+        assert "\n" not in message
+    finally:
+        robot.disconnect()
+    assert robot.real_cameras is None
+
+
+def test_robot_camera_that_does_not_open_or_ends_fails_in_one_line(tmp_path):
+    from beavr_sim.cameras.errors import CameraStoppedError
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    video = _video(tmp_path / "v.avi", 60)
+
+    def opencv(path: Path, width: int = 32) -> OpenCVCameraConfig:
+        return OpenCVCameraConfig(index_or_path=path, width=width, height=24, fps=30, warmup_s=0)
+
+    robot = BeavrSimRobot(_robot_config({"wrist": opencv(tmp_path / "missing.avi")}))
+    with pytest.raises(CameraError) as info:
+        robot.connect()
+    message = str(info.value)
+    assert message.startswith("camera 'wrist' (opencv) failed to start: ") and "\n" not in message
+    assert "check that " in message and "missing.avi" in message
+    assert not robot.is_connected and robot.real_cameras is None
+    robot = BeavrSimRobot(_robot_config({"wrist": opencv(video, width=64)}))
+    with pytest.raises(CameraError, match=r"frames are width=32 x height=24, not the configured"):
+        robot.connect()
+    # The file's size as configured: it opens, plays (LeRobot reads a file as fast as it
+    # decodes), ends; the robot then refuses to observe rather than repeat its last frame.
+    robot = BeavrSimRobot(_robot_config({"wrist": opencv(video)}))
+    robot.connect()
+    try:
+        with pytest.raises(CameraStoppedError, match=r"'wrist' .*its read thread ended"):
+            _wait_for(lambda: robot.get_observation() is None, "the file's end")
+    finally:
+        robot.disconnect()
+
+
+def test_robot_real_and_twin_camera_names_cannot_collide():
+    real = OpenCVCameraConfig(index_or_path=0, width=32, height=24, fps=30)
+    with pytest.raises(CameraSpecError) as info:
+        _robot_config({"front": real}, twin=("front",))
+    message = str(info.value)
+    assert "camera 'front' is both a twin camera (camera_names) and a real one (cameras)" in message
+    assert "\n" not in message
+    with pytest.raises(CameraSpecError, match=r"camera 'wrist': give width, height"):
+        _robot_config({"wrist": OpenCVCameraConfig(index_or_path=0)})
+
+
+def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypatch):
+    """``lerobot-record`` (its ``main``, in this process, from its command line: the plugins
+    found as the installed command finds them) with ``--robot.cameras`` as for LeRobot's own
+    robots: ``observation.images.wrist`` holds the camera's live frames."""
+    import sys
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.scripts.lerobot_record import main
+
+    camera = (
+        f"{{wrist: {{type: zmq, server_address: 127.0.0.1, port: {server.port}, "
+        "camera_name: front, width: 32, height: 24, fps: 30, timeout_ms: 200}}"
+    )
+    argv = [
+        "lerobot-record",
+        "--robot.type=beavr_sim",
+        "--robot.task=PickupBox",
+        "--robot.camera_names=[]",
+        f"--robot.cameras={camera}",
+        f"--robot.calibration_dir={tmp_path / 'calibration'}",
+        "--teleop.type=beavr_quest",
+        "--teleop.source=trace",
+        "--teleop.task=PickupBox",
+        f"--teleop.calibration_dir={tmp_path / 'calibration'}",
+        "--dataset.repo_id=local/robot_cams",
+        f"--dataset.root={tmp_path / 'ds'}",
+        "--dataset.num_episodes=1",
+        "--dataset.episode_time_s=0.5",
+        "--dataset.fps=30",
+        "--dataset.single_task=watch",
+        "--dataset.push_to_hub=false",
+        "--dataset.video=false",
+        "--play_sounds=false",
+    ]
+    monkeypatch.setattr(sys, "argv", argv)
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    main()
+    ds = LeRobotDataset("local/robot_cams", root=tmp_path / "ds")
+    assert ds.num_episodes == 1 and ds.num_frames >= 3
+    assert ds.features["observation.images.wrist"]["shape"] == (24, 32, 3)
+    levels = {round(float(ds[i]["observation.images.wrist"].mean()), 3) for i in range(len(ds))}
+    assert len(levels) > len(ds) / 2  # the server's frames move on: not a frozen image
