@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
+import sys
 import threading
 import time
 from pathlib import Path
@@ -573,9 +575,14 @@ def _robot_config(cameras: dict, twin: tuple[str, ...] = (), **kwargs):
 
 def _zmq_robot_camera(port: int) -> ZMQCameraConfig:
     return ZMQCameraConfig(
-        server_address="127.0.0.1", port=port, camera_name="front", width=32, height=24, fps=30,
+        server_address="127.0.0.1",
+        port=port,
+        camera_name="front",
+        width=32,
+        height=24,
+        fps=30,
         timeout_ms=200,
-    )  # fmt: skip
+    )
 
 
 def test_robot_observation_has_the_real_cameras_newest_frames(server, tmp_path):
@@ -667,8 +674,6 @@ def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypa
     """``lerobot-record`` (its ``main``, in this process, from its command line: the plugins
     found as the installed command finds them) with ``--robot.cameras`` as for LeRobot's own
     robots: ``observation.images.wrist`` holds the camera's live frames."""
-    import sys
-
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.scripts.lerobot_record import main
 
@@ -699,7 +704,13 @@ def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypa
     ]
     monkeypatch.setattr(sys, "argv", argv)
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    main()
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        main()
+    finally:  # LeRobot's init_logging replaced the root logger's handlers: later tests get theirs
+        root.handlers[:] = handlers
+        root.setLevel(level)
     ds = LeRobotDataset("local/robot_cams", root=tmp_path / "ds")
     assert ds.num_episodes == 1 and ds.num_frames >= 3
     assert ds.features["observation.images.wrist"]["shape"] == (24, 32, 3)
