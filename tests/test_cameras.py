@@ -659,7 +659,9 @@ def test_robot_camera_that_does_not_open_or_ends_fails_in_one_line(tmp_path):
         robot.disconnect()
 
 
-def test_robot_real_and_twin_camera_names_cannot_collide():
+def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
     real = OpenCVCameraConfig(index_or_path=0, width=32, height=24, fps=30)
     with pytest.raises(CameraSpecError) as info:
         _robot_config({"front": real}, twin=("front",))
@@ -668,6 +670,21 @@ def test_robot_real_and_twin_camera_names_cannot_collide():
     assert "\n" not in message
     with pytest.raises(CameraSpecError, match=r"camera 'wrist': give width, height"):
         _robot_config({"wrist": OpenCVCameraConfig(index_or_path=0)})
+    # A rig file's [cameras.NAME] tables are the robot's real cameras too (hardware = the rig).
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[cameras.overhead]\ntype = "zmq"\nserver_address = "127.0.0.1"\nwidth = 32\n')
+    with pytest.raises(CameraSpecError, match=r"camera 'overhead': give height"):
+        _robot_config({}, hardware=str(rig))
+    rig.write_text(rig.read_text() + "height = 24\n")
+    robot = BeavrSimRobot(_robot_config({"wrist": real}, hardware=str(rig)))
+    assert robot.observation_features["overhead"] == (24, 32, 3)
+    assert robot.observation_features["wrist"] == (24, 32, 3)
+    with pytest.raises(
+        CameraSpecError, match=r"'overhead' is named both in the rig file and by cameras"
+    ):
+        _robot_config({"overhead": real}, hardware=str(rig))
+    with pytest.raises(CameraSpecError, match=r"'overhead' is both a twin camera"):
+        _robot_config({}, twin=("overhead",), hardware=str(rig))
 
 
 def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypatch):

@@ -44,6 +44,7 @@ _SPEC_FORMS = "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optional
 
 
 def check_camera_name(name: str, source: str) -> None:
+    """A camera name is letters, digits or _ (it becomes ``observation.images.NAME``)."""
     if not _NAME.match(name):
         raise CameraSpecError(f"camera {name!r} ({source}): name must be letters, digits or _")
 
@@ -123,12 +124,15 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
 
 
 def merge_cameras(
-    rig: dict[str, CameraConfig], cli: dict[str, CameraConfig]
+    rig: dict[str, CameraConfig], cli: dict[str, CameraConfig], cli_source: str = "--camera"
 ) -> dict[str, CameraConfig]:
-    """Rig cameras plus CLI ones; a name given twice is an error, not a silent override."""
+    """Rig cameras plus the command line's (``cli_source``: the flag or field naming them); a
+    name given twice is an error, not a silent override."""
     both = sorted(set(rig) & set(cli))
     if both:
-        raise CameraSpecError(f"camera {both[0]!r} is named both in the rig file and by --camera")
+        raise CameraSpecError(
+            f"camera {both[0]!r} is named both in the rig file and by {cli_source}"
+        )
     return {**rig, **cli}
 
 

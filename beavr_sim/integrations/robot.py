@@ -9,7 +9,7 @@ twin one control period (1/fps). With hardware (``emulated`` or a rig file) the 
 targets go to the devices through :class:`beavr_sim.hardware.mirror.HardwareMirror` (as
 ``teleop --mirror-hardware`` does) and the observation is the devices' measured joints; in
 ``sim`` it is the twin's. Camera images are the twin's renders (``camera_names``) and the real
-cameras' newest frames (``cameras``: LeRobot cameras opened at connect through
+cameras' newest frames (``cameras`` and a rig file's: LeRobot cameras opened at connect through
 :class:`beavr_sim.cameras.real.RealCameras`, read on their own threads). A real camera that
 stops delivering (its newest frame older than ``camera_max_age_s``, or its read thread ended)
 makes :meth:`BeavrSimRobot.get_observation` raise one line: a frozen frame is never handed to
@@ -55,11 +55,13 @@ class BeavrSimRobot(Robot):
         self.config = config
         self.embodiment = check_embodiment(config.embodiment)
         self.joint_names: tuple[str, ...] = self.embodiment.joint_names
+        #: The real cameras' LeRobot configs (``cameras`` and a rig file's).
+        self.real_camera_configs = config.real_camera_configs()
         #: Camera name -> (height, width), the twin's then the real ones (``lerobot-record``
         #: counts them).
         self.cameras: dict[str, tuple[int, int]] = {
             **{c: (config.image_height, config.image_width) for c in config.camera_names},
-            **{n: (int(c.height), int(c.width)) for n, c in config.cameras.items()},
+            **{n: (int(c.height), int(c.width)) for n, c in self.real_camera_configs.items()},
         }
         #: The real cameras while connected (None without any).
         self.real_cameras: RealCameras | None = None
@@ -114,9 +116,11 @@ class BeavrSimRobot(Robot):
         hand_variant = self._hand_variant()
         self._closers = []
         try:
-            if cfg.cameras:
+            if self.real_camera_configs:
                 cameras = RealCameras(
-                    cfg.cameras, control_period_s=1.0 / cfg.fps, dead_after_s=cfg.camera_max_age_s
+                    self.real_camera_configs,
+                    control_period_s=1.0 / cfg.fps,
+                    dead_after_s=cfg.camera_max_age_s,
                 )
                 self._closers.append(cameras.close)
                 cameras.connect()
