@@ -151,7 +151,10 @@ SPECS: tuple[Spec, ...] = (
          extra=f"{TRAIN_TINY} --env.episode_length=3 --eval.batch_size=1",
          check="outputs/act_pickup_box_env/checkpoints/last/pretrained_model"),
     Spec(r"lerobot-teleoperate", extra="--teleop_time_s=1"),
-    Spec(r"lerobot-record", tiny=((r"--dataset\.episode_time_s=20", "--dataset.episode_time_s=1"),),
+    Spec(r"lerobot-record .*--robot\.cameras=",
+         why="a real camera (a webcam); test_cameras.py runs lerobot-record's main with "
+             "--robot.cameras on a ZMQ image server"),
+    Spec(r"lerobot-record (?!.*--robot\.cameras=)", tiny=((r"--dataset\.episode_time_s=20", "--dataset.episode_time_s=1"),),
          check="data/pickup_box_lr/meta/info.json"),
     Spec(r"lerobot-replay"),
     Spec(r"beavr_sim\.experts --task pour --episodes 50",
