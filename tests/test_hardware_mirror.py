@@ -125,7 +125,7 @@ class Bench:
         deadline = time.monotonic() + timeout
         m = self.mirror
         while time.monotonic() < deadline:
-            if all(link._seq_sent == m._dispatch.seq for link in m.links):
+            if all(link._seq_sent == m.dispatched.seq for link in m.links):
                 time.sleep(0.05)  # the xArm's interpolated stream finishes
                 break
             time.sleep(0.002)
@@ -143,7 +143,7 @@ class Bench:
                 and not m.failed_devices
             ]
             if all(
-                np.abs(link.last - m._dispatch.target[link.index]).max() < 1e-5
+                np.abs(link.last - m.dispatched.target[link.index]).max() < 1e-5
                 for link in streaming
             ):
                 return
@@ -157,7 +157,7 @@ class Bench:
         self.mirror.submit(action, action)
         if settle:
             self.wait_written()
-        return self.mirror._dispatch.target.copy()
+        return self.mirror.dispatched.target.copy()
 
     def arm_targets(self) -> np.ndarray:
         return np.array([q for _, q in self.arm.servo_log]).reshape(-1, 7)
