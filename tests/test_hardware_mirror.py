@@ -37,12 +37,12 @@ from beavr_sim.wire.records import JointCommand
 FOLLOWING, CATCHING_UP = LinkState.FOLLOWING, LinkState.CATCHING_UP
 
 
-def wait_for(predicate, timeout: float = 30.0) -> None:
+def wait_for(predicate, timeout: float = 30.0, poll_s: float = 0.005) -> None:
     """Until ``predicate()`` holds (a readiness wait: the bound is only a hang guard)."""
     deadline = time.monotonic() + timeout
     while not predicate():
         assert time.monotonic() < deadline, "timed out waiting"
-        time.sleep(0.005)
+        time.sleep(poll_s)
 
 
 class FakeClock:
@@ -901,9 +901,7 @@ def test_a_newer_target_preempts_a_streamed_interpolation(clocked):
     first[0] += 0.09  # 30 Hz: streamed in 4 steps at 100 Hz (the xArm's cap: 90 % of pi)
     n_arm = len(bench.arm_targets())
     bench.submit_at(clock, 1 / 30, first, settle=False)
-    deadline = time.monotonic() + 2.0
-    while len(bench.arm.servo_log) == n_arm and time.monotonic() < deadline:
-        time.sleep(0.0002)
+    wait_for(lambda: len(bench.arm.servo_log) > n_arm, poll_s=0.0002)  # its first step is out
     second = first.copy()
     second[2] += 0.02  # 11 ms later, another joint moves too
     bench.submit_at(clock, 1 / 90, second)
