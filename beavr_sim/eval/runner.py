@@ -234,9 +234,10 @@ def summarize(
     control_hz: float,
 ) -> dict:
     """The summary of one (policy, task): success rate with its Wilson 95 % interval, mean
-    episode time; with ``asynchronous`` the control loop's jitter and starved ticks."""
+    episode time (and over the successful episodes, the mean time to success); with ``asynchronous`` the control loop's jitter and starved ticks."""
     successes = sum(r.success for r in results)
     low, high = wilson_interval(successes, len(results))
+    success_times = [r.seconds for r in results if r.success]
     summary = {
         "task": task,
         "embodiment": embodiment,
@@ -246,6 +247,8 @@ def summarize(
         "success_rate": successes / len(results),
         "success_ci95": [round(low, 4), round(high, 4)],
         "mean_time_s": round(float(np.mean([r.seconds for r in results])), 3),
+        # An episode ends at success: its length is the time to success (None: no success).
+        "mean_success_time_s": (round(float(np.mean(success_times)), 3) if success_times else None),
         "mode": "async" if asynchronous else "sync",
     }
     if asynchronous:
