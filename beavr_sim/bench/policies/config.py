@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 from beavr_sim.naming import check_name
 
@@ -31,6 +32,15 @@ HUB_POLICIES = ("smolvla", "pi0")
 NOT_RUN_OFFLINE = "needs pretrained weights from a hub: not run offline"
 #: Bumped when a stage's output changes meaning (old caches are then not reused).
 CACHE_VERSION = 1
+
+
+def file_hash(path: Path) -> str:
+    """12 hex digits of a hash of the file's bytes."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:12]
 
 
 def cache_key(stage: str, config: object) -> str:
@@ -107,9 +117,11 @@ class EvalConfig:
     seed: int
     episodes: int
     mode: str  # "sync", "async" (think-act) or "teleop" (the expert's row)
-    #: The training run and the checkpoint's step ("" / 0 for the expert's row).
+    #: The training run, the checkpoint's step and a hash of its weights (a run trained anew
+    #: into the same folder is not mistaken for the one evaluated); "" / 0 for the expert.
     train_key: str = ""
     step: int = 0
+    weights: str = ""
     max_seconds: float | None = None
 
     def __post_init__(self) -> None:

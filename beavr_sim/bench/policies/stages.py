@@ -37,6 +37,7 @@ from beavr_sim.bench.policies.config import (
     Protocol,
     TrainConfig,
     cache_key,
+    file_hash,
 )
 from beavr_sim.scaling.executors import ScaleConfig
 
@@ -107,7 +108,9 @@ class Stages:
         n = len(self.records) + 1
         if marker.is_file():
             result = json.loads(marker.read_text())
-            self.records.append({"stage": stage, "what": what, "key": key, "cached": True})
+            self.records.append({"stage": stage, "what": what, "key": key, "cached": True,
+                                 "wall_s": result.get("stage_wall_s", 0.0),
+                                 "cpu_s": result.get("stage_cpu_s", 0.0)})  # fmt: skip
             self._echo(f"[{n}/{self.total}] {what}: cached ({marker})")
             return result
         wall, cpu = time.perf_counter(), _cpu_seconds()
@@ -122,18 +125,21 @@ class Stages:
         return result
 
     def budget(self) -> dict:
-        """Wall and CPU time of the stages run now, in total and per kind of stage."""
-        run = [r for r in self.records if not r["cached"]]
+        """Wall and CPU time of every stage (a cached one: when it ran), in total and per kind
+        of stage, and of the stages this run ran."""
         by_stage: dict[str, dict] = {}
-        for r in run:
+        for r in self.records:
             entry = by_stage.setdefault(r["stage"], {"wall_s": 0.0, "cpu_s": 0.0})
             entry["wall_s"] = round(entry["wall_s"] + r["wall_s"], 2)
             entry["cpu_s"] = round(entry["cpu_s"] + r["cpu_s"], 2)
+        now = [r for r in self.records if not r["cached"]]
         return {
-            "wall_s": round(sum(r["wall_s"] for r in run), 2),
-            "cpu_s": round(sum(r["cpu_s"] for r in run), 2),
+            "wall_s": round(sum(r["wall_s"] for r in self.records), 2),
+            "cpu_s": round(sum(r["cpu_s"] for r in self.records), 2),
             "by_stage": by_stage,
-            "stages_cached": sum(r["cached"] for r in self.records),
+            "stages_cached": len(self.records) - len(now),
+            "this_run_wall_s": round(sum(r["wall_s"] for r in now), 2),
+            "this_run_cpu_s": round(sum(r["cpu_s"] for r in now), 2),
         }
 
 
@@ -276,14 +282,18 @@ def _expert_episodes(evaluation: EvalConfig) -> dict:
     from beavr_sim.synthetic.trace import synthesize  # local: heavy (the pipeline)
 
     results = []
-    control_hz = 30.0
     for seed in range(evaluation.seed, evaluation.seed + evaluation.episodes):
         summary = synthesize(evaluation.task, seed, evaluation.embodiment).summary
         ticks = int(summary.ticks)
         results.append(EpisodeResult(seed, bool(summary.success), summary.duration_s, ticks))
-    row = summarize(results, evaluation.task, evaluation.embodiment, "expert", False, control_hz)
+    # (the control rate only matters to the think-act loop's jitter, not measured here)
+    row = summarize(results, evaluation.task, evaluation.embodiment, "expert", False, 30.0)
     row["mode"] = "teleop"
     return row
+
+
+def _weights(run: Path, step: int) -> str:
+    return file_hash(training.checkpoint(run, step) / "model.safetensors")
 
 
 def choose_checkpoint(
@@ -302,6 +312,7 @@ def choose_checkpoint(
             mode="sync",
             train_key=key,
             step=step,
+            weights=_weights(run, step),
             max_seconds=config.max_seconds,
         )
         name = f"{train.policy}-{train.demos.task}-step{step}-validation"
@@ -340,7 +351,8 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
             for mode in config.modes:
                 evaluation = EvalConfig(
                     task=task, embodiment=config.embodiment, mode=mode, train_key=key,
-                    step=step, max_seconds=config.max_seconds, **test,
+                    step=step, weights=_weights(run, step), max_seconds=config.max_seconds,
+                    **test,
                 )  # fmt: skip
                 name = f"{policy}-{task}-step{step}-test"
                 row = evaluate(evaluation, training.checkpoint(run, step), stages, options, name)
@@ -359,7 +371,7 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
         if config.expert_row:
             evaluation = EvalConfig(task=task, embodiment=config.embodiment, mode="teleop", **test)
             row = evaluate(evaluation, None, stages, options, f"expert-{task}-test")
-            rows.append(_row(row, "human", "VR hand frames (scripted expert)", "teleop"))
+            rows.append(_row(row, "human", "VR hand frames", "teleop"))
         for policy in HUB_POLICIES:
             rows.append({"task": task, "policy": policy, "inputs": "", "mode": "",
                          "note": NOT_RUN_OFFLINE})  # fmt: skip

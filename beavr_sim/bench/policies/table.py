@@ -71,8 +71,8 @@ def markdown(result: dict, command: str = "") -> str:
         "|" + "---|" * len(COLUMNS),
         *("| " + " | ".join(_cells(row)) + " |" for row in result["rows"]),
         "",
-        f"Budget of this run: {budget['wall_s']:.1f} s wall, {budget['cpu_s']:.1f} s CPU "
-        f"({budget['stages_cached']} stages cached)"
+        f"Budget: {budget['wall_s']:.1f} s wall, {budget['cpu_s']:.1f} s CPU over all stages "
+        f"({budget['stages_cached']} of them cached from an earlier run)"
         + "".join(
             f"; {stage} {t['wall_s']:.1f} s wall / {t['cpu_s']:.1f} s CPU"
             for stage, t in budget["by_stage"].items()
