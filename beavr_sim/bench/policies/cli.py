@@ -7,7 +7,7 @@ scripted expert through the teleop pipeline, and writes ``DIR/table.md`` and
 ``DIR/table.json`` (also printed, last, as one JSON line). Every stage is cached in ``DIR`` by
 its configuration: a re-run skips what is finished; ``--resume`` continues a training run cut
 short from its last checkpoint. ``--quick``: 2 demos, 20 steps of a tiny ACT, 2 episodes of at
-most 2 s, PickupBox (what the tests run). Seeds and stages: ``beavr_sim/bench/policies/``.
+most 1 s, PickupBox (what the tests run). Seeds and stages: ``beavr_sim/bench/policies/``.
 """
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ def table_config(args: argparse.Namespace) -> TableConfig:
         image_height=height,
         image_width=width,
         steps=args.steps,
-        max_seconds=args.max_seconds or (2.0 if quick else None),
+        max_seconds=args.max_seconds or (1.0 if quick else None),
         modes=tuple(dict.fromkeys(loops)),
     )
 
