@@ -95,7 +95,7 @@ def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
 ):
     stage = tmp_path / "stage"
     _checkpoint_at(stage / "run", 10)  # cut at step 10 of 20
-    with pytest.raises(training.TrainUnfinished, match="step 10 of 20.*--resume"):
+    with pytest.raises(training.TrainUnfinished, match=r"step 10 of 20.*--resume"):
         training.train(TRAIN, tmp_path / "data", "r/d", stage)
     commands = []
 
@@ -127,6 +127,55 @@ def test_a_failing_lerobot_train_is_one_line_naming_its_log(tmp_path, monkeypatc
     message = str(info.value)
     assert "\n" not in message and "exit 3" in message and str(stage / "train.log") in message
     assert "boom" in (stage / "train.log").read_text()
+
+
+class _Enough(Exception):
+    pass
+
+
+class _HistoryPolicy:
+    """A stand-in policy that looks at its last two observations (as Diffusion does); it ends
+    the episode (by raising) once it was handed two."""
+
+    type = "stand-in"
+    cameras: dict = {}
+    history = 2
+
+    def __init__(self, action):
+        self.action = action
+        self.seen: list = []
+
+    def reset(self) -> None:
+        pass
+
+    def chunk(self, observations, task):
+        self.seen.append(observations)
+        if isinstance(observations, list) and len(observations) == 2:
+            raise _Enough
+        return self.action[None]
+
+
+def test_think_act_hands_a_history_policy_its_consecutive_observations():
+    import gymnasium as gym
+
+    from beavr_sim.datasets.recorder import CameraSet
+    from beavr_sim.eval.runner import ThinkAct
+
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    cameras = CameraSet.of_env(env, (), 1, 1)
+    try:
+        env.reset(seed=0)
+        policy = _HistoryPolicy(env.agent_pos.copy())
+        with pytest.raises(RuntimeError, match="inference failed") as info:
+            ThinkAct(env, policy, cameras).run(seed=0, max_seconds=10.0)
+    finally:
+        cameras.close()
+        env.close()
+    assert isinstance(info.value.__cause__, _Enough), policy.seen
+    first, last = policy.seen[0], policy.seen[-1]
+    assert isinstance(first, list) and len(first) == 1  # the first tick: nothing before it
+    assert last[0] is not last[1]  # two ticks' observations, not one repeated
+    assert set(last[0]) == set(last[1]) >= {"agent_pos"}
 
 
 # ---------------------------------------------------------------------------- end to end

@@ -60,6 +60,9 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--steps", type=int, default=None, help="training steps (the preset's)")
     p.add_argument(
+        "--save-freq", type=int, default=None, help="steps between checkpoints (the preset's)"
+    )
+    p.add_argument(
         "--cameras",
         default="none",
         help="cameras the policies see, e.g. front,overhead; none (default): joint state and "
@@ -117,6 +120,7 @@ def table_config(args: argparse.Namespace) -> TableConfig:
         image_height=height,
         image_width=width,
         steps=args.steps,
+        save_freq=args.save_freq,
         max_seconds=args.max_seconds or (1.0 if quick else None),
         modes=tuple(dict.fromkeys(loops)),
     )

@@ -61,8 +61,9 @@ class TableConfig:
     cameras: tuple[str, ...] = ()
     image_height: int = 96
     image_width: int = 128
-    #: Training steps (None: the preset's).
+    #: Training steps and steps between checkpoints (None: the preset's).
     steps: int | None = None
+    save_freq: int | None = None
     #: Episode time limit of the policy evaluations (None: the env's).
     max_seconds: float | None = None
     #: Evaluation loops on the test seeds.
@@ -161,7 +162,7 @@ def train_config(config: TableConfig, policy: str, demos: DemoConfig) -> TrainCo
         policy=policy,
         demos=demos,
         steps=steps,
-        save_freq=min(preset.save_freq, steps),
+        save_freq=min(config.save_freq or preset.save_freq, steps),
         batch_size=preset.batch_size,
         policy_flags=preset.flags,
     )
