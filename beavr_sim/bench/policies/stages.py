@@ -236,7 +236,8 @@ def train_policy(
             "config": asdict(train),
             "device": options.device,
             "steps_saved": training.saved_steps(run),
-            "loss": [{"step": s, "loss": loss} for s, loss in curve],
+            # LeRobot logs steps rounded (1K: 1,000-1,999); the order is the step order.
+            "loss": [{"logged_step": s, "loss": loss} for s, loss in curve],
         }
 
     what = f"train {train.policy} on {train.demos.task}: {train.steps} steps"
