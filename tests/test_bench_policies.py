@@ -1,5 +1,6 @@
 """``python -m beavr_sim.bench policies``: the Wilson interval and the cache key as units, the
-training stage's resume and failure paths with a stand-in for ``lerobot-train``, and one
+training stage's resume and failure paths with a stand-in for ``lerobot-train``, how a policy
+with an observation history (Diffusion) is fed in the think-act loop, and one
 ``--quick`` run end to end (demos -> lerobot-train -> checkpoint choice -> test -> table),
 then again from its cache."""
 
@@ -176,6 +177,26 @@ def test_think_act_hands_a_history_policy_its_consecutive_observations():
     assert isinstance(first, list) and len(first) == 1  # the first tick: nothing before it
     assert last[0] is not last[1]  # two ticks' observations, not one repeated
     assert set(last[0]) == set(last[1]) >= {"agent_pos"}
+
+
+def test_a_history_policy_gets_its_observations_stacked_in_time_and_padded():
+    torch = pytest.importorskip("torch")
+    import numpy as np
+
+    from beavr_sim.eval.policy import LoadedPolicy
+
+    policy = LoadedPolicy.__new__(LoadedPolicy)  # the stacking alone, no folder loaded
+    policy._torch, policy.history = torch, 2
+    policy._batch = lambda o, task: {
+        "observation.state": torch.as_tensor(o["agent_pos"])[None],
+        "task": [task],
+    }
+    one, two, three = ({"agent_pos": np.full(3, v)} for v in (1.0, 2.0, 3.0))
+    batch = policy._stacked([one, two, three], "t")
+    assert batch["observation.state"].shape == (1, 2, 3) and batch["task"] == ["t"]
+    assert batch["observation.state"][0, :, 0].tolist() == [2.0, 3.0]  # the last two, in order
+    padded = policy._stacked([one], "t")["observation.state"]  # an episode's first tick
+    assert padded[0, :, 0].tolist() == [1.0, 1.0]
 
 
 # ---------------------------------------------------------------------------- end to end
