@@ -667,7 +667,7 @@ def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
     with pytest.raises(CameraSpecError) as info:
         _robot_config({"front": real}, twin=("front",))
     message = str(info.value)
-    assert "camera 'front' is both a twin camera (camera_names) and a real one (cameras)" in message
+    assert "camera 'front' is both a twin camera (camera_names) and a real one (cameras" in message
     assert "\n" not in message
     with pytest.raises(CameraSpecError, match=r"camera 'wrist': give width, height"):
         _robot_config({"wrist": OpenCVCameraConfig(index_or_path=0)})
