@@ -123,8 +123,8 @@ def check_real_cameras(cameras: dict[str, object], twin_cameras: list[str]) -> N
             )
         if name in twin_cameras:
             raise CameraSpecError(
-                f"camera {name!r} is both a twin camera (camera_names) and a real one (cameras or the rig file); "
-                "rename the real camera or leave it out of camera_names"
+                f"camera {name!r} is both a twin camera (camera_names) and a real one "
+                "(cameras or the rig file); rename the real camera or leave it out of camera_names"
             )
         missing = [key for key in ("width", "height", "fps") if getattr(config, key) is None]
         if missing:
