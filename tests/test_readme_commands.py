@@ -111,6 +111,9 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"teleop --task pour --source trace --mirror-hardware --hardware-config emulated",
          extra="--max-seconds 1"),
     Spec(r"--hardware-config rig\.toml", why="a real rig: its rig.toml names real devices"),
+    Spec(r"teleop --source webxr --camera-stream-hz 5",
+         why="a live WebXR session streaming the twin's front camera; test_cameras.py's "
+             "test_a_session_without_cameras_streams_the_twins_camera runs the same path"),
     Spec(r"teleop --record data/rec --camera ",
          why="real cameras (a webcam, a LAN ZMQ server, a RealSense); test_cameras.py runs the "
              "same path through LeRobot's OpenCV (a video file) and ZMQ cameras"),
