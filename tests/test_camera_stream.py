@@ -162,8 +162,9 @@ def test_panels_reach_a_viser_client_and_a_dead_camera_reads_no_signal():
 
             until(b"front: live, age", _live())
             until(b"front: NO SIGNAL**", DEAD)
-        panel.view.value = "overlay"  # the panel's control sets the stream's view
-        assert stream.view == "overlay"
+        panel.view.value = "overlay"  # the panel's controls set the stream's view and blend
+        panel.blend.value = 0.25
+        assert stream.view == "overlay" and stream.blend == 0.25
     finally:
         stream.close()
         server.stop()
@@ -240,3 +241,79 @@ def test_nothing_offered_for_a_while_turns_the_panel_to_no_signal():
         assert frames[-1].state == NO_SIGNAL
     finally:
         stream.close()
+
+
+# --- the twin's renders -----------------------------------------------------------------------
+
+
+class _Twin:
+    """A TwinSource: renders of a fixed level, an age, the threads it ran on."""
+
+    def __init__(self, level: int = 60, age_s: float | None = 0.02, own: tuple = ("front",)):
+        self.level, self.age_s, self.own = level, age_s, own
+        self.threads: set[str] = set()
+        self.closed_on: str | None = None
+        self.asked: list[tuple[str, ...]] = []
+
+    def render(self, shapes):
+        self.threads.add(threading.current_thread().name)
+        self.asked.append(tuple(shapes))
+        if self.age_s is None:
+            return {}, None
+        return {n: np.full((24, 32, 3), self.level, np.uint8) for n in shapes}, self.age_s
+
+    def camera_for(self, panel: str) -> str:
+        return panel if panel in self.own else "front"
+
+    def close(self) -> None:
+        self.closed_on = threading.current_thread().name
+
+
+def test_the_twin_source_feeds_every_view_and_a_stale_twin_is_no_signal():
+    twin = _Twin()
+    stream = CameraStream(StreamConfig(rate_hz=0, view="auto"), [], {"front": SHAPE}, twin=twin)
+    assert stream.view == "both"  # auto: the twin has a camera of the real camera's name
+    now = time.perf_counter
+    stream.set_view("real")
+    (panel,) = stream.panels(_live(200), None, now())
+    assert panel.state == LIVE and panel.image.mean() == 200 and panel.note == ""
+    assert twin.asked == []  # the real view renders nothing
+    stream.set_view("twin")
+    (panel,) = stream.panels(_live(200), None, now())
+    assert panel.state == LIVE and panel.image.shape == SHAPE and panel.image.mean() == 60
+    assert panel.age_s == pytest.approx(0.02) and panel.label.endswith("(twin)")
+    stream.set_view("both")
+    (panel,) = stream.panels(_live(200), None, now())
+    assert panel.image.shape == (48, 128, 3)
+    assert panel.image[:, :64].mean() == 200 and panel.image[:, 64:].mean() == 60
+    stream.set_view("overlay")
+    stream.set_blend(0.25)
+    (panel,) = stream.panels(_live(200), None, now())
+    np.testing.assert_allclose(panel.image, 165, atol=1)  # 0.25 * 60 + 0.75 * 200
+    (panel,) = stream.panels(DEAD, None, now())  # the real camera dead: never the twin alone
+    assert panel.state == NO_SIGNAL and panel.age_s is None
+
+    for age in (None, 5.0):  # no twin pose yet, or the twin stopped ticking
+        twin.age_s = age
+        stream.set_view("twin")
+        (panel,) = stream.panels(_live(200), None, now())
+        assert panel.state == NO_SIGNAL and panel.image.mean() != 60
+        stream.set_view("overlay")
+        (panel,) = stream.panels(_live(200), None, now())
+        assert panel.state == LIVE and panel.image.mean() == 200  # the real frame alone...
+        assert "twin NO SIGNAL" in panel.label  # ...saying so
+
+
+def test_twin_only_panels_render_on_the_stream_thread_at_the_rate():
+    twin = _Twin(own=("side",))
+    seen = _Collect()
+    stream = CameraStream(
+        StreamConfig(rate_hz=50.0, view="auto"), [seen], {"side": SHAPE}, twin=twin, real=()
+    )
+    assert stream.view == "real"  # auto: no real camera has a twin of its name
+    try:
+        frames = seen.wait(3)  # no real camera, nothing offered: the twin drives the panels
+    finally:
+        stream.close()
+    assert all(f.state == LIVE and f.image.mean() == 60 for f in frames)
+    assert twin.threads == {"camera-stream"} and twin.closed_on == "camera-stream"

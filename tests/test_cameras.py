@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
+import sys
 import threading
 import time
 from pathlib import Path
@@ -237,8 +239,11 @@ def _record(
     listener=None,
     stream_hz=0.0,
     viewers=None,
+    twin=False,
     multiprocess: bool = False,
 ):
+    from dataclasses import replace
+
     from beavr_sim.datasets.features import RecordingConfig
     from beavr_sim.teleop.session import (
         ProgressLine,
@@ -246,6 +251,7 @@ def _record(
         build_loop,
         record_episodes,
         run_session,
+        twin_camera_panels,
     )
     from beavr_sim.wire.ports import PortConfig, TransportConfig
 
@@ -272,6 +278,8 @@ def _record(
         loop = build_loop(options)
         if listener is not None:
             loop.listeners.append(listener)
+        if twin:  # the twin's renders of the camera, as run_session adds them when streaming
+            viewers = replace(viewers, **twin_camera_panels(options, loop))
         record_episodes(options, loop, ProgressLine(loop, enabled=False), viewers=viewers)
     lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
     return [json.loads(x) for x in lines]
@@ -315,7 +323,7 @@ def test_camera_dying_mid_episode_ends_it_as_a_hardware_fault(tmp_path, server):
 def test_camera_flag_errors():
     from beavr_sim.teleop.session import SessionOptions
 
-    with pytest.raises(ValueError, match="add --record"):
+    with pytest.raises(ValueError, match="add --record or --camera-stream-hz"):
         SessionOptions(
             task="PickupBox",
             source="trace",
@@ -323,10 +331,15 @@ def test_camera_flag_errors():
             headless=True,
             real_cameras=("front=opencv:0",),
         )
-    with pytest.raises(ValueError, match="add --record"):
+    streams = SessionOptions(  # without --record: the twin's cameras are streamed
+        task="PickupBox", source="trace", viser=False, headless=True, camera_stream_hz=5.0
+    )
+    assert streams.camera_stream_config().view == "auto"
+    with pytest.raises(ValueError, match="--camera-stream-hz runs in one process"):
         SessionOptions(
-            task="PickupBox", source="trace", viser=False, headless=True, camera_stream_hz=5.0
-        )
+            task="PickupBox", source="trace", headless=True, multiprocess=True,
+            camera_stream_hz=5.0,
+        )  # fmt: skip
     with pytest.raises(ValueError, match="real, twin, both, overlay"):
         SessionOptions(
             task="PickupBox", source="trace", viser=False, headless=True, camera_view="side"
@@ -376,35 +389,143 @@ def test_stream_reads_a_live_zmq_camera_and_shows_no_signal_once_it_dies(server)
         cams.close()
 
 
+class _View:  # the browser view's part the stream uses
+    def __init__(self, shapes=None) -> None:
+        self.shapes = shapes
+        self.panels = []
+        self.arrived = threading.Event()
+        self.panel = None
+
+    def add_camera_panel(self, shapes):
+        assert self.shapes is None or shapes == self.shapes
+        self.panel = _Panel(self)
+        return self.panel
+
+    def wait_until(self, predicate, n: int = 1):
+        """A tick listener holding the control loop at tick ``n`` until a panel arrived that
+        ``predicate`` accepts (readiness, never a timing bound: the first twin render makes
+        its GL context)."""
+        ticks = [0]
+
+        def listener(tick) -> None:
+            ticks[0] += 1
+            if ticks[0] == n:
+                _wait_for(lambda: any(predicate(p) for p in self.panels), "a panel")
+
+        return listener
+
+
+class _Panel:
+    def __init__(self, view) -> None:
+        self.view = view
+        self.stream = None
+
+    def attach(self, stream) -> None:
+        self.stream = stream
+
+    def __call__(self, frame) -> None:
+        self.view.panels.append(frame)
+
+
 def test_a_recording_session_streams_its_camera_to_the_viewers(tmp_path, server):
     from beavr_sim.teleop.camera_viewers import CameraViewers
 
-    class _View:  # the browser view's part the stream uses
-        def __init__(self) -> None:
-            self.panels = []
-
-        def add_camera_panel(self, shapes):
-            assert shapes == {"front": (24, 32, 3)}
-            return _Panel(self.panels)
-
-    class _Panel(list):
-        def __init__(self, panels) -> None:
-            self.panels = panels
-            self.stream = None
-
-        def attach(self, stream) -> None:
-            self.stream = stream
-
-        def __call__(self, frame) -> None:
-            self.panels.append(frame)
-
-    view = _View()
+    view = _View({"front": (24, 32, 3)})
     (record,) = _record(
         tmp_path, server.port, 1.0, stream_hz=20.0, viewers=CameraViewers(view=view)
     )
     assert record["kept"] and record["hardware_fault"] is None
     assert any(p.state == "live" and p.image.shape == (24, 32, 3) for p in view.panels)
     assert record["cameras"]["front"]["frames"] >= record["frames"]  # the recorder's own grabs
+
+
+def test_a_recording_session_streams_the_real_camera_and_the_twin_side_by_side(tmp_path, server):
+    from beavr_sim.teleop.camera_viewers import CameraViewers
+
+    view = _View({"front": (24, 32, 3)})
+
+    def both(p) -> bool:
+        return p.state == "live" and p.image.shape == (24, 64, 3) and p.note == "twin"
+
+    (record,) = _record(
+        tmp_path, server.port, 1.0, listener=view.wait_until(both, 5), stream_hz=20.0,
+        viewers=CameraViewers(view=view), twin=True,
+    )  # fmt: skip
+    assert record["kept"] and record["hardware_fault"] is None
+    stream = view.panel.stream
+    assert stream.view == "both"  # auto: the twin has a camera of the real camera's name
+    panel = next(p for p in view.panels if both(p))
+    real, twin = panel.image[:, :32].astype(float), panel.image[:, 32:].astype(float)
+    assert real.std() < 3 and twin.std() > 10  # the server's flat grey | the twin's scene
+    assert stream.twin_renders > 0 and stream.twin_errors == 0
+
+
+def test_a_session_without_cameras_streams_the_twins_camera(monkeypatch):
+    from dataclasses import replace
+
+    from beavr_sim.teleop import session
+
+    view = _View()
+    started = []
+
+    def start(real, config, viewers):  # the session's own viewers plus the test's browser view
+        stream = real_start(real, config, replace(viewers, view=view))
+        started.append(stream)
+        return stream
+
+    real_start = session.start_camera_stream
+    monkeypatch.setattr(session, "start_camera_stream", start)
+    options = session.SessionOptions(
+        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
+        progress=False, max_seconds=0.5, camera_stream_hz=20.0,
+    )  # fmt: skip
+
+    def live_twin(p) -> bool:
+        return p.state == "live" and p.image.shape == (480, 640, 3)
+
+    session.run_session(
+        options, on_loop=lambda loop: loop.listeners.append(view.wait_until(live_twin, 3))
+    )
+    (stream,) = started
+    assert not stream.running  # closed with the session
+    assert {p.name for p in view.panels} == {"front"}  # no real camera: the twin's front
+    assert stream.real == () and stream.twin_renders > 0 and stream.twin_errors == 0
+
+
+def test_a_session_without_recording_streams_its_real_camera(monkeypatch, server):
+    """``--camera front=zmq:... --camera-stream-hz`` without ``--record``: a camera watching
+    a sim-only session, shown next to the twin's ``front``."""
+    from dataclasses import replace
+
+    from beavr_sim.teleop import session
+
+    view = _View({"front": (24, 32, 3)})
+    started = []
+
+    def start(real, config, viewers):  # the session's own viewers plus the test's browser view
+        started.append((real, real_start(real, config, replace(viewers, view=view))))
+        return started[-1][1]
+
+    real_start = session.start_camera_stream
+    monkeypatch.setattr(session, "start_camera_stream", start)
+    options = session.SessionOptions(
+        task="PickupBox", source="trace", clock="paced", viser=False, headless=True,
+        progress=False, max_seconds=0.5, camera_stream_hz=20.0,
+        real_cameras=(f"front=zmq:127.0.0.1:{server.port}",),
+    )  # fmt: skip
+
+    def both(p) -> bool:
+        return p.state == "live" and p.image.shape == (24, 64, 3) and p.note == "twin"
+
+    session.run_session(
+        options, on_loop=lambda loop: loop.listeners.append(view.wait_until(both, 3))
+    )
+    ((real, stream),) = started
+    assert tuple(real.names) == ("front",)
+    assert not stream.running and stream.view == "both"
+    panel = next(p for p in view.panels if both(p))
+    assert panel.image[:, :32].std() < 3 and panel.image[:, 32:].std() > 10  # real | twin
+    assert real.stats["front"].frames == 0  # the stream's reads count nothing
 
 
 def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):
@@ -456,3 +577,177 @@ def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):
     assert record["cameras"]["front"]["frames"] >= record["frames"] > 0
     info = json.loads((tmp_path / "rec" / "meta" / "info.json").read_text())
     assert info["features"]["observation.images.front"]["shape"] == [24, 32, 3]
+
+
+# --- the LeRobot robot's cameras (--robot.type=beavr_sim --robot.cameras) ---------------------
+
+
+def _robot_config(cameras: dict, twin: tuple[str, ...] = (), **kwargs):
+    from beavr_sim.integrations.config_robot import BeavrSimRobotConfig
+
+    return BeavrSimRobotConfig(
+        task="PickupBox", camera_names=list(twin), cameras=cameras, use_guard=False, **kwargs
+    )
+
+
+def _zmq_robot_camera(port: int) -> ZMQCameraConfig:
+    return ZMQCameraConfig(
+        server_address="127.0.0.1",
+        port=port,
+        camera_name="front",
+        width=32,
+        height=24,
+        fps=30,
+        timeout_ms=200,
+    )
+
+
+def test_robot_observation_has_the_real_cameras_newest_frames(server, tmp_path):
+    from lerobot.utils.feature_utils import hw_to_dataset_features
+
+    from beavr_sim.cameras.errors import CameraStoppedError
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    robot = BeavrSimRobot(
+        _robot_config(
+            {"wrist": _zmq_robot_camera(server.port)},
+            twin=("front",),  # the twin's front beside the real wrist camera
+            camera_max_age_s=1.0,  # a busy machine's scheduling never reads as a dead camera
+            calibration_dir=tmp_path,
+            image_height=24,
+            image_width=32,
+        )
+    )
+    features = hw_to_dataset_features(robot.observation_features, "observation", use_video=True)
+    assert features["observation.images.wrist"]["shape"] == (24, 32, 3)
+    robot.connect()
+    try:
+        obs = robot.get_observation()
+        assert obs["wrist"].shape == (24, 32, 3) and obs["front"].shape == (24, 32, 3)
+        first = float(obs["wrist"].mean())
+        sent = server.sent
+        _wait_for(lambda: server.sent >= sent + 5, "the server to publish")
+        _wait_for(lambda: float(robot.get_observation()["wrist"].mean()) != first, "a new frame")
+        server.stop.set()  # the camera goes silent: no frozen frame is observed as live
+
+        def raised() -> bool:
+            try:
+                robot.get_observation()
+            except CameraStoppedError as exc:
+                raised.message = str(exc)  # type: ignore[attr-defined]
+                return True
+            return False
+
+        _wait_for(raised, "get_observation to refuse the silent camera")
+        message = raised.message  # type: ignore[attr-defined]
+        assert "camera 'wrist' stopped delivering frames (no frame for over 1 s)" in message
+        assert "\n" not in message
+    finally:
+        robot.disconnect()
+    assert robot.real_cameras is None
+
+
+def test_robot_camera_that_does_not_open_or_ends_fails_in_one_line(tmp_path):
+    from beavr_sim.cameras.errors import CameraStoppedError
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    video = _video(tmp_path / "v.avi", 60)
+
+    def opencv(path: Path, width: int = 32) -> OpenCVCameraConfig:
+        return OpenCVCameraConfig(index_or_path=path, width=width, height=24, fps=30, warmup_s=0)
+
+    robot = BeavrSimRobot(_robot_config({"wrist": opencv(tmp_path / "missing.avi")}))
+    with pytest.raises(CameraError) as info:
+        robot.connect()
+    message = str(info.value)
+    assert message.startswith("camera 'wrist' (opencv) failed to start: ") and "\n" not in message
+    assert "check that " in message and "missing.avi" in message
+    assert not robot.is_connected and robot.real_cameras is None
+    robot = BeavrSimRobot(_robot_config({"wrist": opencv(video, width=64)}))
+    with pytest.raises(CameraError, match=r"frames are width=32 x height=24, not the configured"):
+        robot.connect()
+    # The file's size as configured: it opens, plays (LeRobot reads a file as fast as it
+    # decodes), ends; the robot then refuses to observe rather than repeat its last frame.
+    robot = BeavrSimRobot(_robot_config({"wrist": opencv(video)}))
+    robot.connect()
+    try:
+        with pytest.raises(CameraStoppedError, match=r"'wrist' .*its read thread ended"):
+            _wait_for(lambda: robot.get_observation() is None, "the file's end")
+    finally:
+        robot.disconnect()
+
+
+def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    real = OpenCVCameraConfig(index_or_path=0, width=32, height=24, fps=30)
+    with pytest.raises(CameraSpecError) as info:
+        _robot_config({"front": real}, twin=("front",))
+    message = str(info.value)
+    assert "camera 'front' is both a twin camera (camera_names) and a real one (cameras" in message
+    assert "\n" not in message
+    with pytest.raises(CameraSpecError, match=r"camera 'wrist': give width, height"):
+        _robot_config({"wrist": OpenCVCameraConfig(index_or_path=0)})
+    # A rig file's [cameras.NAME] tables are the robot's real cameras too (hardware = the rig).
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[cameras.overhead]\ntype = "zmq"\nserver_address = "127.0.0.1"\nwidth = 32\n')
+    with pytest.raises(CameraSpecError, match=r"camera 'overhead': give height"):
+        _robot_config({}, hardware=str(rig))
+    rig.write_text(rig.read_text() + "height = 24\n")
+    robot = BeavrSimRobot(_robot_config({"wrist": real}, hardware=str(rig)))
+    assert robot.observation_features["overhead"] == (24, 32, 3)
+    assert robot.observation_features["wrist"] == (24, 32, 3)
+    with pytest.raises(
+        CameraSpecError, match=r"'overhead' is named both in the rig file and by cameras"
+    ):
+        _robot_config({"overhead": real}, hardware=str(rig))
+    with pytest.raises(CameraSpecError, match=r"'overhead' is both a twin camera"):
+        _robot_config({}, twin=("overhead",), hardware=str(rig))
+
+
+def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypatch):
+    """``lerobot-record`` (its ``main``, in this process, from its command line: the plugins
+    found as the installed command finds them) with ``--robot.cameras`` as for LeRobot's own
+    robots: ``observation.images.wrist`` holds the camera's live frames."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.scripts.lerobot_record import main
+
+    camera = (
+        f"{{wrist: {{type: zmq, server_address: 127.0.0.1, port: {server.port}, "
+        "camera_name: front, width: 32, height: 24, fps: 30, timeout_ms: 200}}"
+    )
+    argv = [
+        "lerobot-record",
+        "--robot.type=beavr_sim",
+        "--robot.task=PickupBox",
+        "--robot.camera_names=[]",
+        f"--robot.cameras={camera}",
+        f"--robot.calibration_dir={tmp_path / 'calibration'}",
+        "--teleop.type=beavr_quest",
+        "--teleop.source=trace",
+        "--teleop.task=PickupBox",
+        f"--teleop.calibration_dir={tmp_path / 'calibration'}",
+        "--dataset.repo_id=local/robot_cams",
+        f"--dataset.root={tmp_path / 'ds'}",
+        "--dataset.num_episodes=1",
+        "--dataset.episode_time_s=1",
+        "--dataset.fps=30",
+        "--dataset.single_task=watch",
+        "--dataset.push_to_hub=false",
+        "--dataset.video=false",
+        "--play_sounds=false",
+    ]
+    monkeypatch.setattr(sys, "argv", argv)
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        main()
+    finally:  # LeRobot's init_logging replaced the root logger's handlers: later tests get theirs
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    ds = LeRobotDataset("local/robot_cams", root=tmp_path / "ds")
+    assert ds.num_episodes == 1 and ds.num_frames >= 3
+    assert ds.features["observation.images.wrist"]["shape"] == (24, 32, 3)
+    levels = {round(float(ds[i]["observation.images.wrist"].mean()), 3) for i in range(len(ds))}
+    assert len(levels) > len(ds) / 2  # the server's frames move on: not a frozen image

@@ -10,6 +10,7 @@ import json
 import math
 import os
 import random
+import re
 import select
 import subprocess
 import sys
@@ -718,10 +719,10 @@ def test_vanished_port_raises_device_error_quickly(emu, arm):
     arm.send_positions(np.zeros(7))
     emu.vanish()
     for call in (lambda: arm.send_positions(np.full(7, 0.1)), arm.read_positions, arm.hold):
-        t0 = time.monotonic()
-        with pytest.raises(DeviceError, match=emu.port):
+        # Quickly: the port's own failure, at once - not a reply waited out and asked again.
+        with pytest.raises(DeviceError, match=rf"serial port '{re.escape(emu.port)}' failed while"):
             call()
-        assert time.monotonic() - t0 < 0.5
+        assert arm.retries == 0
     assert arm.errors == 3 and arm.commands_sent == 1
     arm.disconnect()
     arm.disconnect()

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import random
+import re
 import time
 
 import numpy as np
@@ -378,10 +379,10 @@ def test_vanished_port_raises_device_error_quickly(emu, hand):
     hand.send_positions(np.zeros(16))
     emu.vanish()
     for call in (hand.read_positions, lambda: hand.send_positions(np.full(16, 0.1)), hand.hold):
-        t0 = time.monotonic()
-        with pytest.raises(DeviceError, match=emu.port):
+        # Quickly: the port's own failure, at once - not a reply waited out and asked again.
+        with pytest.raises(DeviceError, match=rf"serial port '{re.escape(emu.port)}' failed while"):
             call()
-        assert time.monotonic() - t0 < 0.5
+        assert hand.retries == 0
     assert hand.errors == 3 and hand.commands_sent == 1
     hand.disconnect()
     hand.disconnect()

@@ -37,12 +37,12 @@ from beavr_sim.wire.records import JointCommand
 FOLLOWING, CATCHING_UP = LinkState.FOLLOWING, LinkState.CATCHING_UP
 
 
-def wait_for(predicate, timeout: float = 30.0) -> None:
+def wait_for(predicate, timeout: float = 30.0, poll_s: float = 0.005) -> None:
     """Until ``predicate()`` holds (a readiness wait: the bound is only a hang guard)."""
     deadline = time.monotonic() + timeout
     while not predicate():
         assert time.monotonic() < deadline, "timed out waiting"
-        time.sleep(0.005)
+        time.sleep(poll_s)
 
 
 class FakeClock:
@@ -125,7 +125,7 @@ class Bench:
         deadline = time.monotonic() + timeout
         m = self.mirror
         while time.monotonic() < deadline:
-            if all(link._seq_sent == m._dispatch.seq for link in m.links):
+            if all(link._seq_sent == m.dispatched.seq for link in m.links):
                 time.sleep(0.05)  # the xArm's interpolated stream finishes
                 break
             time.sleep(0.002)
@@ -143,7 +143,7 @@ class Bench:
                 and not m.failed_devices
             ]
             if all(
-                np.abs(link.last - m._dispatch.target[link.index]).max() < 1e-5
+                np.abs(link.last - m.dispatched.target[link.index]).max() < 1e-5
                 for link in streaming
             ):
                 return
@@ -157,7 +157,7 @@ class Bench:
         self.mirror.submit(action, action)
         if settle:
             self.wait_written()
-        return self.mirror._dispatch.target.copy()
+        return self.mirror.dispatched.target.copy()
 
     def arm_targets(self) -> np.ndarray:
         return np.array([q for _, q in self.arm.servo_log]).reshape(-1, 7)
@@ -901,9 +901,7 @@ def test_a_newer_target_preempts_a_streamed_interpolation(clocked):
     first[0] += 0.09  # 30 Hz: streamed in 4 steps at 100 Hz (the xArm's cap: 90 % of pi)
     n_arm = len(bench.arm_targets())
     bench.submit_at(clock, 1 / 30, first, settle=False)
-    deadline = time.monotonic() + 2.0
-    while len(bench.arm.servo_log) == n_arm and time.monotonic() < deadline:
-        time.sleep(0.0002)
+    wait_for(lambda: len(bench.arm.servo_log) > n_arm, poll_s=0.0002)  # its first step is out
     second = first.copy()
     second[2] += 0.02  # 11 ms later, another joint moves too
     bench.submit_at(clock, 1 / 90, second)
@@ -946,3 +944,53 @@ def test_a_device_whose_target_did_not_change_is_not_written_again(clocked):
     assert len(bench.hand_goals()) - n_goals == written
     arm = bench.mirror.summary()["right_arm"]
     assert abs(bench.arm_targets()[-1][0] - target[0]) < 1e-5 and arm["unchanged"] == 0
+
+
+# ------------------------------------------------------------------ the writers' port
+
+
+def test_a_writer_reaches_the_mirror_only_through_its_port():
+    """``link.py`` touches no lock and no private field of another object: every attribute
+    it reads or writes with a leading underscore is its own (``self._x``), and it names no
+    lock (``cond``) at all."""
+    import ast
+    from pathlib import Path
+
+    import beavr_sim.hardware.mirror.link as link_module
+
+    tree = ast.parse(Path(link_module.__file__).read_text())
+    found = [
+        f"{node.lineno}: {ast.unparse(node)}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute)
+        and (
+            node.attr in ("cond", "_cond")
+            or (
+                node.attr.startswith("_")
+                and not node.attr.startswith("__")
+                and not (isinstance(node.value, ast.Name) and node.value.id == "self")
+            )
+        )
+    ]
+    assert not found, found
+
+
+def test_a_divergence_judged_before_a_release_does_not_latch():
+    """A writer's reading judged against a divergence timer started before the operator's
+    release (or a new episode) is not a hold: the port drops its latch; one judged after it
+    latches and is a fault of the episode."""
+    from beavr_sim.hardware.mirror.board import MirrorBoard
+    from beavr_sim.hardware.mirror.divergence import Judgement
+
+    board = MirrorBoard(["right_arm"], np.zeros(7), 1 / 30)
+    port = board.port(0, MirrorConfig(), dry_run=True)
+    judged = Judgement(0.4, "right/joint3", "diverged: right/joint3 0.400 rad for 0.60 s")
+    with board.cond:
+        board.devices[0].releases += 1  # released since the writer last took its orders
+    port.judged(judged, releases=0)
+    assert board.devices[0].latched == "" and board.faults == []
+    assert board.devices[0].stats.max_divergence_rad == pytest.approx(0.4)  # still kept
+    port.judged(judged, releases=1)
+    assert board.devices[0].latched.startswith("diverged")
+    assert board.faults == ["right_arm diverged: right/joint3 0.400 rad for 0.60 s"]
+    assert board.orders(0).latched and board.halt_for(0) is None

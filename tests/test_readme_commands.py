@@ -111,6 +111,9 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"teleop --task pour --source trace --mirror-hardware --hardware-config emulated",
          extra="--max-seconds 1"),
     Spec(r"--hardware-config rig\.toml", why="a real rig: its rig.toml names real devices"),
+    Spec(r"teleop --source webxr --camera-stream-hz 5",
+         why="a live WebXR session streaming the twin's front camera; test_cameras.py's "
+             "test_a_session_without_cameras_streams_the_twins_camera runs the same path"),
     Spec(r"teleop --record data/rec --camera ",
          why="real cameras (a webcam, a LAN ZMQ server, a RealSense); test_cameras.py runs the "
              "same path through LeRobot's OpenCV (a video file) and ZMQ cameras"),
@@ -151,7 +154,10 @@ SPECS: tuple[Spec, ...] = (
          extra=f"{TRAIN_TINY} --env.episode_length=3 --eval.batch_size=1",
          check="outputs/act_pickup_box_env/checkpoints/last/pretrained_model"),
     Spec(r"lerobot-teleoperate", extra="--teleop_time_s=1"),
-    Spec(r"lerobot-record", tiny=((r"--dataset\.episode_time_s=20", "--dataset.episode_time_s=1"),),
+    Spec(r"lerobot-record .*--robot\.cameras=",
+         why="a real camera (a webcam); test_cameras.py runs lerobot-record's main with "
+             "--robot.cameras on a ZMQ image server"),
+    Spec(r"lerobot-record (?!.*--robot\.cameras=)", tiny=((r"--dataset\.episode_time_s=20", "--dataset.episode_time_s=1"),),
          check="data/pickup_box_lr/meta/info.json"),
     Spec(r"lerobot-replay"),
     Spec(r"beavr_sim\.experts --task pour --episodes 50",

@@ -101,7 +101,7 @@ def _catch_up(
                 clock.t += period
                 mirror.submit(goal, goal)
                 time.sleep(period)  # paced like the twin (nothing is counted against it)
-                if np.array_equal(mirror._dispatch.target, goal):
+                if np.array_equal(mirror.dispatched.target, goal):
                     after -= 1
                     if not after:
                         break

@@ -19,6 +19,7 @@ from beavr_sim.datasets.cli import parse_cameras
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import EpisodeRecorder
 from beavr_sim.envs.cameras import render_option
+from beavr_sim.naming import UnknownNameError
 from beavr_sim.wire.records import Tick
 
 # The front camera moved to a calibrated pose (optical frame: looking along world -x, tilted
@@ -228,3 +229,106 @@ def test_session_camera_poses_place_the_twin_camera(tmp_path, monkeypatch):
     bare.write_text('[cameras.front]\ntype = "opencv"\nindex_or_path = 0\n')
     with pytest.raises(ValueError, match=r"no \[cameras\.NAME\] table has a T_world_camera"):
         session.SessionOptions(**common, viser=False, headless=True, camera_poses=bare)
+
+
+def test_a_placed_camera_of_a_new_name_is_recorded_as_its_render(tmp_path):
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.teleop.__main__ import build_parser
+    from beavr_sim.teleop.session import SessionOptions
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    common = ["--task", "PickupBox", "--source", "trace", "--no-viser", "--headless"]
+    common += ["--record", str(tmp_path / "d"), "--image-size", "48x64"]
+    args = build_parser().parse_args([*common, "--cameras", "side,side:depth"])
+    with pytest.raises(UnknownNameError, match=r"Unknown camera 'side'\. Valid cameras: front"):
+        SessionOptions.from_args(args)  # not placed: refused, naming the valid ones
+    args = build_parser().parse_args(
+        [*common, "--cameras", "side,side:depth", "--camera-poses", str(rig)]
+    )
+    options = SessionOptions.from_args(args)
+    config = options.recording
+    assert config.cameras == ("side",) and config.depth_cameras == ("side",)
+    with pytest.raises(ValueError, match="where --camera-poses places it"):
+        SessionOptions(
+            task="PickupBox", source="trace", trace=bundled_trace("PickupBox"), viser=False,
+            headless=True, record=tmp_path / "e", recording=config,
+        )  # fmt: skip
+
+    # The recorder draws the placed camera: the frame is the render from its pose.
+    env = gym.make("beavr_sim/Playground-v0", placed_cameras=options.placed_cameras).unwrapped
+    env.reset(seed=0)
+    features = lerobot_features(env.embodiment, config, env.environment_state_names)
+    sink = _FrameSink()
+    recorder = EpisodeRecorder(sink, env, config)  # type: ignore[arg-type]
+    recorder.begin()
+
+    class _State:
+        action = env.joints.home.copy()
+
+    recorder(Tick(t=0.0, frames=(), commands={}, state=_State()))  # type: ignore[arg-type]
+    recorder.close()
+    (frame,) = sink.frames
+    validate_frame(frame, features)
+    direct = mujoco.Renderer(env.render_model, 48, 64)
+
+    def render(camera: str) -> np.ndarray:
+        direct.update_scene(env.render_data(), camera=camera, scene_option=render_option())
+        direct.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        direct.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return direct.render().copy()
+
+    expected, front = render("side"), render("front")
+    side = env.render_model.camera("side").id
+    placed_at = env.render_data().cam_xpos[side].copy()
+    direct.close()
+    env.close()
+    image = frame["observation.images.side"]
+    assert image.shape == (48, 64, 3)
+    np.testing.assert_array_equal(image, expected)
+    assert not np.array_equal(image, front)  # not some other camera's view
+    np.testing.assert_allclose(placed_at, [0.4, -0.9, 1.1], atol=1e-9)
+    depth = frame["observation.images.side_depth"]
+    assert depth.shape == (48, 64, 1) and np.isfinite(depth).all()
+
+
+def test_twin_camera_feed_copies_the_pose_on_the_tick_and_renders_it_later(tmp_path):
+    from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    env = gym.make("beavr_sim/Playground-v0", placed_cameras=rig_placed_cameras(rig)).unwrapped
+    env.reset(seed=0)
+    now = [100.0]
+    feed = TwinCameraFeed(env.render_model, env.data, "front", rate_hz=10.0, clock=lambda: now[0])
+    shapes = {"side": (48, 64, 3), "wrist": (48, 64, 3), "big": (960, 1280, 3)}
+    assert feed.render(shapes) == ({}, None)  # no tick yet: nothing to draw
+    assert feed.camera_for("side") == "side" and feed.camera_for("wrist") == "front"
+    assert feed.panel_shape("front") == (480, 640, 3)  # its intrinsics' size
+    assert feed.panel_shape("side") == (480, 640, 3)  # a field of view only: the default size
+
+    tick = Tick(t=0.0, frames=(), commands={}, state=None)  # type: ignore[arg-type]
+    feed(tick)
+    now[0] += 0.05
+    feed(tick)  # within the period: no copy
+    assert feed.copies == 1
+    direct = mujoco.Renderer(env.render_model, 48, 64)
+
+    def render(camera: str) -> np.ndarray:
+        direct.update_scene(env.render_data(), camera=camera, scene_option=render_option())
+        direct.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        direct.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return direct.render().copy()
+
+    expected = {"side": render("side"), "wrist": render("front")}
+    env.data.qpos[env.joints.qpos_adr[0]] += 0.5  # the twin moves on; no tick copies it
+    images, age_s = feed.render(shapes)
+    moved = render("front")
+    direct.close()
+    feed.close()
+    env.close()
+    np.testing.assert_array_equal(images["side"], expected["side"])
+    np.testing.assert_array_equal(images["wrist"], expected["wrist"])  # the pose copied
+    assert not np.array_equal(moved, expected["wrist"])  # (the move shows in a live render)
+    assert images["big"].shape == (480, 640, 3)  # scaled into the offscreen buffer
+    assert age_s == pytest.approx(0.05)

@@ -212,3 +212,40 @@ def test_page_draws_the_meshes_and_a_damaged_one_as_its_box():
             assert not errors, errors
     finally:
         server.close()
+
+
+def test_page_shows_the_streamed_camera_as_a_quad_in_the_scene():
+    """No session: the page alone, given camera messages (a magenta image) as the camera
+    stream sends them; the quad is drawn in the page's view of the scene."""
+    from beavr_sim.cameras.headset_panels import WebXRCameraSink
+    from beavr_sim.cameras.stream import LIVE, StreamFrame
+    from beavr_sim.headset.webxr_server import WebXRConfig, WebXRServer
+
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    magenta = np.zeros((48, 64, 3), np.uint8)
+    magenta[..., 0] = magenta[..., 2] = 255
+    server = WebXRServer(WebXRConfig(port=0))
+    sink = WebXRCameraSink(server)
+    status = "document.getElementById('camera-status').textContent"
+    try:
+        with _page() as (page, errors):
+            page.on("console", lambda m: m.type == "error" and errors.append(m.text))
+            page.goto(server.url)
+            end, seq = time.monotonic() + 30, 0
+            while "in the scene: front" not in page.evaluate(status):
+                assert time.monotonic() < end, "the camera quad never showed"
+                seq += 1
+                sink(StreamFrame("front", magenta, LIVE, 0.01, seq))
+                time.sleep(0.1)
+            page.evaluate("document.getElementById('overlay').style.display = 'none'")
+            page.wait_for_timeout(300)
+            shot = ARTIFACTS / "2_camera_quad.png"
+            page.screenshot(path=shot)
+            assert not errors, errors
+    finally:
+        server.close()
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    is_magenta = (pixels[..., 0] > 200) & (pixels[..., 2] > 200) & (pixels[..., 1] < 80)
+    assert is_magenta.sum() > 200, "no magenta quad in the page's view"

@@ -331,3 +331,49 @@ def test_announce_prints_the_tokened_url_and_a_qr_code_only_with_a_token():
     out = io.StringIO()
     announce_webxr("http://127.0.0.1:8443/", SessionToken("abc", False), out)
     assert "no token on a loopback" in out.getvalue() and out.getvalue().count("\n") == 2
+
+
+def test_a_webxr_session_streams_the_twins_camera_to_the_page_at_a_bounded_rate():
+    """``--source webxr --camera-stream-hz 4``, no real camera: the twin's ``front`` reaches a
+    page (a raw WebSocket client) as ``camera`` messages with the in-scene panel's placement,
+    no faster than the rate asked."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    from beavr_sim.bench.webxr import SessionThread
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.workcell import TABLE_TOP_Z, TABLE_X
+
+    rate_hz = 4.0
+    options = SessionOptions(
+        task="PickupBox", source="webxr", viser=False, headless=True, progress=False,
+        webxr_port=0, camera_stream_hz=rate_hz,
+    )  # fmt: skip
+    sess = SessionThread(options)
+    messages = []
+    try:
+        with connect(_ws_url(sess.server), max_size=None) as ws:
+            connected = time.monotonic()
+            deadline = connected + 60.0  # readiness: the first render makes its GL context
+            while len(messages) < 4:
+                assert time.monotonic() < deadline, f"{len(messages)} camera messages arrived"
+                msg = json.loads(ws.recv(timeout=60.0))
+                if msg["type"] == "camera":
+                    messages.append(msg)
+    finally:
+        sess.stop()
+    assert sess.error is None, sess.error
+    # Composed at most rate_hz per second (the server's clock: `t`; +1 for the limiter's phase).
+    sent = [m["t"] for m in messages]
+    assert sent == sorted(sent) and len(sent) - 1 <= rate_hz * (sent[-1] - sent[0]) + 1
+    live = [m for m in messages if m["state"] == "live"]
+    assert live and {m["name"] for m in messages} == {"front"}
+    msg = live[-1]
+    assert msg["label"].startswith("front: live, age") and msg["label"].endswith("(twin)")
+    image = np.asarray(Image.open(io.BytesIO(base64.b64decode(msg["jpeg"]))))
+    assert image.shape == (msg["height"], msg["width"], 3) == (480, 640, 3)
+    assert image.std() > 10  # the scene, not a flat NO SIGNAL panel
+    x, y, z = msg["panel"]["center"]  # beyond the table's far edge, above its top
+    assert x > TABLE_X[1] and y == 0.0 and z > TABLE_TOP_Z and msg["panel"]["width_m"] > 0

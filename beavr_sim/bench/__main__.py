@@ -28,6 +28,12 @@ bug per safety rule, each in a copy of the repository, against the tests that cl
 the cameras' cost to the control tick, with and without (``bench/cameras.py``); JSON on the
 last line.
 
+``python -m beavr_sim.bench policies [--tasks T,...] [--policies act,diffusion] [--demos N]
+[--episodes N] [--quick] [--out DIR] [--resume]``: demonstrations -> ``lerobot-train`` ->
+checkpoint chosen on validation seeds -> success on held-out test seeds with Wilson 95 %
+intervals, beside the scripted expert through the teleop pipeline; every stage cached in DIR
+(``bench/policies/``, its own options); a markdown table and JSON.
+
 ``python -m beavr_sim.bench soak --minutes N``: a looping trace mirrored to the emulated rig
 for N minutes; the resident memory's slope after warm-up in MB per hour (target <= 1;
 ``bench/soak.py``, its own options); JSON on the last line."""
@@ -44,6 +50,7 @@ from beavr_sim.bench.hardware import run as run_hardware
 from beavr_sim.bench.mutations import main as mutations_main
 from beavr_sim.bench.plots import write as write_plots
 from beavr_sim.bench.plots import write_latency
+from beavr_sim.bench.policies.cli import main as policies_main
 from beavr_sim.bench.scaling import main as scaling_main
 from beavr_sim.bench.soak import main as soak_main
 from beavr_sim.bench.teleop import run as run_teleop
@@ -63,6 +70,7 @@ BENCHMARKS = (
     "mutations",
     "soak",
     "cameras",
+    "policies",
 )
 
 
@@ -78,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         return cameras_main(argv[1:])
     if argv[:1] == ["soak"]:  # options of its own
         return soak_main(argv[1:])
+    if argv[:1] == ["policies"]:  # options of its own
+        return policies_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.bench", description=__doc__)
     parser.add_argument("benchmark", choices=BENCHMARKS, help="which benchmark to run")
     parser.add_argument(

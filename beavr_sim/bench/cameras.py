@@ -7,8 +7,11 @@ OpenCV camera reads a file as fast as it decodes, so a file is no 30 fps camera.
 control loop ticks at ``--fps``: one env step (the Playground twin) and, with cameras, a grab
 of both cameras' newest frames copied as the recorder copies them. Three conditions run
 interleaved (``--runs`` rounds of ``--seconds`` each): ``none`` (no cameras connected),
-``cameras`` and ``cameras+stream`` (the camera stream at ``--stream-hz`` encoding JPEG panels
-for a viewer, reading the cameras on its own thread as a session's does). Reported per condition as ranges over the rounds:
+``cameras``, ``cameras+stream`` (the camera stream at ``--stream-hz`` encoding JPEG panels
+for a viewer, reading the cameras on its own thread as a session's does) and
+``cameras+stream+twin`` (the same in the ``both`` view: the tick copies the twin's pose for a
+``TwinCameraFeed``, the stream's thread renders the twin's ``front`` at 480x640 per camera).
+Reported per condition as ranges over the rounds:
 the tick's work time p50 / p99 (ms), the loop's rate, the recording's achieved rate (frames with every
 camera live per second) and grabs with a camera dead, capture-to-record age p50 / p99 (ms), stale and repeated frames. JSON on the
 last stdout line. Figures: docs/benchmarks.md.
@@ -30,7 +33,7 @@ import numpy as np
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.cameras.stream import CameraStream, StreamConfig, StreamFrame
 
-CONDITIONS = ("none", "cameras", "cameras+stream")
+CONDITIONS = ("none", "cameras", "cameras+stream", "cameras+stream+twin")
 HEIGHT, WIDTH = 480, 640
 
 
@@ -106,14 +109,15 @@ def _configs(names, fps: float, ports):
 
 def _round(condition: str, args, env, action, ports) -> dict:
     from beavr_sim.cameras.real import RealCameras  # local: heavy (lerobot + torch, ~1 s)
+    from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed  # local: heavy (mujoco GL)
 
     names = ("front", "overhead")
-    cameras = stream = None
+    cameras = stream = feed = None
     if condition != "none":
         configs = _configs(names, args.fps, ports)
         cameras = RealCameras(configs, control_period_s=1.0 / args.fps)
         cameras.connect()
-        if condition == "cameras+stream":
+        if condition.startswith("cameras+stream"):
             sent = [0]
 
             def viewer(frame: StreamFrame) -> None:  # what a WebXR page's sink does
@@ -121,8 +125,17 @@ def _round(condition: str, args, env, action, ports) -> dict:
                 sent[0] += 1
 
             shapes = {n: cameras.frame_shape(n) for n in names}
+            view = "real"
+            if condition.endswith("+twin"):
+                twin_env = env.unwrapped
+                feed = TwinCameraFeed(twin_env.render_model, twin_env.data, "front", args.stream_hz)
+                view = "both"
             stream = CameraStream(
-                StreamConfig(rate_hz=args.stream_hz), [viewer], shapes, source=cameras.peek
+                StreamConfig(rate_hz=args.stream_hz, view=view),
+                [viewer],
+                shapes,
+                source=cameras.peek,
+                twin=feed,
             )
     period = 1.0 / args.fps
     work, recorded, dead = [], 0, 0
@@ -131,6 +144,8 @@ def _round(condition: str, args, env, action, ports) -> dict:
     while time.perf_counter() < end:
         t0 = time.perf_counter()
         env.step(action)
+        if feed is not None:
+            feed(None)  # the tick listener's pose copy (when one is due)
         if cameras is not None:
             grab = cameras.grab()
             if not grab.dead:
@@ -165,6 +180,7 @@ def _round(condition: str, args, env, action, ports) -> dict:
         stream.close()
         out["stream_sent"] = stream.sent
         out["stream_dropped"] = stream.dropped
+        out["twin_renders"] = stream.twin_renders
     return out
 
 

@@ -24,12 +24,13 @@ The first 10 ticks of every run (one-off work: first QPs, caches) are left out o
 from __future__ import annotations
 
 import platform
-import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from beavr_sim.assets import bundled_trace
+from beavr_sim.bench.timing import CallTimer
 from beavr_sim.bench.tracking import StageRecorder, analyse, build_trace_loop
 from beavr_sim.headset.sources import TraceSource
 
@@ -38,31 +39,32 @@ DEFAULT_TASKS = ("PickupBox", "Pour")
 WARMUP_TICKS = 10
 
 
-class _TimedEffector:
-    """Wraps an EffectorOperator's observe/command with per-tick timers."""
+class EffectorCompute:
+    """Per-tick operator compute of each effector: the time of its ``observe`` calls since its
+    previous ``command`` plus that ``command`` (ms), one sample per command. Its
+    :meth:`timer` times the effectors' own calls through the interpreter's monitoring
+    (:class:`~beavr_sim.bench.timing.CallTimer`): nothing in the operator is replaced."""
 
-    def __init__(self, op):
-        self.op = op
-        self.tick_s = 0.0
-        self.samples: list[float] = []
-        self._observe, self._command = op.observe, op.command
-        op.observe = self.observe
-        op.command = self.command
+    def __init__(self, effectors: Mapping):
+        self._names = tuple(effectors)
+        self._targets = {}
+        for name, op in effectors.items():
+            self._targets[f"{name}:observe"] = op.observe
+            self._targets[f"{name}:command"] = op.command
+        self._pending = dict.fromkeys(self._names, 0.0)
+        #: Effector -> per-tick compute (ms).
+        self.samples: dict[str, list[float]] = {name: [] for name in self._names}
 
-    def observe(self, frame):
-        t0 = time.perf_counter()
-        try:
-            return self._observe(frame)
-        finally:
-            self.tick_s += time.perf_counter() - t0
+    def timer(self) -> CallTimer:
+        return CallTimer(self._targets, sink=self._add)
 
-    def command(self, now, paused, dt=None):
-        t0 = time.perf_counter()
-        try:
-            return self._command(now, paused, dt)
-        finally:
-            self.samples.append((self.tick_s + time.perf_counter() - t0) * 1e3)
-            self.tick_s = 0.0
+    def _add(self, label: str, seconds: float) -> None:
+        name, _, call = label.rpartition(":")
+        if call == "observe":
+            self._pending[name] += seconds
+        else:
+            self.samples[name].append((self._pending[name] + seconds) * 1e3)
+            self._pending[name] = 0.0
 
 
 def _stats(ms) -> dict:
@@ -153,16 +155,17 @@ def run(
     per_effector: dict[str, list[float]] = {}
     for path in paths:
         task, loop = build_trace_loop(path, "virtual")
-        timers = {name: _TimedEffector(op) for name, op in loop.operator.effectors.items()}
+        effectors = EffectorCompute(loop.operator.effectors)
         stages = StageRecorder(loop)  # after each tick, outside the timed calls
         loop.listeners.append(stages)
-        summary = loop.run(max_seconds=None if max_ticks is None else max_ticks * loop.dt)
+        with effectors.timer():
+            summary = loop.run(max_seconds=None if max_ticks is None else max_ticks * loop.dt)
         loop.twin.env.close()
-        compute = [s for t in timers.values() for s in t.samples]
+        compute = [s for t in effectors.samples.values() for s in t]
         # The first ticks include one-off work (first QP, caches): report them apart.
-        steady = [s for t in timers.values() for s in t.samples[WARMUP_TICKS:]]
-        for name, t in timers.items():
-            per_effector.setdefault(name, []).extend(t.samples[WARMUP_TICKS:])
+        steady = [s for t in effectors.samples.values() for s in t[WARMUP_TICKS:]]
+        for name, t in effectors.samples.items():
+            per_effector.setdefault(name, []).extend(t[WARMUP_TICKS:])
         all_compute += steady
         all_latency += loop.latencies_ms[WARMUP_TICKS:]
         per_trace[Path(path).name] = {

@@ -140,19 +140,18 @@ class SessionThread:
         self.summary = None
         self._stop = threading.Event()
         self._built = threading.Event()
-        thread_self = self
 
         class _Stop(StopTeleop):
             pass
 
         def stop_listener(tick) -> None:
-            if thread_self._stop.is_set():
+            if self._stop.is_set():
                 raise _Stop
 
         def on_loop(loop) -> None:
             loop.listeners.append(stop_listener)
-            thread_self.loop = loop
-            thread_self._built.set()
+            self.loop = loop
+            self._built.set()
 
         def run() -> None:
             try:

@@ -9,5 +9,9 @@ class CameraError(RuntimeError):
     """A camera that cannot be opened."""
 
 
+class CameraStoppedError(RuntimeError):
+    """A camera that stopped delivering frames (its newest is too old, or its reader ended)."""
+
+
 class CalibrationError(ValueError):
     """Calibration images that do not give a camera pose (the board not found, too few views)."""

@@ -5,17 +5,22 @@ Capture runs on LeRobot's own background read threads (started by `connect()`; `
 raises: per camera it returns the newest frame and its capture age, counts frames older than
 `stale_after_s` (1.5 control periods) and repeats of an already-returned frame, and reports a
 camera as dead once its newest frame is older than `dead_after_s` or its read thread has stopped.
-A dead camera yields no frame: the caller ends the episode as a hardware fault. `peek()` is
-the same read for a viewer's thread (the camera stream): it counts nothing.
-`connect()` fails with a one-line `CameraError` naming the camera and what to check.
+A dead camera yields no frame: the caller ends the episode as a hardware fault (a teleop
+session) or raises (the LeRobot robot). `peek()` is the same read for a viewer's thread (the
+camera stream): it counts nothing.
+`connect()` fails with a one-line `CameraError` naming the camera and what to check; a config
+that states `width` and `height` must get frames of that size (a video file is not set to them:
+OpenCV cannot resize or re-time a file, so they are checked against its frames instead).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from lerobot.cameras.camera import Camera
@@ -72,6 +77,18 @@ def _what_to_check(config: CameraConfig) -> str:
     return "check the camera's config"
 
 
+def _source_config(config: CameraConfig) -> CameraConfig:
+    """The config the camera opens with: a video file's size and rate are the file's own
+    (OpenCV refuses to set them), so they are left out and checked against its frames."""
+    if (
+        isinstance(config, OpenCVCameraConfig)
+        and isinstance(config.index_or_path, Path)
+        and config.index_or_path.is_file()
+    ):
+        return dataclasses.replace(config, width=None, height=None, fps=None)
+    return config
+
+
 class RealCameras:
     """The session's real cameras; one instance per session, `close()` when done."""
 
@@ -99,29 +116,31 @@ class RealCameras:
         _camera_thread_errors_in_one_line()
         for name, config in self.configs.items():
             try:
-                camera = make_cameras_from_configs({name: config})[name]
+                camera = make_cameras_from_configs({name: _source_config(config)})[name]
                 # LeRobot's ZMQ warm-up checks for a frame the instant its read thread starts
                 # (with warmup_s = 0: a race); the image server is warm, and the first frame
                 # is waited for below.
                 camera.connect(warmup=not isinstance(config, ZMQCameraConfig))
                 self._cameras[name] = camera
-                self._wait_first_frame(camera)
+                self._wait_first_frame(camera, config)
             except Exception as exc:
                 self.close()
                 first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                check = "" if isinstance(exc, _WrongFrameSize) else f"; {_what_to_check(config)}"
                 raise CameraError(
-                    f"camera {name!r} ({config.type}) failed to start: {first}; "
-                    f"{_what_to_check(config)}"
+                    f"camera {name!r} ({config.type}) failed to start: {first}{check}"
                 ) from None
         self.start_episode()
 
     @staticmethod
-    def _wait_first_frame(camera: Camera) -> None:
+    def _wait_first_frame(camera: Camera, config: CameraConfig) -> None:
         deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
         while time.monotonic() < deadline:
             with camera.frame_lock:
-                if camera.latest_frame is not None:
-                    return
+                frame = camera.latest_frame
+            if frame is not None:
+                _check_frame_size(frame, config)
+                return
             time.sleep(0.01)
         raise TimeoutError(f"no frame within {FIRST_FRAME_TIMEOUT_S:.0f} s")
 
@@ -202,6 +221,21 @@ class RealCameras:
             except Exception:
                 pass
         self._cameras.clear()
+
+
+class _WrongFrameSize(ValueError):
+    """A camera's frames are not the size its config states."""
+
+
+def _check_frame_size(frame: np.ndarray, config: CameraConfig) -> None:
+    if config.width is None or config.height is None:
+        return
+    height, width = frame.shape[:2]
+    if (height, width) != (config.height, config.width):
+        raise _WrongFrameSize(
+            f"its frames are width={width} x height={height}, not the configured "
+            f"width={config.width} x height={config.height}; set width and height to the camera's"
+        )
 
 
 def _camera_thread_errors_in_one_line() -> None:

@@ -43,7 +43,8 @@ CONFIG_TYPES: dict[str, type[CameraConfig]] = {
 _SPEC_FORMS = "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally @WIDTHxHEIGHT"
 
 
-def _check_name(name: str, source: str) -> None:
+def check_camera_name(name: str, source: str) -> None:
+    """A camera name is letters, digits or _ (it becomes ``observation.images.NAME``)."""
     if not _NAME.match(name):
         raise CameraSpecError(f"camera {name!r} ({source}): name must be letters, digits or _")
 
@@ -53,7 +54,7 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
     name, sep, spec = arg.partition("=")
     if not sep or not name or not spec:
         raise CameraSpecError(f"--camera {arg!r}: expected NAME=SPEC with SPEC {_SPEC_FORMS}")
-    _check_name(name, "--camera")
+    check_camera_name(name, "--camera")
     spec, at, size = spec.partition("@")
     width = height = None
     if at:
@@ -96,7 +97,7 @@ def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfi
 
 def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
     """A rig file's `[cameras.NAME]` table -> LeRobot config (keys are LeRobot's)."""
-    _check_name(name, "rig [cameras]")
+    check_camera_name(name, "rig [cameras]")
     values = {k: v for k, v in table.items() if k not in POSE_KEYS}
     kind = values.pop("type", None)
     if kind not in CONFIG_TYPES:
@@ -123,12 +124,15 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
 
 
 def merge_cameras(
-    rig: dict[str, CameraConfig], cli: dict[str, CameraConfig]
+    rig: dict[str, CameraConfig], cli: dict[str, CameraConfig], cli_source: str = "--camera"
 ) -> dict[str, CameraConfig]:
-    """Rig cameras plus CLI ones; a name given twice is an error, not a silent override."""
+    """Rig cameras plus the command line's (``cli_source``: the flag or field naming them); a
+    name given twice is an error, not a silent override."""
     both = sorted(set(rig) & set(cli))
     if both:
-        raise CameraSpecError(f"camera {both[0]!r} is named both in the rig file and by --camera")
+        raise CameraSpecError(
+            f"camera {both[0]!r} is named both in the rig file and by {cli_source}"
+        )
     return {**rig, **cli}
 
 

@@ -1,19 +1,23 @@
-"""CameraStream: the live real cameras (and the twin's renders) streamed to viewers off the
+"""CameraStream: the live real cameras and the twin's renders of them streamed to viewers off the
 control thread, at a bounded rate.
 
 Contract: the control thread's only call, if any, is :meth:`CameraStream.offer`; it stores a
 reference to a :class:`~beavr_sim.cameras.real.Grab` (and the twin's renders) in a one-slot
 mailbox and returns (never blocks, never raises, never copies). Given a ``source`` (a
 ``RealCameras.peek``), the stream reads the cameras' newest frames itself, on its own thread,
-whenever nothing was offered. A worker thread wakes at most ``rate_hz`` times per second,
-takes the newest grab (older ones are dropped and counted, never queued), composes
-each camera's panel for the chosen view (``real``, ``twin``, ``both`` side by side, or
-``overlay``: the twin's render blended over the real frame) and hands a :class:`StreamFrame`
-to every sink (the viser panel, the Quest image PUB socket, the WebXR page). A slow sink slows
-only the worker. With nothing offered and no source for ``dead_after_s``, the panels turn to
-"no signal" (a viewer is never left showing a last frame as live). A camera that is dead, or whose newest frame is older than ``dead_after_s``
-when shown, is sent as a "no signal" frame (never its last image shown as live); every live
-frame carries its capture age.
+whenever nothing was offered. Given a ``twin`` (a :class:`TwinSource`), the stream's own thread
+renders the twin's view of each panel when the view shows it (``twin``, ``both``,
+``overlay``), and always for twin-only panels (names not in ``real``: a session with no real
+camera of that name). A worker thread wakes at most ``rate_hz`` times per second, takes the
+newest grab (older ones are dropped and counted, never queued), composes each panel for the
+chosen view (``real``, ``twin``, ``both`` side by side, or ``overlay``: the twin's render
+blended over the real frame) and hands a :class:`StreamFrame` to every sink (the viser panel,
+the Quest image PUB socket, the WebXR page). A slow sink slows only the worker. With nothing
+offered and no source for ``dead_after_s``, the panels turn to "no signal" (a viewer is never
+left showing a last frame as live). A camera that is dead, or whose newest frame is older than
+``dead_after_s`` when shown, is drawn as "no signal" (never its last image shown as live), and
+so is a twin render older than that (the twin stopped ticking); every live frame carries its
+capture age.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -32,6 +37,9 @@ log = logging.getLogger(__name__)
 #: What a camera panel shows: the real frame, the twin's render, both side by side, or the
 #: twin's render blended over the real frame.
 VIEWS = ("real", "twin", "both", "overlay")
+#: ``--camera-view auto``: ``both`` where a real camera has a twin camera of its name (one the
+#: scene has, or ``--camera-poses`` places at its pose), else ``real``; twin-only panels: ``twin``.
+AUTO = "auto"
 #: Streamed frames per second by default: low, the stream is for a person watching.
 DEFAULT_RATE_HZ = 5.0
 NO_SIGNAL = "no signal"
@@ -50,7 +58,8 @@ class StreamConfig:
     dead_after_s: float = 1.0
 
     def __post_init__(self) -> None:
-        check_view(self.view)
+        if self.view != AUTO:
+            check_view(self.view)
         if not (0.0 <= self.rate_hz <= 120.0):
             raise ValueError(f"camera stream rate_hz must be in 0..120, got {self.rate_hz}")
         check_blend(self.blend)
@@ -80,15 +89,38 @@ class StreamFrame:
     state: str
     age_s: float | None
     seq: int
+    #: What else the panel shows (e.g. ``twin front``, ``twin NO SIGNAL``), after the label.
+    note: str = ""
+    #: When it was composed, on the stream's clock (s; ``time.perf_counter`` by default).
+    t_s: float = 0.0
 
     @property
     def label(self) -> str:
         if self.state != LIVE or self.age_s is None:
-            return f"{self.name}: NO SIGNAL"
-        return f"{self.name}: live, age {self.age_s * 1e3:.0f} ms"
+            text = f"{self.name}: NO SIGNAL"
+        else:
+            text = f"{self.name}: live, age {self.age_s * 1e3:.0f} ms"
+        return f"{text} ({self.note})" if self.note else text
 
 
 Sink = Callable[[StreamFrame], None]
+
+
+class TwinSource(Protocol):
+    """The twin's renders for the panels, called on the stream's worker thread only."""
+
+    def render(
+        self, shapes: Mapping[str, tuple[int, int, int]]
+    ) -> tuple[Mapping[str, np.ndarray], float | None]:
+        """Each panel's twin render at (about) its shape, and the twin state's age in seconds
+        ({}, None before the twin's first tick)."""
+        ...
+
+    def camera_for(self, panel: str) -> str:
+        """The twin camera drawn for ``panel``."""
+        ...
+
+    def close(self) -> None: ...
 
 
 class _Silent:
@@ -132,7 +164,11 @@ def compose(
 
 
 class CameraStream:
-    """Streams the newest grab to ``sinks`` from its own thread; :meth:`close` when done."""
+    """Streams the newest grab to ``sinks`` from its own thread; :meth:`close` when done.
+
+    ``shapes``: every panel's shape by name; ``real``: the panels that are real cameras
+    (default: all); ``twin``: the twin's renders (:class:`TwinSource`), closed on the worker
+    thread when the stream ends."""
 
     def __init__(
         self,
@@ -141,12 +177,16 @@ class CameraStream:
         shapes: Mapping[str, tuple[int, int, int]],
         *,
         source: Callable[[], object] | None = None,
+        twin: TwinSource | None = None,
+        real: Sequence[str] | None = None,
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.config = config
         self.sinks = list(sinks)
         self.shapes = dict(shapes)
-        self.view = config.view
+        self.real = tuple(self.shapes if real is None else real)
+        self.twin = twin
+        self.view = config.view if config.view != AUTO else self._auto_view()
         self.blend = config.blend
         self.source = source
         self._clock = clock
@@ -161,11 +201,21 @@ class CameraStream:
         self.sent = 0
         self.no_signal = 0
         self.sink_errors = 0
+        #: Twin renders drawn, and failed (the panel then shows no twin).
+        self.twin_renders = 0
+        self.twin_errors = 0
         self._seq = 0
         self._thread: threading.Thread | None = None
         if config.rate_hz > 0 and self.sinks:
             self._thread = threading.Thread(target=self._run, name="camera-stream", daemon=True)
             self._thread.start()
+        elif twin is not None:
+            twin.close()
+
+    def _auto_view(self) -> str:
+        if self.twin is not None and any(self.twin.camera_for(n) == n for n in self.real):
+            return "both"
+        return "real"
 
     @property
     def running(self) -> bool:
@@ -197,9 +247,19 @@ class CameraStream:
         return slot
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        finally:
+            if self.twin is not None:  # its render contexts live on this thread
+                try:
+                    self.twin.close()
+                except Exception as exc:
+                    log.warning("camera stream: closing the twin's renders failed: %r", exc)
+
+    def _loop(self) -> None:
         period = 1.0 / self.config.rate_hz
         next_at = last_at = self._clock()
-        silent = _Silent(tuple(self.shapes))
+        silent = _Silent(self.real)
         while not self._stop.is_set():
             if self.source is None:
                 self._wake.wait(timeout=min(period, 0.25))
@@ -215,13 +275,13 @@ class CameraStream:
                     log.debug("camera stream source failed: %r", exc)
                     slot = (silent, None, now)
             if slot is None:
-                if now - last_at <= self.config.dead_after_s:
+                if now - last_at <= self.config.dead_after_s and self.twin is None:
                     continue
                 slot = (silent, None, now)  # nothing offered for a while: no signal
             last_at = now
             next_at = max(next_at + period, now)
             try:
-                frames = self.panels(*slot)
+                frames = self.panels(*slot, twin_age_s=None)
             except Exception as exc:  # never let a bad frame end the stream
                 log.warning("camera stream: cannot compose a panel: %r", exc)
                 continue
@@ -234,29 +294,96 @@ class CameraStream:
                         log.debug("camera stream sink failed: %r", exc)
                 self.sent += 1
 
-    def panels(self, grab, twin, offered_at: float) -> list[StreamFrame]:
-        """Each camera's panel for a grab offered at ``offered_at`` (the worker's job)."""
-        waited = max(0.0, self._clock() - offered_at)
+    def _view_of(self, name: str) -> str:
+        return self.view if name in self.real else "twin"
+
+    def _render_twin(self) -> tuple[Mapping[str, np.ndarray], float | None]:
+        """The twin source's renders of the panels whose view shows the twin (worker)."""
+        wanted = {n: s for n, s in self.shapes.items() if self._view_of(n) != "real"}
+        if self.twin is None or not wanted:
+            return {}, None
+        try:
+            images, age_s = self.twin.render(wanted)
+        except Exception as exc:  # a render failing: the twin's part reads NO SIGNAL
+            self.twin_errors += 1
+            if self.twin_errors == 1 or self.twin_errors % 100 == 0:
+                log.warning(
+                    "camera stream: the twin's render failed (%d): %r", self.twin_errors, exc
+                )
+            return {}, None
+        self.twin_renders += len(images)
+        return images, age_s
+
+    def panels(
+        self, grab, twin, offered_at: float, twin_age_s: float | None = None
+    ) -> list[StreamFrame]:
+        """Each panel for a grab offered at ``offered_at`` (the worker's job). ``twin``: the
+        twin's renders by panel name offered with the grab (``twin_age_s`` old; default: as
+        old as the grab's offer); with a :class:`TwinSource` the stream renders its own."""
+        composed = self._clock()
+        waited = max(0.0, composed - offered_at)
+        if self.twin is not None:
+            twin, twin_age_s = self._render_twin()
+        elif twin_age_s is None:
+            twin_age_s = waited
+        twin = twin or {}
+        twin_live = twin_age_s is not None and twin_age_s <= self.config.dead_after_s
         out = []
         for name, shape in self.shapes.items():
             self._seq += 1
-            real = grab.frames.get(name)
+            real = grab.frames.get(name) if name in self.real else None
             age = grab.ages_s.get(name)
-            live = (
+            real_live = (
                 real is not None
                 and name not in grab.dead
                 and age is not None
                 and age + waited <= self.config.dead_after_s
             )
-            if not live:
+            has_twin = self.twin is not None or name in twin
+            rendered = twin.get(name) if twin_live else None
+            view = self._view_of(name)
+            if view != "real" and not has_twin:
+                view = "real"  # no twin camera for this panel: the real frame
+            frame = self._panel(name, shape, view, real if real_live else None, rendered)
+            if frame.state != LIVE:
                 self.no_signal += 1
-                out.append(
-                    StreamFrame(name, no_signal_image(shape, name), NO_SIGNAL, None, self._seq)
+            age_s = (age + waited) if view != "twin" and real_live else twin_age_s
+            note = self._note(name, view, rendered)
+            out.append(
+                StreamFrame(
+                    name, frame.image, frame.state, age_s if frame.state == LIVE else None,
+                    self._seq, note, composed,
                 )
-                continue
-            image = compose(real, (twin or {}).get(name), self.view, self.blend)
-            out.append(StreamFrame(name, image, LIVE, age + waited, self._seq))
+            )  # fmt: skip
         return out
+
+    def _note(self, name: str, view: str, rendered: np.ndarray | None) -> str:
+        if view == "real":
+            return ""
+        camera = self.twin.camera_for(name) if self.twin is not None else name
+        what = "twin" if camera == name else f"twin {camera}"
+        return what if rendered is not None or view == "twin" else f"{what} NO SIGNAL"
+
+    def _panel(
+        self,
+        name: str,
+        shape: tuple[int, int, int],
+        view: str,
+        real: np.ndarray | None,
+        twin: np.ndarray | None,
+    ) -> _Panel:
+        """The image and state of one panel: live only if what its view needs is."""
+        if view == "real" or (view == "overlay" and twin is None):
+            return _Panel(real, LIVE) if real is not None else _Panel(_dead(shape, name), NO_SIGNAL)
+        if view == "twin":
+            if twin is None:
+                return _Panel(_dead(shape, f"{name} (twin)"), NO_SIGNAL)
+            return _Panel(_fit(twin, shape), LIVE)
+        if real is None:  # both / overlay without the real frame: never the twin alone as live
+            return _Panel(compose(_dead(shape, name), twin, "both", 0.0), NO_SIGNAL)
+        if twin is None:  # both, the twin's half dead
+            return _Panel(compose(real, _dead(real.shape, f"{name} (twin)"), "both", 0.0), LIVE)
+        return _Panel(compose(real, twin, view, self.blend), LIVE)
 
     def stats(self) -> dict[str, int]:
         return {
@@ -265,6 +392,8 @@ class CameraStream:
             "sent": self.sent,
             "no_signal": self.no_signal,
             "sink_errors": self.sink_errors,
+            "twin_renders": self.twin_renders,
+            "twin_errors": self.twin_errors,
         }
 
     def close(self) -> None:
@@ -272,3 +401,21 @@ class CameraStream:
         self._wake.set()
         if self._thread is not None and self._thread.is_alive():
             self._thread.join(timeout=5.0)
+
+
+@dataclass(frozen=True)
+class _Panel:
+    image: np.ndarray
+    state: str
+
+
+def _dead(shape: tuple[int, ...], name: str) -> np.ndarray:
+    return no_signal_image((int(shape[0]), int(shape[1]), 3), name)
+
+
+def _fit(image: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``image`` at the panel's height and width (a twin render drawn smaller)."""
+    h, w = int(shape[0]), int(shape[1])
+    if image.shape[:2] == (h, w):
+        return image
+    return cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)

@@ -56,14 +56,19 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     )
 
 
-def recording_config(args: argparse.Namespace) -> RecordingConfig:
-    """The :class:`RecordingConfig` of options added by :func:`add_recording_args`."""
+def recording_config(
+    args: argparse.Namespace, placed_cameras: tuple[str, ...] = ()
+) -> RecordingConfig:
+    """The :class:`RecordingConfig` of options added by :func:`add_recording_args`;
+    ``placed_cameras``: names of twin cameras placed in the scene (``--camera-poses``), which
+    ``--cameras`` may name too."""
     height, width = parse_size(args.image_size)
     cameras, depth_cameras = parse_cameras(args.cameras)
     return RecordingConfig(
         fps=args.fps,
         cameras=cameras,
         depth_cameras=depth_cameras,
+        placed_cameras=placed_cameras,
         image_height=height,
         image_width=width,
         hand_keypoints=not args.no_keypoints,

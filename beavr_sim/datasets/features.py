@@ -8,7 +8,8 @@ Features (``docs/formats.md`` lists them with shapes):
 - ``observation.environment_state`` (only with ``RecordingConfig.environment_state``): the
   task's object and target poses, privileged state for state-based policies; off by default
   because ``lerobot-train`` feeds every ``observation.*`` feature to the policy;
-- ``observation.images.<camera>``: the twin's cameras (``front``, ``overhead``), HxWx3 video;
+- ``observation.images.<camera>``: the twin's cameras (``front``, ``overhead``, a robot's own,
+  or one ``--camera-poses`` places: ``RecordingConfig.placed_cameras``), HxWx3 video;
 - ``observation.images.<camera>_depth`` (only for ``RecordingConfig.depth_cameras``): the twin
   camera's depth, HxWx1 float32 metres, flagged ``info.is_depth_map`` as LeRobot's RealSense
   depth features (``<camera>_depth``, ``(H, W, 1)``), so sim and RGB-D rig datasets match;
@@ -44,6 +45,9 @@ class RecordingConfig:
 
     fps: int = 30
     cameras: tuple[str, ...] = ("front", "overhead")
+    #: Twin cameras of other names placed in the scene (``--camera-poses``' tables with a
+    #: ``T_world_camera``): recordable in ``cameras`` and ``depth_cameras`` too.
+    placed_cameras: tuple[str, ...] = ()
     #: Twin cameras whose depth is recorded too (``--cameras front,front:depth``).
     depth_cameras: tuple[str, ...] = ()
     image_height: int = 480
@@ -61,14 +65,16 @@ class RecordingConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.fps, int) and self.fps > 0):
             raise ValueError(f"fps must be a positive integer, got {self.fps!r}")
+        object.__setattr__(self, "placed_cameras", tuple(self.placed_cameras))
+        recordable = tuple(dict.fromkeys(ALL_CAMERA_NAMES + self.placed_cameras))
         object.__setattr__(self, "cameras", tuple(self.cameras))
         for camera in self.cameras:
-            check_name("camera", camera, ALL_CAMERA_NAMES)
+            check_name("camera", camera, recordable)
         if len(set(self.cameras)) != len(self.cameras):
             raise ValueError(f"cameras repeat: {self.cameras}")
         object.__setattr__(self, "depth_cameras", tuple(self.depth_cameras))
         for camera in self.depth_cameras:
-            check_name("depth camera", camera, ALL_CAMERA_NAMES)
+            check_name("depth camera", camera, recordable)
         if len(set(self.depth_cameras)) != len(self.depth_cameras):
             raise ValueError(f"depth cameras repeat: {self.depth_cameras}")
         if self.image_height <= 0 or self.image_width <= 0:

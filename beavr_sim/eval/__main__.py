@@ -9,7 +9,8 @@ processes, ``--ray`` as Ray tasks. ``--async`` runs BEAVR's think-act loop in re
 at the env's rate from an action queue, inference refilling it in a thread).
 
 Prints, last, one JSON line: ``results``, one row per (policy, task) with episodes, successes,
-success_rate, success_ci95 (Wilson score interval, 95 %), mean_time_s (and with --async the
+success_rate, success_ci95 (Wilson score interval, 95 %), mean_time_s,
+mean_success_time_s (over the successful episodes; None without one) (and with --async the
 control-loop jitter and the ticks that found no action ready); with a single (policy, task),
 that row's keys also stand at the top level. ``--table`` writes the rows as CSV or markdown.
 """

@@ -1,6 +1,10 @@
 """A LeRobot pretrained policy directory, loaded through LeRobot's factory, behind three calls:
 ``reset``, ``act`` (one action) and ``chunk`` (an action chunk), on env observations.
 
+A policy that looks at the last ``history`` observations (Diffusion's ``n_obs_steps``) gets
+them in ``chunk`` as a list, oldest first; a list shorter than ``history`` (an episode's first
+ticks) is padded with its oldest observation, as LeRobot's own ``select_action`` does.
+
 Loading writes nothing on stdout (LeRobot prints ``Loading weights from local directory``
 there; it goes to stderr), which the evaluation commands keep for their JSON summary.
 """
@@ -50,6 +54,8 @@ class LoadedPolicy:
             if key.startswith(IMAGE_PREFIX)
         }
         self.action_dim = int(config.output_features["action"].shape[0])
+        #: How many consecutive observations one inference looks at (1 for ACT).
+        self.history = max(1, int(getattr(config, "n_obs_steps", 1) or 1))
         self.uses_environment_state = ENV_STATE in config.input_features
 
     def reset(self) -> None:
@@ -75,10 +81,31 @@ class LoadedPolicy:
             action = self.postprocessor(action)
         return action.squeeze(0).cpu().numpy().astype(np.float64)
 
-    def chunk(self, observation: dict, task: str) -> np.ndarray:
-        """A whole action chunk (k x action_dim) from one observation."""
+    def _stacked(self, observations: list[dict], task: str) -> dict:
+        """The last ``history`` observations as one batch, stacked along dim 1 (time)."""
+        recent = list(observations)[-self.history :]
+        recent = [recent[0]] * (self.history - len(recent)) + recent
+        batches = [self._batch(o, task) for o in recent]
+        torch = self._torch
+        return {
+            key: torch.stack([b[key] for b in batches], dim=1)
+            if isinstance(value, torch.Tensor)
+            else value
+            for key, value in batches[-1].items()
+        }
+
+    def chunk(self, observation: dict | list[dict], task: str) -> np.ndarray:
+        """A whole action chunk (k x action_dim) from one observation, or from the recent
+        ones (a list, oldest first) for a policy with a ``history``."""
         with self._torch.inference_mode():
-            actions = self.policy.predict_action_chunk(self._batch(observation, task))
+            if self.history > 1:
+                recent = observation if isinstance(observation, list) else [observation]
+                batch = self._stacked(recent, task)
+            else:
+                batch = self._batch(
+                    observation[-1] if isinstance(observation, list) else observation, task
+                )
+            actions = self.policy.predict_action_chunk(batch)
             actions = self.postprocessor(actions)
         actions = actions.cpu().numpy().astype(np.float64)
         return actions.reshape(-1, actions.shape[-1])

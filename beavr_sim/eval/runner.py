@@ -7,6 +7,8 @@
   newest observation. Actions whose time passed while the chunk was computed are dropped, so
   the robot follows the chunk from "now". A tick that finds the queue empty holds the last
   action and is counted (``ticks_without_action``); the loop's period error is the jitter.
+  A policy with a ``history`` > 1 (Diffusion's ``n_obs_steps``) is observed every tick and
+  handed its last ``history`` observations.
 
 The control thread alone touches MuJoCo (env, renderer); the inference thread sees copies.
 """
@@ -127,6 +129,7 @@ class ThinkAct:
         thinker = threading.Thread(target=self._think, args=(task,), daemon=True)
         thinker.start()
         queue: deque[np.ndarray] = deque()
+        recent: deque[dict] = deque(maxlen=int(getattr(self.policy, "history", 1)))
         last_action = env.agent_pos.astype(np.float64)
         thinking = False
         result = EpisodeResult(seed, False, 0.0, 0)
@@ -138,6 +141,8 @@ class ThinkAct:
                 if t_prev is not None:
                     result.periods_ms.append((now - t_prev) * 1e3)
                 t_prev = now
+                if recent.maxlen > 1:
+                    recent.append(_observation(env, self.cameras))
                 with self._cv:
                     if self._error is not None:
                         raise RuntimeError("policy inference failed") from self._error
@@ -148,7 +153,8 @@ class ThinkAct:
                         late = result.ticks - tick_obs  # actions already due while thinking
                         queue = deque(chunk[late:])
                     if not thinking and len(queue) <= self.refill_at:
-                        self._request = (result.ticks, _observation(env, self.cameras))
+                        observed = list(recent) if recent.maxlen > 1 else None
+                        self._request = (result.ticks, observed or _observation(env, self.cameras))
                         thinking = True
                         self._cv.notify()
                 if queue:
@@ -234,9 +240,10 @@ def summarize(
     control_hz: float,
 ) -> dict:
     """The summary of one (policy, task): success rate with its Wilson 95 % interval, mean
-    episode time; with ``asynchronous`` the control loop's jitter and starved ticks."""
+    episode time (and over the successful episodes, the mean time to success); with ``asynchronous`` the control loop's jitter and starved ticks."""
     successes = sum(r.success for r in results)
     low, high = wilson_interval(successes, len(results))
+    success_times = [r.seconds for r in results if r.success]
     summary = {
         "task": task,
         "embodiment": embodiment,
@@ -246,6 +253,8 @@ def summarize(
         "success_rate": successes / len(results),
         "success_ci95": [round(low, 4), round(high, 4)],
         "mean_time_s": round(float(np.mean([r.seconds for r in results])), 3),
+        # An episode ends at success: its length is the time to success (None: no success).
+        "mean_success_time_s": (round(float(np.mean(success_times)), 3) if success_times else None),
         "mode": "async" if asynchronous else "sync",
     }
     if asynchronous:

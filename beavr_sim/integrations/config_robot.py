@@ -4,6 +4,12 @@
 (the twin plus our protocol emulators of every device, driven through the vendors' SDKs: the
 real driver paths) or the path of a rig file (TOML, ``docs/hardware.md``). Every action passes
 the twin's collision guard before the twin and any hardware get it.
+
+Images: the twin's renders (``camera_names``) and real cameras the LeRobot way (``cameras``: a
+dict of LeRobot camera configs, as LeRobot's own robots take them) plus a rig file's
+``[cameras.NAME]`` tables. A name is one or the other; a real camera states ``width``,
+``height`` and ``fps`` (the dataset declares each image's shape before the cameras open).
+Every error is one line naming the camera.
 """
 
 from __future__ import annotations
@@ -11,8 +17,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from lerobot.cameras.configs import CameraConfig
 from lerobot.robots.config import RobotConfig
 
+from beavr_sim.cameras.errors import CameraSpecError
+from beavr_sim.cameras.spec import CONFIG_TYPES, check_camera_name, merge_cameras, rig_cameras
 from beavr_sim.envs.scene import check_hand_variant
 from beavr_sim.integrations.options import (
     DEFAULT_EMBODIMENT,
@@ -44,11 +53,18 @@ class BeavrSimRobotConfig(RobotConfig):
     hardware: str = "sim"
     #: With hardware: everything but the final write to the devices.
     dry_run: bool = False
-    #: The twin's cameras in the observation (``front``, ``overhead``; ``head`` on the RX-1).
-    #: Rendered from the twin: a rig file has no camera devices.
+    #: The twin's cameras in the observation (``front``, ``overhead``; ``head`` on the RX-1),
+    #: rendered from the twin (real ones: ``cameras``).
     camera_names: list[str] = field(default_factory=lambda: ["front"])
     image_height: int = 480
     image_width: int = 640
+    #: Real cameras, LeRobot's camera configs by name (``--robot.cameras="{wrist: {type:
+    #: opencv, index_or_path: 0, width: 640, height: 480, fps: 30}}"``), recorded as
+    #: ``observation.images.NAME`` next to the twin's; opened at connect (docs/cameras.md).
+    cameras: dict[str, CameraConfig] = field(default_factory=dict)
+    #: A real camera whose newest frame is older than this fails ``get_observation`` (as
+    #: LeRobot's own robots' ``read_latest``: 0.5 s): never a frozen frame recorded as live.
+    camera_max_age_s: float = 0.5
     #: The twin's control rate: each ``send_action`` steps its physics one period of 1/fps.
     fps: int = 30
     #: The twin's LEAP hands ("full" or "lite"); None: the rig's hands, else "full".
@@ -57,7 +73,6 @@ class BeavrSimRobotConfig(RobotConfig):
     use_guard: bool = True
 
     def __post_init__(self) -> None:
-        super().__post_init__()
         embodiment = check_embodiment(self.embodiment)
         self.task = check_task(self.task, self.embodiment)
         self.camera_names = list(check_cameras(self.camera_names, embodiment))
@@ -74,7 +89,46 @@ class BeavrSimRobotConfig(RobotConfig):
             raise ValueError("dry_run needs hardware (emulated or a rig file), not sim")
         if self.hand_variant is not None:
             check_hand_variant(embodiment, self.hand_variant)
+        if not isinstance(self.cameras, dict):
+            raise CameraSpecError(
+                f"cameras must be a dict of camera name -> LeRobot camera config, got "
+                f"{self.cameras!r}"
+            )
+        check_real_cameras(self.real_camera_configs(), self.camera_names)
+        super().__post_init__()  # LeRobot's own check of ``cameras`` (passes after ours)
+        if not self.camera_max_age_s > 0:
+            raise ValueError(f"camera_max_age_s must be > 0, got {self.camera_max_age_s!r}")
+
+    def real_camera_configs(self) -> dict[str, CameraConfig]:
+        """The real cameras: a rig file's ``[cameras.NAME]`` tables (``hardware`` = a rig
+        file, as ``teleop --mirror-hardware`` records them) and ``cameras``; a name in both is
+        an error."""
+        rig = rig_cameras(self.hardware) if self.hardware not in HARDWARE_MODES else {}
+        return merge_cameras(rig, self.cameras, "cameras")
 
     @property
     def mirrors_hardware(self) -> bool:
         return self.hardware != "sim"
+
+
+def check_real_cameras(cameras: dict[str, object], twin_cameras: list[str]) -> None:
+    """Real cameras' names and configs: each a LeRobot ``CameraConfig`` with ``width``,
+    ``height`` and ``fps``, none named as a twin camera; raises one line naming the camera."""
+    for name, config in cameras.items():
+        check_camera_name(name, "cameras")
+        if not isinstance(config, CameraConfig):
+            raise CameraSpecError(
+                f"camera {name!r}: {config!r} is not a LeRobot camera config; "
+                f"types: {', '.join(sorted(CONFIG_TYPES))}"
+            )
+        if name in twin_cameras:
+            raise CameraSpecError(
+                f"camera {name!r} is both a twin camera (camera_names) and a real one "
+                "(cameras or the rig file); rename the real camera or leave it out of camera_names"
+            )
+        missing = [key for key in ("width", "height", "fps") if getattr(config, key) is None]
+        if missing:
+            raise CameraSpecError(
+                f"camera {name!r}: give {', '.join(missing)} (the dataset declares each image's "
+                "shape before the camera opens; a video file's are checked against it)"
+            )

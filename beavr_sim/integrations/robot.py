@@ -8,7 +8,12 @@ safe target, so what comes back differs from what went in. Each ``send_action`` 
 twin one control period (1/fps). With hardware (``emulated`` or a rig file) the same guarded
 targets go to the devices through :class:`beavr_sim.hardware.mirror.HardwareMirror` (as
 ``teleop --mirror-hardware`` does) and the observation is the devices' measured joints; in
-``sim`` it is the twin's. Camera images are the twin's renders.
+``sim`` it is the twin's. Camera images are the twin's renders (``camera_names``) and the real
+cameras' newest frames (``cameras`` and a rig file's: LeRobot cameras opened at connect through
+:class:`beavr_sim.cameras.real.RealCameras`, read on their own threads). A real camera that
+stops delivering (its newest frame older than ``camera_max_age_s``, or its read thread ended)
+makes :meth:`BeavrSimRobot.get_observation` raise one line: a frozen frame is never handed to
+the recorder as a live one.
 
 Joints the embodiment's effectors do not own (the RX-1's torso and head) hold their pose: their
 values in an action are ignored, and the returned action shows the held ones.
@@ -26,6 +31,8 @@ import numpy as np
 from lerobot.robots.robot import Robot
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
+from beavr_sim.cameras.errors import CameraStoppedError
+from beavr_sim.cameras.real import RealCameras
 from beavr_sim.envs.beavr_env import BeavrEnv
 from beavr_sim.integrations.config_robot import ROBOT_TYPE, BeavrSimRobotConfig
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
@@ -48,10 +55,16 @@ class BeavrSimRobot(Robot):
         self.config = config
         self.embodiment = check_embodiment(config.embodiment)
         self.joint_names: tuple[str, ...] = self.embodiment.joint_names
-        #: Camera name -> (height, width) (``lerobot-record`` counts them).
+        #: The real cameras' LeRobot configs (``cameras`` and a rig file's).
+        self.real_camera_configs = config.real_camera_configs()
+        #: Camera name -> (height, width), the twin's then the real ones (``lerobot-record``
+        #: counts them).
         self.cameras: dict[str, tuple[int, int]] = {
-            c: (config.image_height, config.image_width) for c in config.camera_names
+            **{c: (config.image_height, config.image_width) for c in config.camera_names},
+            **{n: (int(c.height), int(c.width)) for n, c in self.real_camera_configs.items()},
         }
+        #: The real cameras while connected (None without any).
+        self.real_cameras: RealCameras | None = None
         self.twin = None
         self.mirror = None
         #: The last ``send_action``'s guard outcome (accepted and refused effectors).
@@ -92,25 +105,37 @@ class BeavrSimRobot(Robot):
         """Nothing to configure: the drivers set their modes at connect."""
 
     def connect(self, calibrate: bool = True) -> None:
-        """Build the twin; with hardware, connect the rig and start the twin at the measured
-        pose (nothing moves at connect)."""
+        """Open the real cameras (first: one that does not open fails here, naming it, before
+        anything else starts), build the twin; with hardware, connect the rig and start the
+        twin at the measured pose (nothing moves at connect)."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
         from beavr_sim.twin.twin import TwinInterface  # local: heavy (the pipeline: mink, scipy)
 
         cfg = self.config
-        env = BeavrEnv(
-            task=cfg.task,
-            embodiment=cfg.embodiment,
-            cameras=cfg.camera_names,
-            control_hz=float(cfg.fps),
-            max_episode_seconds=_FOREVER_S,
-            camera_height=cfg.image_height,
-            camera_width=cfg.image_width,
-            hand_variant=self._hand_variant(),
-        )
-        self._closers = [env.close]
+        hand_variant = self._hand_variant()
+        self._closers = []
         try:
+            if self.real_camera_configs:
+                cameras = RealCameras(
+                    self.real_camera_configs,
+                    control_period_s=1.0 / cfg.fps,
+                    dead_after_s=cfg.camera_max_age_s,
+                )
+                self._closers.append(cameras.close)
+                cameras.connect()
+                self.real_cameras = cameras
+            env = BeavrEnv(
+                task=cfg.task,
+                embodiment=cfg.embodiment,
+                cameras=cfg.camera_names,
+                control_hz=float(cfg.fps),
+                max_episode_seconds=_FOREVER_S,
+                camera_height=cfg.image_height,
+                camera_width=cfg.image_width,
+                hand_variant=hand_variant,
+            )
+            self._closers.append(env.close)
             twin = TwinInterface(env, use_guard=cfg.use_guard)
             q_measured = None
             if cfg.mirrors_hardware:
@@ -152,6 +177,9 @@ class BeavrSimRobot(Robot):
             self.actions_sent,
             self.actions_refused,
         )
+        if self.real_cameras is not None:
+            for name, stats in self.real_cameras.summary().items():
+                log.info("%s: camera %s since connect: %s", self, name, stats)
         self._close_all()
 
     def _close_all(self) -> None:
@@ -161,7 +189,7 @@ class BeavrSimRobot(Robot):
                 close()
             except Exception as exc:  # release everything we can
                 log.warning("closing %s: %r", self, exc)
-        self.twin = self.mirror = None
+        self.twin = self.mirror = self.real_cameras = None
 
     # ------------------------------------------------------------------ I/O
     def _require(self):
@@ -179,9 +207,27 @@ class BeavrSimRobot(Robot):
     def get_observation(self) -> dict[str, Any]:
         twin = self._require()
         obs: dict[str, Any] = action_dict(self.measured_positions(), self.joint_names)
-        for camera in self.cameras:
+        for camera in self.config.camera_names:
             obs[camera] = twin.env.render_camera(camera)
+        if self.real_cameras is not None:
+            obs.update(self._real_frames(self.real_cameras))
         return obs
+
+    def _real_frames(self, cameras: RealCameras) -> dict[str, np.ndarray]:
+        """The real cameras' newest frames; raises one line for a camera that stopped."""
+        grab = cameras.grab()
+        if grab.dead:
+            name = grab.dead[0]
+            why = (
+                "its read thread ended: the camera failed or its video file ended"
+                if name in cameras.failed_for_good()
+                else f"no frame for over {self.config.camera_max_age_s:g} s"
+            )
+            raise CameraStoppedError(
+                f"camera {name!r} stopped delivering frames ({why}); "
+                "no observation with a frozen frame is recorded: check the camera and record again"
+            )
+        return grab.frames
 
     def send_action(self, action: dict[str, Any]) -> dict[str, float]:
         """Guard ``action`` (joint name -> target, rad), send it (twin, and hardware), step

@@ -228,14 +228,19 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         metavar="HZ",
-        help="stream the real cameras to the browser view, the WebXR page and the Quest's "
-        "camera panel at HZ panels per second (default 0: off; e.g. 5); off the control thread",
+        help="stream camera panels to the browser view, the WebXR page and the Quest's camera "
+        "panel at HZ panels per second (default 0: off; e.g. 5), off the control thread: the "
+        "real cameras and the twin's renders of them, or without real cameras the twin's "
+        "cameras (--camera-poses' cameras, else front)",
     )
     rec.add_argument(
         "--camera-view",
-        choices=("real", "twin", "both", "overlay"),
-        default="real",
-        help="what a streamed camera panel shows first (the browser view's panel can change it)",
+        choices=("auto", "real", "twin", "both", "overlay"),
+        default="auto",
+        help="what a streamed camera panel shows first: the real camera, the twin's render of "
+        "it, both side by side, or the twin blended over the real frame (the browser view "
+        "changes it, with a blend slider); auto (default): both where the twin has a camera "
+        "of the real camera's name (--camera-poses puts it at the real pose), else real",
     )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()

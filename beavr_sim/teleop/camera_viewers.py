@@ -1,15 +1,19 @@
-"""The session's real cameras streamed to its viewers (``--camera-stream-hz``).
+"""The session's camera panels streamed to its viewers (``--camera-stream-hz``).
 
 :func:`start_camera_stream` builds one :class:`~beavr_sim.cameras.stream.CameraStream` for the
-session's :class:`~beavr_sim.cameras.real.RealCameras` and the viewers it has: the browser
-view's camera panel, the WebXR page, the Quest app's camera panel (the first real camera,
-in place of the twin's images). The stream reads the cameras' newest frames itself
-(``RealCameras.peek``, counting nothing) and composes and sends on its own thread at the rate
-asked, dropping what its viewers cannot take; the control thread does nothing for it. Nothing is started when the rate is 0 (off).
+session's :class:`~beavr_sim.cameras.real.RealCameras` (if any), the twin's renders of them
+(a :class:`~beavr_sim.teleop.twin_camera_feed.TwinCameraFeed`, if given: the panels' ``twin``,
+``both`` and ``overlay`` views, and twin-only panels in a session without real cameras) and
+the viewers it has: the browser view's camera panel, the WebXR page, the Quest app's camera
+panel (the first panel: a real camera's, in place of the twin's images). The stream reads the cameras'
+newest frames itself (``RealCameras.peek``, counting nothing) and renders, composes and sends
+on its own thread at the rate asked, dropping what its viewers cannot take; the control thread
+only copies the twin's pose for it. Nothing is started when the rate is 0 (off).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -19,18 +23,23 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class CameraViewers:
-    """Where a session's real cameras can be shown: ``view`` (a ``TwinView``), ``webxr`` (a
-    ``WebXRServer``), ``quest`` (a ``HeadsetImagePublisher`` the stream may use alone)."""
+    """Where a session's camera panels can be shown: ``view`` (a ``TwinView``), ``webxr`` (a
+    ``WebXRServer``), ``quest`` (a ``HeadsetImagePublisher`` the stream may use alone); and
+    ``twin`` (a ``TwinCameraFeed``, already a tick listener of the loop) with ``twin_panels``:
+    the twin-only panels' names when there is no real camera."""
 
     view: object | None = None
     webxr: object | None = None
     quest: object | None = None
+    twin: object | None = None
+    twin_panels: Sequence[str] = ()
 
 
 def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> CameraStream | None:
-    """A running stream of ``real``'s cameras to ``viewers`` (None when off or unseen);
-    the caller closes it before the cameras."""
-    if real is None or config.rate_hz <= 0:
+    """A running stream of ``real``'s cameras (and the twin's renders) to ``viewers`` (None when
+    off or unseen); the caller closes it before the cameras."""
+    twin = viewers.twin
+    if config.rate_hz <= 0 or (real is None and twin is None):
         return None
     from beavr_sim.cameras.headset_panels import (  # local: heavy (OpenCV, Pillow)
         QuestCameraSink,
@@ -38,7 +47,10 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     )
     from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
 
-    shapes = {name: real.frame_shape(name) for name in real.names}
+    names = tuple(real.names) if real is not None else ()
+    shapes = {name: real.frame_shape(name) for name in names}
+    if not names and twin is not None:
+        shapes = {name: twin.panel_shape(name) for name in viewers.twin_panels}
     sinks = []
     panel = None
     if viewers.view is not None:
@@ -46,11 +58,12 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
         sinks.append(panel)
     if viewers.webxr is not None:
         sinks.append(WebXRCameraSink(viewers.webxr))
-    if viewers.quest is not None and real.names:
-        sinks.append(QuestCameraSink(viewers.quest, real.names[0]))
-    if not sinks:
+    if viewers.quest is not None and shapes:  # the first real camera, else the twin's panel
+        sinks.append(QuestCameraSink(viewers.quest, next(iter(shapes))))
+    if not sinks or not shapes:
         return None
-    stream = CameraStream(config, sinks, shapes, source=real.peek)
+    source = real.peek if real is not None else None  # twin-only: the stream's own clock
+    stream = CameraStream(config, sinks, shapes, source=source, twin=twin, real=names)
     if panel is not None:
         panel.attach(stream)
     return stream

@@ -73,6 +73,7 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.processes import run_multiprocess
 from beavr_sim.teleop.runs import RunPlan, SessionRuns
+from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed
 from beavr_sim.teleop.twin_runs import connect_real_cameras
 from beavr_sim.teleop.view import attach_view
 from beavr_sim.traces.bundled import find_bundled_trace
@@ -164,22 +165,21 @@ class SessionOptions:
     #: ``--camera NAME=SPEC`` (``beavr_sim.cameras.spec``): real cameras recorded next to the
     #: twin's renders (plus a mirrored rig file's ``[cameras.NAME]`` tables).
     real_cameras: tuple[str, ...] = ()
-    #: ``--camera-stream-hz``: real-camera panels per second to the viewers (0: off) and
-    #: ``--camera-view`` (``beavr_sim.cameras.stream.VIEWS``).
+    #: ``--camera-stream-hz``: camera panels per second to the viewers (0: off; the real
+    #: cameras and the twin's renders of them, or the twin's cameras alone) and
+    #: ``--camera-view`` (``auto`` or one of ``beavr_sim.cameras.stream.VIEWS``).
     camera_stream_hz: float = 0.0
-    camera_view: str = "real"
+    camera_view: str = "auto"
     #: ``--camera-poses F.toml``: a file of ``[cameras.NAME]`` tables (a rig file) whose
     #: ``T_world_camera`` poses place the twin's cameras (``beavr_sim.cameras.poses``).
     camera_poses: str | Path | None = None
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
-        if self.camera_stream_hz > 0 and self.record is None:
-            raise ValueError("--camera-stream-hz streams a recording's real cameras; add --record")
         if self.camera_stream_hz > 0 and self.multiprocess:
             raise ValueError(
-                "--camera-stream-hz streams to the one-process viewers for now (the real "
-                "cameras are read in the twin process); leave out --multiprocess"
+                "--camera-stream-hz runs in one process for now (the twin's renders follow the "
+                "one-process loop); leave out --multiprocess"
             )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
@@ -188,8 +188,11 @@ class SessionOptions:
 
             for arg in self.real_cameras:
                 parse_camera_arg(arg)  # a bad spec fails here, before anything starts
-            if self.record is None:
-                raise ValueError("--camera records real cameras into a dataset; add --record")
+            if self.record is None and not self.camera_stream_hz > 0:
+                raise ValueError(
+                    "--camera records real cameras into a dataset or streams them to the "
+                    "viewers; add --record or --camera-stream-hz HZ"
+                )
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
         if self.camera_poses is not None:
             if self.multiprocess:
@@ -262,6 +265,7 @@ class SessionOptions:
         if self.record is not None:
             self.record = Path(self.record)
             self.recording = self.recording or RecordingConfig()
+            self._check_placed_recordable()
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
             self.repo_id = self.repo_id or f"beavr_sim/{self.task.lower()}"
@@ -307,6 +311,17 @@ class SessionOptions:
                     f"{MAX_FAULT_SPEC_CHARS} characters), got {self.emulate_faults!r}"
                 )
             self.emulate_faults = spec
+
+    def _check_placed_recordable(self) -> None:
+        """The recording's placed cameras are the ones ``--camera-poses`` places."""
+        placed = {c.name for c in self._placed_cameras}
+        unplaced = [n for n in self.recording.placed_cameras if n not in placed]
+        if unplaced:
+            raise ValueError(
+                f"--cameras {', '.join(unplaced)}: no such twin camera; a camera of a new name "
+                "is recordable where --camera-poses places it (a [cameras.NAME] table with "
+                f"T_world_camera; placed here: {', '.join(sorted(placed)) or 'none'})"
+            )
 
     def camera_stream_config(self):
         """The real cameras' stream to the viewers (``CameraStream``'s config)."""
@@ -381,6 +396,9 @@ class SessionOptions:
             raise ValueError(
                 f"--headset-image-size must be WxH, e.g. 640x360, got {args.headset_image_size!r}"
             )
+        poses = getattr(args, "camera_poses", None)
+        # --cameras may name a camera --camera-poses places (read again, validated, below).
+        placed = tuple(c.name for c in rig_placed_cameras(poses)) if poses is not None else ()
         return cls(
             task=args.task,
             embodiment=args.embodiment,
@@ -404,7 +422,7 @@ class SessionOptions:
             record=args.record,
             repo_id=args.repo_id,
             episodes=args.episodes,
-            recording=recording_config(args) if args.record is not None else None,
+            recording=recording_config(args, placed) if args.record is not None else None,
             auto_start=args.auto_start,
             rerun=getattr(args, "rerun", None),
             rerun_image_hz=getattr(args, "rerun_image_hz", 5.0),
@@ -422,8 +440,8 @@ class SessionOptions:
             emulate_faults=getattr(args, "emulate_faults", None),
             real_cameras=tuple(getattr(args, "camera", None) or ()),
             camera_stream_hz=getattr(args, "camera_stream_hz", 0.0),
-            camera_view=getattr(args, "camera_view", "real"),
-            camera_poses=getattr(args, "camera_poses", None),
+            camera_view=getattr(args, "camera_view", "auto"),
+            camera_poses=poses,
         )
 
 
@@ -705,6 +723,8 @@ def run_session(
             )
             closers.append(images.close)  # before the publisher: its thread sends
             loop.listeners.append(images)
+        if options.camera_stream_hz > 0:
+            viewers.update(twin_camera_panels(options, loop))
         if options.record is not None:
             summary = record_episodes(
                 options,
@@ -717,6 +737,16 @@ def run_session(
                 viewers=CameraViewers(**viewers),
             )
         else:
+            real = None
+            if options.camera_stream_hz > 0:  # the cameras watch a session that records nothing
+                real = _real_cameras(options, int(round(loop.twin.env.control_hz)))
+            if real is not None:
+                closers.append(real.close)
+            stream = start_camera_stream(
+                real, options.camera_stream_config(), CameraViewers(**viewers)
+            )
+            if stream is not None:
+                closers.append(stream.close)  # before the cameras and viewers it reads, sends to
             summary = _play_runs(options, loop, progress, mirror, sync)
         CONSOLE.end_line()
         if mirror is not None:
@@ -729,6 +759,18 @@ def run_session(
             close()
         if context is not None:
             context.term()
+
+
+def twin_camera_panels(options: SessionOptions, loop: TeleopLoop) -> dict[str, object]:
+    """The twin's renders for the streamed camera panels: a tick listener of ``loop`` copying
+    the pose at the stream's rate, and the twin-only panels (the cameras ``--camera-poses``
+    places, else the headset's camera) shown when the session has no real camera."""
+    env = loop.twin.env
+    fallback = headset_camera(env.embodiment)
+    feed = TwinCameraFeed(env.render_model, env.data, fallback, options.camera_stream_hz)
+    loop.listeners.append(feed)
+    panels = tuple(c.name for c in options.placed_cameras) or (fallback,)
+    return {"twin": feed, "twin_panels": panels}
 
 
 def rearm(mirror) -> None:

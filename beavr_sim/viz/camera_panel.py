@@ -1,5 +1,6 @@
-"""The browser view's real-camera panel: one image per camera, its state line (live with its
-capture age, or NO SIGNAL), the view chosen (real, twin, both, overlay) and the overlay's blend.
+"""The browser view's camera panel: one image per camera (the real frame, the twin's render of
+it, both side by side, or the twin blended over the real frame), its state line (live with its
+age, or NO SIGNAL), the view chosen (real, twin, both, overlay) and the overlay's blend slider.
 
 A :data:`~beavr_sim.cameras.stream.Sink` of a :class:`~beavr_sim.cameras.stream.CameraStream`:
 called on the stream's worker thread, never the control thread; viser encodes the image there.

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from beavr_sim.hardware.mirror.state import HoldReason
+from beavr_sim.hardware.mirror.state import HoldReason, LinkState
 
 
 @dataclass(frozen=True)
@@ -41,3 +41,5 @@ class Orders:
     latched: str  # this device's divergence hold ("" none)
     rearm: bool  # the operator asked to re-arm this (failed) device
     stopping: bool
+    state: LinkState  # this device's state when the orders were taken
+    releases: int  # releases and episode starts so far (a divergence timer restarts)

@@ -6,8 +6,9 @@ lag's start): the gap is how far the reading lies outside that range, per joint.
 the limit for longer than the window is a divergence (the mirror latches a hold). A catch-up
 is judged the same way, so a reset never latches a hold.
 
-Contract: :class:`DivergenceWatch` belongs to one device's writer thread (the mirror only
-clears its timer, under its lock); memory is bounded (the last 256 targets sent).
+Contract: :class:`DivergenceWatch` belongs to one device's writer thread (which restarts its
+timer when it sees a release or a new episode); memory is bounded (the last 256 targets
+sent).
 """
 
 from __future__ import annotations

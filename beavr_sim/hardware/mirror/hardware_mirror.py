@@ -41,9 +41,11 @@ sends the newest target and reads the measured joints back. The mirror:
 - refuses to start when a device cannot be reached (:meth:`connect` names it and what to check).
 
 Threads: the twin's thread (submit, health, in_sync), one writer per device, and the operator's
-inputs (estop, release, rearm: keyboard, browser) share one lock (``_cond``); every counter and
-every device state is written under it, and a writer works from a frozen
-:class:`~beavr_sim.hardware.mirror.dispatch.Orders` snapshot taken under it. Device state is
+inputs (estop, release, rearm: keyboard, browser) share one lock, the
+:class:`~beavr_sim.hardware.mirror.board.MirrorBoard`'s; every counter and every device state
+is written under it. A writer reaches it only through its
+:class:`~beavr_sim.hardware.mirror.board.LinkPort` and works from frozen
+:class:`~beavr_sim.hardware.mirror.dispatch.Orders` snapshots. Device state is
 a :class:`LinkState` plus a :class:`HoldReason` and a one-line detail for people (never
 parsed). Statistics are bounded (a ring of the last writes).
 
@@ -55,7 +57,6 @@ period's motion, catch-up at one period's catch-up step, streams over a whole pe
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
 
@@ -63,8 +64,9 @@ import numpy as np
 
 from beavr_sim.hardware.detour import Detour
 from beavr_sim.hardware.device import DeviceError, MirrorError
+from beavr_sim.hardware.mirror.board import MirrorBoard
 from beavr_sim.hardware.mirror.catch_up import CatchUp
-from beavr_sim.hardware.mirror.dispatch import Dispatch, Orders
+from beavr_sim.hardware.mirror.dispatch import Dispatch
 from beavr_sim.hardware.mirror.errors import log, one_line
 from beavr_sim.hardware.mirror.link import Link
 from beavr_sim.hardware.mirror.speed import MirrorSpeeds, submit_interval
@@ -81,8 +83,6 @@ from beavr_sim.hardware.rig import BODY, RigConfig, build_device, joint_names_of
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
 from beavr_sim.twin.guard import CollisionGuard, GuardConfig
 
-#: Fault lines kept per episode (all are counted: :attr:`HardwareMirror.faults_total`).
-MAX_FAULTS = 100
 #: How long (s) :meth:`HardwareMirror.close` waits for a writer thread (one inside a reconnect
 #: waits for its driver's connect timeout).
 JOIN_TIMEOUT_S = 5.0
@@ -114,11 +114,19 @@ class HardwareMirror:
         guard_config = guard or GuardConfig()
         # The mirror's own guard checks the targets it makes itself (catching up).
         self.guard = CollisionGuard(model, embodiment, joints, guard_config, dt=self._period)
-        self.links: list[Link] = []
+        built = []
         for entry in rig.devices:
             device = build_device(entry, embodiment, joints)
             index = np.array([joints.names.index(n) for n in joint_names_of(entry, embodiment)])
-            self.links.append(Link(self, len(self.links), device, index, entry.part))
+            built.append((device, index, entry.part))
+        home = joints.home.astype(np.float64).copy()
+        #: The one lock and everything shared under it (each writer gets its port).
+        self._board = MirrorBoard([device.name for device, _, _ in built], home, self._period)
+        board = self._board
+        self.links: list[Link] = [
+            Link(board.port(k, rig.mirror, self.dry_run), board.devices[k], device, index, part)
+            for k, (device, index, part) in enumerate(built)
+        ]
         effector_of = dict.fromkeys(embodiment.body_joints, BODY)  # the body: never refused
         for e in embodiment.effectors:
             for n in e.joints:
@@ -138,21 +146,12 @@ class HardwareMirror:
         qpos[joints.qpos_adr] = joints.home
         #: The guarded catch-up (and its detours), the twin's thread only.
         self.catch_up = CatchUp(self.guard, self.speeds.catch_up, qpos)
-        self._cond = threading.Condition()
-        self._stopping = threading.Event()
-        home = joints.home.astype(np.float64).copy()
-        self._dispatch = Dispatch(
-            0, home, home.copy(), (False,) * len(self.links), 0.0, time.monotonic(), self._period
-        )
         #: The time (``clock``) of the previous submit (none yet: the first stands for a whole
         #: period).
         self._t_previous = -math.inf
         #: What the last submit left of its action because of the rate limit (action - target;
         #: zero after a catch-up): distance the mirror still owes, not a jump of the twin.
         self._owed = np.zeros(joints.size)
-        self._estop = ""  # why the e-stop is latched ("" = not)
-        self._faults: list[str] = []  # since begin_episode
-        self._faults_total = 0
         self._episodes = 0
         #: The last dispatch before the episode began: in sync needs reads after it.
         self._begin_seq = 0
@@ -170,8 +169,8 @@ class HardwareMirror:
             except (DeviceError, OSError, ValueError) as exc:
                 self.close()
                 raise MirrorError(f"cannot start mirroring: {link.name}: {exc}") from None
-            with self._cond:
-                link.stats.connected = link.stats.connected_now = True
+            with self._board.cond:
+                link.shared.stats.connected = link.shared.stats.connected_now = True
         return self.measured()
 
     def measured(self) -> np.ndarray:
@@ -180,33 +179,33 @@ class HardwareMirror:
         q = self.joints.home.astype(np.float64).copy()
         for link in self.links:
             measured = np.asarray(link.device.read_positions(), dtype=np.float64)
-            with self._cond:
-                link.measured = measured
+            with self._board.cond:
+                link.shared.measured = measured
             q[link.index] = measured
         return q
 
     def latest_measured(self) -> np.ndarray:
         """The devices' joints as their writer threads last read them (action order; the
         last dispatched target where a device has not been read yet)."""
-        with self._cond:
-            q = self._dispatch.target.copy()
+        with self._board.cond:
+            q = self._board.dispatch.target.copy()
             for link in self.links:
-                if link.measured is not None:
-                    q[link.index] = link.measured
+                if link.shared.measured is not None:
+                    q[link.index] = link.shared.measured
         return q
 
     def start(self, q_start: np.ndarray) -> None:
         """Start following from ``q_start`` (the measured pose the twin was reset to)."""
         q = np.asarray(q_start, dtype=np.float64).copy()
-        with self._cond:
-            self._dispatch = Dispatch(
+        with self._board.cond:
+            self._board.dispatch = Dispatch(
                 0, q, q.copy(), (False,) * len(self.links), 0.0, time.monotonic(), self._period
             )
             self._t_previous = -math.inf
             self._owed = np.zeros_like(q)
             for link in self.links:
-                link.last = q[link.index].copy()
-                link.divergence.sent(time.monotonic(), link.last)
+                link.shared.last = q[link.index].copy()
+                link.restart_from(link.shared.last)  # its writer has not started yet
         self.guard.reset()
         for link in self.links:
             link.start()
@@ -230,38 +229,41 @@ class HardwareMirror:
             self.guard.set_fixtures(fixtures.mocap_pos, fixtures.mocap_quat)
         self.guard.reset()
         self.catch_up.reset()
-        with self._cond:
+        board = self._board
+        with board.cond:
             self._episodes += 1
-            self._begin_seq = self._dispatch.seq
-            self._faults.clear()
+            self._begin_seq = board.dispatch.seq
+            board.faults.clear()
             self._owed = np.zeros_like(self._owed)
-            for link in self.links:
-                link.latched = ""
-                link.divergence.since = None
-            self._cond.notify_all()
+            for shared in board.devices:
+                shared.latched = ""
+                shared.releases += 1  # its divergence timer starts over
+            board.cond.notify_all()
 
     def close(self) -> None:
         """Hold and release every device (idempotent)."""
-        self._stopping.set()
-        with self._cond:
-            self._cond.notify_all()
+        board = self._board
+        board.stopping.set()
+        with board.cond:
+            board.cond.notify_all()
         for link in self.links:
             ended = link.join(JOIN_TIMEOUT_S)
             if not ended:
                 log.error("%s: its writer did not stop (a reconnect hangs): left as is", link.name)
                 continue
-            with self._cond:
-                out = link.state in OUT
-            if link.stats.connected_now and not self.dry_run and not out:
+            shared = link.shared
+            with board.cond:
+                hold = shared.stats.connected_now and not self.dry_run and shared.state not in OUT
+            if hold:
                 try:
                     link.device.hold()
                 except Exception as exc:  # closing: note it, go on
-                    with self._cond:
-                        link.stats.errors += 1
-                        link.stats.last_error = one_line(exc)
+                    with board.cond:
+                        shared.stats.errors += 1
+                        shared.stats.last_error = one_line(exc)
             link.device.disconnect()
-            with self._cond:
-                link.stats.connected_now = False
+            with board.cond:
+                shared.stats.connected_now = False
 
     # ------------------------------------------------------------------ per command
     def submit(
@@ -277,12 +279,13 @@ class HardwareMirror:
         t = self._clock()
         dt = min(max(t - self._t_previous, 0.0), self._period)
         self._t_previous = t
-        with self._cond:
-            previous = self._dispatch.target.copy()
+        board = self._board
+        with board.cond:
+            previous = board.dispatch.target.copy()
             owed = self._owed.copy()
             for link in self.links:  # a device not following starts from where it stands
-                if link.anchor is not None:
-                    previous[link.index] = link.anchor
+                if link.shared.anchor is not None:
+                    previous[link.index] = link.shared.anchor
                     owed[link.index] = 0.0
         step = action - previous
         rate_limited: list[int] = []
@@ -322,18 +325,18 @@ class HardwareMirror:
                     verdict.reason(),
                     n,
                 )
-        with self._cond:
-            for k, link in enumerate(self.links):
+        with board.cond:
+            for k, shared in enumerate(board.devices):
                 if catching[k]:
-                    link.stats.catch_up_steps += 1
-                    link.stats.catch_up_refused += catch_up_refused
+                    shared.stats.catch_up_steps += 1
+                    shared.stats.catch_up_refused += catch_up_refused
                 if k in rate_limited:
-                    link.stats.rate_limited += 1
+                    shared.stats.rate_limited += 1
                 if self._link_effector[k] in refused:
-                    link.stats.commands_refused += 1
+                    shared.stats.commands_refused += 1
             self._owed = owed_next
-            self._dispatch = Dispatch(
-                self._dispatch.seq + 1,
+            board.dispatch = Dispatch(
+                board.dispatch.seq + 1,
                 target,
                 twin,
                 catching,
@@ -341,79 +344,40 @@ class HardwareMirror:
                 time.monotonic(),
                 dt,
             )
-            self._cond.notify_all()
+            board.cond.notify_all()
 
     @property
     def detours(self) -> list[Detour]:
         """Every detour the catch-up planned (found or not), oldest first."""
         return self.catch_up.detours
 
-    # ------------------------------------------------------------------ the writers' view
-    def _halt_for(self, link: Link) -> tuple[HoldReason, str] | None:
-        """Under the lock: what every device but an out one holds for."""
-        if self._estop:
-            return HoldReason.ESTOP, f"e-stop: {self._estop}"
-        for other in self.links:
-            if other is not link and other.state in OUT:
-                return HoldReason.OTHER_DEVICE, f"{other.name} {other.state.value}"
-        return None
-
-    def _wakes(self, link: Link) -> bool:
-        """Under the lock: something for ``link``'s writer to do (a failed device waits for a
-        re-arm; the others for a new dispatch, or a hold to take)."""
-        if self._stopping.is_set() or link.rearm_requested:
-            return True
-        if link.state in OUT:
-            return False
-        if self._dispatch.seq != link._seq_sent:
-            return True
-        halt = self._halt_for(link)
-        want = halt[0] if halt is not None else (HoldReason.DIVERGED if link.latched else None)
-        return want is not None and (link.state is not LinkState.HOLDING or link.reason is not want)
-
-    def _interrupts(self, link: Link, seq: int) -> bool:
-        """Under the lock: a streamed interpolation of dispatch ``seq`` stops here."""
-        return (
-            self._dispatch.seq != seq
-            or self._stopping.is_set()
-            or bool(link.latched)
-            or self._halt_for(link) is not None
-        )
-
-    def _orders(self, link: Link) -> Orders:
-        return Orders(
-            self._dispatch,
-            self._halt_for(link),
-            link.latched,
-            link.rearm_requested,
-            self._stopping.is_set(),
-        )
-
-    def _fault(self, line: str) -> None:
-        """Under the lock: a fault of this episode (the first MAX_FAULTS kept)."""
-        if len(self._faults) < MAX_FAULTS:
-            self._faults.append(line)
-        self._faults_total += 1
+    @property
+    def dispatched(self) -> Dispatch:
+        """The newest dispatch (frozen: its targets are what the writers send)."""
+        with self._board.cond:
+            return self._board.dispatch
 
     # ------------------------------------------------------------------ safety
     def estop(self, reason: str = "emergency stop") -> None:
         """Hold every device now; latched until :meth:`release`."""
-        with self._cond:
-            if not self._estop:
-                self._fault(f"e-stop: {reason}")
-            self._estop = reason or "emergency stop"
-            self._cond.notify_all()
+        board = self._board
+        with board.cond:
+            if not board.estop:
+                board.fault(f"e-stop: {reason}")
+            board.estop = reason or "emergency stop"
+            board.cond.notify_all()
         log.error("EMERGENCY STOP (%s): every device holds until released", reason)
 
     def release(self) -> None:
         """Release the e-stop and any divergence hold, and re-arm failed devices (without
         waiting: see :meth:`rearm`); the devices catch up with the twin slowly."""
-        with self._cond:
-            self._estop = ""
-            for link in self.links:
-                link.latched = ""
-                link.divergence.since = None
-            self._cond.notify_all()
+        board = self._board
+        with board.cond:
+            board.estop = ""
+            for shared in board.devices:
+                shared.latched = ""
+                shared.releases += 1  # its divergence timer starts over
+            board.cond.notify_all()
         if self.failed_devices:
             self.rearm(timeout_s=0.0)
 
@@ -422,73 +386,74 @@ class HardwareMirror:
         re-read by its writer and follows again from where it stands, through a guarded
         catch-up. Waits up to ``timeout_s`` (None: ``reconnect_s``) for the attempts; returns
         the devices still failed or in outage."""
-        with self._cond:
-            for link in self.links:
-                if link.state is LinkState.FAILED:
-                    link.rearm_requested = True
-            self._cond.notify_all()
+        board = self._board
+        with board.cond:
+            for shared in board.devices:
+                if shared.state is LinkState.FAILED:
+                    shared.rearm_requested = True
+            board.cond.notify_all()
             wait = self.rig.mirror.reconnect_s if timeout_s is None else timeout_s
             if wait > 0 and self.started:
-                self._cond.wait_for(
-                    lambda: not any(link.rearm_requested for link in self.links), timeout=wait
+                board.cond.wait_for(
+                    lambda: not any(shared.rearm_requested for shared in board.devices),
+                    timeout=wait,
                 )
         return self.failed_devices
 
     @property
     def faults_total(self) -> int:
         """Faults (e-stops, divergences, outages, failures) over the whole session."""
-        with self._cond:
-            return self._faults_total
+        with self._board.cond:
+            return self._board.faults_total
 
     @property
     def estopped(self) -> bool:
-        return bool(self._estop)
+        with self._board.cond:
+            return bool(self._board.estop)
 
     @property
     def failed_devices(self) -> list[str]:
         """Devices that failed (or are in outage) and are not recovered."""
-        with self._cond:
-            return [link.name for link in self.links if link.state in OUT]
+        with self._board.cond:
+            return [shared.name for shared in self._board.devices if shared.state in OUT]
 
     # ------------------------------------------------------------------ state
     def health(self) -> MirrorHealth:
         """Every device's state now (cheap: one lock, no device access)."""
-        with self._cond:
-            fresh = time.monotonic() - self._dispatch.t_submit <= self.rig.mirror.command_timeout_s
+        board = self._board
+        with board.cond:
+            fresh = time.monotonic() - board.dispatch.t_submit <= self.rig.mirror.command_timeout_s
             devices = tuple(
-                DeviceHealth(link.name, link.state, link.reason, link.detail) for link in self.links
+                DeviceHealth(d.name, d.state, d.reason, d.detail) for d in board.devices
             )
-            live = not self._estop and all(
-                not link.latched
+            live = not board.estop and all(
+                not d.latched
                 and (
-                    link.state in MOVING
-                    or (
-                        link.state is LinkState.HOLDING
-                        and link.reason is HoldReason.TIMEOUT
-                        and fresh
-                    )
+                    d.state in MOVING
+                    or (d.state is LinkState.HOLDING and d.reason is HoldReason.TIMEOUT and fresh)
                 )
-                for link in self.links
+                for d in board.devices
             )
-            return MirrorHealth(live, devices, tuple(self._faults))
+            return MirrorHealth(live, devices, tuple(board.faults))
 
     def in_sync(self) -> bool:
         """Every device following (not catching up, not held) and its measured joints, read
         since the episode began (:meth:`begin_episode`), within its part's sync tolerance of
         the twin's."""
-        with self._cond:
-            if self._estop:
+        with self._board.cond:
+            if self._board.estop:
                 return False
-            twin = self._dispatch.twin
+            twin = self._board.dispatch.twin
             for link in self.links:
+                shared = link.shared
                 if (
-                    link.state is not LinkState.FOLLOWING
-                    or link.latched
-                    or link.measured is None
-                    or link.measured_seq <= self._begin_seq
+                    shared.state is not LinkState.FOLLOWING
+                    or shared.latched
+                    or shared.measured is None
+                    or shared.measured_seq <= self._begin_seq
                 ):
                     return False
-                gap = np.abs(link.measured - twin[link.index])
+                gap = np.abs(shared.measured - twin[link.index])
                 if float(np.max(gap, initial=0.0)) > link.sync_tolerance:
                     return False
             return True
@@ -496,12 +461,13 @@ class HardwareMirror:
     # ------------------------------------------------------------------ report
     def summary(self) -> dict:
         out = {}
-        with self._cond:
+        with self._board.cond:
             for link in self.links:
-                s = link.stats.summary()
-                s["state"] = link.state.value
-                s["reason"] = link.reason.value
-                s["holding"] = link.detail if link.state is not LinkState.FOLLOWING else ""
+                shared = link.shared
+                s = shared.stats.summary()
+                s["state"] = shared.state.value
+                s["reason"] = shared.reason.value
+                s["holding"] = shared.detail if shared.state is not LinkState.FOLLOWING else ""
                 s["retries"] = link.retries
                 out[link.name] = s
         return out

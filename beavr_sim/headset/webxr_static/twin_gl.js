@@ -10,6 +10,16 @@ export const WORLD_AHEAD_M = 0.8;
 const R_XR_WORLD = [0, -1, 0, 0, 0, 1, -1, 0, 0];
 const T_XR_WORLD_OFFSET = [0, 0, -WORLD_AHEAD_M];
 
+// A point of the simulator's world (Z up) in the session's space.
+export function worldToXr(p) {
+  const out = [0, 0, 0];
+  for (let r = 0; r < 3; r++) {
+    out[r] = R_XR_WORLD[3 * r] * p[0] + R_XR_WORLD[3 * r + 1] * p[1] +
+      R_XR_WORLD[3 * r + 2] * p[2] + T_XR_WORLD_OFFSET[r];
+  }
+  return out;
+}
+
 // One draw call per mesh and view: every geom of a shape is an instance (a rotation and
 // translation in rows, a scale, a colour). Draw calls, not pixels, are what a phone-class GPU
 // (and a software one) pays for. The robot's meshes come once with the scene (docs/formats.md):

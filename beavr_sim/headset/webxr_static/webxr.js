@@ -2,6 +2,7 @@
 // sends both hands' joints to the simulator over a WebSocket, and the twin it sends back is
 // drawn in the session. Protocol version 1: docs/formats.md ("WebXR page messages").
 
+import { CameraQuads } from "./camera_quad.js";
 import { TwinRenderer, lookAt, perspective } from "./twin_gl.js";
 
 const PROTOCOL_VERSION = 1;
@@ -36,6 +37,8 @@ const state = {
 
 const gl = ui.canvas.getContext("webgl2", { xrCompatible: true, antialias: false });
 const renderer = gl ? new TwinRenderer(gl) : null;
+// The streamed cameras as quads in the scene (the overlay's panels are their page twins).
+const quads = gl ? new CameraQuads(gl) : null;
 
 function round(x) {
   return Math.round(x * DECIMALS) / DECIMALS;
@@ -61,6 +64,7 @@ function connect() {
   ws.onclose = () => {
     state.ws = null;
     state.server = null;
+    clearCameras();
     updateUi();
     setTimeout(connect, 1000);
   };
@@ -82,6 +86,7 @@ function connect() {
       if (renderer) renderer.setPoses(msg.pose);
     } else if (msg.type === "camera") {
       showCamera(msg);
+      if (quads) quads.update(msg);
     }
     requestPreview();
     updateUi();
@@ -105,6 +110,15 @@ function showCamera(msg) {
   img.src = "data:image/jpeg;base64," + msg.jpeg;
   label.textContent = String(msg.label);
   label.className = msg.state === "live" ? "small" : "small nosignal";
+}
+
+// Nothing streams any more (the connection dropped): no panel keeps its last image.
+function clearCameras() {
+  const root = byId("cameras");
+  if (root) root.replaceChildren();
+  if (quads) quads.clear();
+  byId("camera-status").textContent = "";
+  requestPreview();
 }
 
 // One hand's joints in the session's reference space; a joint without a pose is null.
@@ -176,6 +190,7 @@ function onXRFrame(time, frame) {
     const viewport = layer.getViewport(view);
     gl.viewport(viewport.x, viewport.y, viewport.width, viewport.height);
     renderer.draw(view.projectionMatrix, view.transform.inverse.matrix, points);
+    if (quads) quads.draw(view.projectionMatrix, view.transform.inverse.matrix);
   }
   // This page's own work per frame (ms, smoothed): what it costs the headset.
   state.workMs += 0.05 * (performance.now() - began - state.workMs);
@@ -286,7 +301,9 @@ function requestPreview() {
     gl.clearColor(0.08, 0.09, 0.11, 1);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     const projection = perspective(Math.PI / 3, c.width / Math.max(c.height, 1), 0.05, 20);
-    renderer.draw(projection, lookAt([0.0, 1.5, 0.25], [0, 0.8, -0.9], [0, 1, 0]));
+    const view = lookAt([0.0, 1.5, 0.25], [0, 0.8, -0.9], [0, 1, 0]);
+    renderer.draw(projection, view);
+    if (quads) quads.draw(projection, view);
   });
 }
 
@@ -301,6 +318,14 @@ async function detectXR() {
   }
 }
 
+if (quads) {
+  quads.onShown = () => {
+    const names = [...quads.quads.keys()].join(", ");
+    byId("camera-status").textContent = names
+      ? `in the scene: ${names} (${quads.shown} images shown)` : "";
+    requestPreview();
+  };
+}
 ui.start.addEventListener("click", start);
 ui.pause.addEventListener("click", togglePause);
 window.addEventListener("resize", requestPreview);

@@ -1,0 +1,91 @@
+"""The policy table as markdown and JSON: one row per (task, policy, evaluation loop), the
+success count, the rate with its Wilson 95 % interval, the mean time to success, which
+checkpoint (chosen on which validation seeds); rows that could not run say why."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from beavr_sim.scaling.stats import wilson_interval
+
+COLUMNS = (
+    "task",
+    "policy",
+    "inputs",
+    "loop",
+    "successes",
+    "success rate (Wilson 95 %)",
+    "mean time to success (s)",
+    "checkpoint",
+)
+#: How each evaluation loop reads in the table.
+LOOPS = {"sync": "sync", "async": "think-act", "teleop": "teleop pipeline", "": ""}
+POLICY_NAMES = {"act": "ACT", "diffusion": "Diffusion", "smolvla": "SmolVLA", "pi0": "pi0",
+                "human": "human (scripted expert)"}  # fmt: skip
+
+
+def rate_cell(successes: int, episodes: int) -> str:
+    """``0.80 (0.58-0.92)``: the rate and its Wilson 95 % interval, two decimals."""
+    low, high = wilson_interval(successes, episodes)
+    return f"{successes / episodes:.2f} ({low:.2f}-{high:.2f})"
+
+
+def _cells(row: dict) -> list[str]:
+    policy = POLICY_NAMES.get(row["policy"], row["policy"])
+    if row.get("note") and "episodes" not in row:
+        return [row["task"], policy, row.get("inputs", ""), "", "-", row["note"], "-", "-"]
+    time_s = row.get("mean_success_time_s")
+    step = row.get("checkpoint_step")
+    checkpoint = (
+        f"step {step} of {row['train_steps']} (best on {row['chosen_on']})" if step else "-"
+    )
+    return [
+        row["task"],
+        policy,
+        row["inputs"],
+        LOOPS.get(row["mode"], row["mode"]),
+        f"{row['successes']}/{row['episodes']}",
+        rate_cell(row["successes"], row["episodes"]),
+        "-" if time_s is None else f"{time_s:.1f}",
+        checkpoint,
+    ]
+
+
+def markdown(result: dict, command: str = "") -> str:
+    """The table with its protocol, the command and the budget above it."""
+    protocol = result["protocol"]
+    budget = result["budget"]
+    lines = [
+        "# Policy table (`python -m beavr_sim.bench policies`)",
+        "",
+        f"Embodiment {protocol['embodiment']}; demonstrations from seeds "
+        f"{protocol['train_seeds']}; checkpoints chosen on seeds {protocol['validation_seeds']}; "
+        f"tested on seeds {protocol['test_seeds']}; device {result['device']}.",
+    ]
+    if command:
+        lines += ["", f"    {command}"]
+    lines += [
+        "",
+        "| " + " | ".join(COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
+        *("| " + " | ".join(_cells(row)) + " |" for row in result["rows"]),
+        "",
+        f"Budget: {budget['wall_s']:.1f} s wall, {budget['cpu_s']:.1f} s CPU over all stages "
+        f"({budget['stages_cached']} of them cached from an earlier run)"
+        + "".join(
+            f"; {stage} {t['wall_s']:.1f} s wall / {t['cpu_s']:.1f} s CPU"
+            for stage, t in budget["by_stage"].items()
+        )
+        + ".",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def write(result: dict, out: Path, command: str = "") -> tuple[Path, Path]:
+    """``out/table.md`` and ``out/table.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    md, js = out / "table.md", out / "table.json"
+    md.write_text(markdown(result, command))
+    js.write_text(json.dumps({**result, "command": command}, indent=2))
+    return md, js

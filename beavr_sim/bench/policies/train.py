@@ -1,0 +1,153 @@
+"""``lerobot-train`` as a subprocess: the command of a :class:`TrainConfig`, resuming an
+unfinished run from its last checkpoint (LeRobot's own ``--resume=true``), and one clear line
+when it fails (with its log's path).
+
+A run lives in ``<stage dir>/run`` (LeRobot's ``output_dir``), its output in
+``<stage dir>/train.log`` (appended by a resumed run). Checkpoints are LeRobot's:
+``run/checkpoints/<step:06d>/pretrained_model``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from beavr_sim.bench.policies.config import TrainConfig
+
+#: LeRobot's training log line: ``step:20 smpl:160 ... loss:72.649 ...`` (steps as 1K, 2M).
+_LOG_LINE = re.compile(r"\bstep:(\S+) .*?\bloss:([-+0-9.eE]+)")
+
+
+class TrainFailed(RuntimeError):
+    """``lerobot-train`` exited with an error; the message names its log."""
+
+
+class TrainUnfinished(RuntimeError):
+    """A run stopped half-way, found without ``--resume``."""
+
+
+def executable() -> str:
+    """``lerobot-train`` beside this Python (its venv), else on ``PATH``."""
+    beside = Path(sys.executable).with_name("lerobot-train")
+    if beside.exists():
+        return str(beside)
+    found = shutil.which("lerobot-train")
+    if found is None:
+        raise FileNotFoundError(
+            "lerobot-train is not installed (it comes with lerobot[training]: pip install -e .)"
+        )
+    return found
+
+
+def saved_steps(run: Path) -> list[int]:
+    """The steps of the run's checkpoints, in order ([] when none was saved)."""
+    folder = run / "checkpoints"
+    if not folder.is_dir():
+        return []
+    return sorted(
+        int(p.name)
+        for p in folder.iterdir()
+        if p.name.isdigit() and (p / "pretrained_model" / "config.json").is_file()
+    )
+
+
+def checkpoint(run: Path, step: int) -> Path:
+    """The pretrained_model folder of the checkpoint at ``step``."""
+    return run / "checkpoints" / f"{step:06d}" / "pretrained_model"
+
+
+def train_command(
+    config: TrainConfig, dataset: Path, repo_id: str, run: Path, device: str
+) -> list[str]:
+    """A fresh run of ``config`` on the dataset at ``dataset``."""
+    return [
+        executable(),
+        f"--policy.type={config.policy}",
+        f"--dataset.repo_id={repo_id}",
+        f"--dataset.root={dataset}",
+        "--dataset.video_backend=pyav",
+        f"--policy.device={device}",
+        "--policy.push_to_hub=false",
+        *(f"--policy.{flag}" for flag in config.policy_flags),
+        f"--batch_size={config.batch_size}",
+        f"--steps={config.steps}",
+        f"--save_freq={config.save_freq}",
+        f"--log_freq={max(1, min(200, config.save_freq))}",
+        "--num_workers=0",
+        f"--seed={config.seed}",
+        "--wandb.enable=false",
+        f"--output_dir={run}",
+    ]
+
+
+def resume_command(config: TrainConfig, run: Path, device: str) -> list[str]:
+    """Continue the run at ``run`` from its last checkpoint up to ``config.steps``."""
+    last = checkpoint(run, saved_steps(run)[-1])
+    return [
+        executable(),
+        f"--config_path={last / 'train_config.json'}",
+        "--resume=true",
+        f"--steps={config.steps}",
+        f"--policy.device={device}",
+        f"--output_dir={run}",
+    ]
+
+
+def train(
+    config: TrainConfig,
+    dataset: Path,
+    repo_id: str,
+    stage: Path,
+    device: str = "cpu",
+    resume: bool = False,
+) -> Path:
+    """Train into ``stage/run`` (see the module docstring); returns the run folder.
+
+    A run already there that reached ``config.steps`` is kept as it is; one with checkpoints
+    short of it continues with ``resume`` and raises :class:`TrainUnfinished` without; one
+    without any checkpoint starts again."""
+    run = stage / "run"
+    log = stage / "train.log"
+    steps = saved_steps(run)
+    if steps and steps[-1] >= config.steps:
+        return run
+    if steps and not resume:
+        raise TrainUnfinished(
+            f"{config.policy} on {config.demos.task}: an unfinished training run at step "
+            f"{steps[-1]} of {config.steps} in {run}; pass --resume to continue it"
+        )
+    if steps:
+        command = resume_command(config, run, device)
+    else:
+        if run.exists():
+            shutil.rmtree(run)
+        command = train_command(config, dataset, repo_id, run, device)
+    stage.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+    with log.open("a") as out:
+        out.write("$ " + " ".join(command) + "\n")
+        out.flush()
+        code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env).returncode
+    if code != 0:
+        raise TrainFailed(
+            f"lerobot-train failed (exit {code}) training {config.policy} on "
+            f"{config.demos.task}; its log: {log}"
+        )
+    done = saved_steps(run)
+    if not done or done[-1] < config.steps:
+        raise TrainFailed(
+            f"lerobot-train ended without a checkpoint at step {config.steps} "
+            f"({config.policy} on {config.demos.task}); its log: {log}"
+        )
+    return run
+
+
+def losses(log: Path) -> list[tuple[str, float]]:
+    """``(step as logged, loss)`` of every logged training step in ``log``."""
+    if not log.is_file():
+        return []
+    return [(m[1], float(m[2])) for m in _LOG_LINE.finditer(log.read_text(errors="replace"))]

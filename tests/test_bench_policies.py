@@ -1,0 +1,255 @@
+"""``python -m beavr_sim.bench policies``: the Wilson interval and the cache key as units, the
+training stage's resume and failure paths with a stand-in for ``lerobot-train``, how a policy
+with an observation history (Diffusion) is fed in the think-act loop, and one
+``--quick`` run end to end (demos -> lerobot-train -> checkpoint choice -> test -> table),
+then again from its cache."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import fields, replace
+from pathlib import Path
+
+import pytest
+
+from beavr_sim.bench.policies import train as training
+from beavr_sim.bench.policies.config import (
+    NOT_RUN_OFFLINE,
+    TEST_SEED,
+    VALIDATION_SEED,
+    DemoConfig,
+    EvalConfig,
+    Protocol,
+    TrainConfig,
+    cache_key,
+)
+from beavr_sim.bench.policies.table import rate_cell
+from beavr_sim.scaling.stats import wilson_interval
+
+DEMOS = DemoConfig(task="PickupBox", episodes=2)
+TRAIN = TrainConfig(policy="act", demos=DEMOS, steps=20, save_freq=10, batch_size=8)
+EVAL = EvalConfig(task="PickupBox", embodiment="xarm7_leap_right", seed=1000, episodes=2,
+                  mode="sync", train_key="abc", step=10, weights="0123")  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- units
+def test_wilson_interval_and_its_table_cell_match_known_values():
+    low, high = wilson_interval(8, 10)  # the paper's Diffusion row: 8/10
+    assert (round(low, 4), round(high, 4)) == (0.4902, 0.9433)
+    low, high = wilson_interval(16, 20)  # the 2026-11-23 ACT figure (docs/benchmarks.md)
+    assert (round(low, 4), round(high, 4)) == (0.5840, 0.9193)
+    assert rate_cell(16, 20) == "0.80 (0.58-0.92)"
+    assert rate_cell(10, 10) == "1.00 (0.72-1.00)"
+    assert rate_cell(0, 2) == "0.00 (0.00-0.66)"
+
+
+def _changed(value):
+    """A different value of the same kind."""
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int | float):
+        return value + 1
+    if isinstance(value, tuple):
+        return (*value, "front")
+    if value is None:
+        return 1.0
+    return {"PickupBox": "PickPlace", "act": "diffusion", "sync": "async"}.get(value, value + "x")
+
+
+@pytest.mark.parametrize(("stage", "config"), [("demos", DEMOS), ("train", TRAIN), ("eval", EVAL)])
+def test_cache_key_changes_with_every_config_field_and_only_then(stage, config):
+    key = cache_key(stage, config)
+    assert cache_key(stage, replace(config)) == key  # an equal config: the same key
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, DemoConfig):
+            other = replace(value, episodes=value.episodes + 1)
+        else:
+            other = _changed(value)
+        assert cache_key(stage, replace(config, **{f.name: other})) != key, f.name
+    assert cache_key("other", config) != key
+
+
+def test_cache_key_is_stable_across_processes():
+    # A literal: no per-process hash seeds, no dict order (bump CACHE_VERSION to change it).
+    assert cache_key("demos", DEMOS) == "d3c19f73769f"
+
+
+def test_protocol_keeps_the_three_seed_ranges_apart():
+    with pytest.raises(ValueError, match="into the test seeds"):
+        Protocol(demos=200, validation_episodes=20, test_episodes=50)
+    with pytest.raises(ValueError, match="must not overlap"):
+        Protocol(demos=50, validation_episodes=20, test_episodes=VALIDATION_SEED - TEST_SEED + 1)
+    with pytest.raises(ValueError, match="episodes must be >= 1"):
+        Protocol(demos=50, validation_episodes=20, test_episodes=0)
+
+
+def _checkpoint_at(run: Path, step: int) -> None:
+    model = training.checkpoint(run, step)
+    model.mkdir(parents=True)
+    (model / "config.json").write_text("{}")
+
+
+def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
+    tmp_path, monkeypatch
+):
+    stage = tmp_path / "stage"
+    _checkpoint_at(stage / "run", 10)  # cut at step 10 of 20
+    with pytest.raises(training.TrainUnfinished, match=r"step 10 of 20.*--resume"):
+        training.train(TRAIN, tmp_path / "data", "r/d", stage)
+    commands = []
+
+    def fake_run(command, **kwargs):
+        commands.append(command)
+        _checkpoint_at(stage / "run", 20)
+        return type("Done", (), {"returncode": 0})()
+
+    monkeypatch.setattr(training.subprocess, "run", fake_run)
+    monkeypatch.setattr(training, "executable", lambda: "lerobot-train")
+    assert training.train(TRAIN, tmp_path / "data", "r/d", stage, resume=True) == stage / "run"
+    (command,) = commands
+    last = training.checkpoint(stage / "run", 10) / "train_config.json"
+    assert f"--config_path={last}" in command and "--resume=true" in command
+    assert "--steps=20" in command
+    # Finished: nothing runs again.
+    assert training.train(TRAIN, tmp_path / "data", "r/d", stage) == stage / "run"
+    assert len(commands) == 1
+
+
+def test_a_failing_lerobot_train_is_one_line_naming_its_log(tmp_path, monkeypatch):
+    fail = tmp_path / "lerobot-train"
+    fail.write_text(f"#!{sys.executable}\nimport sys\nprint('boom')\nsys.exit(3)\n")
+    fail.chmod(0o755)
+    monkeypatch.setattr(training, "executable", lambda: str(fail))
+    stage = tmp_path / "stage"
+    with pytest.raises(training.TrainFailed) as info:
+        training.train(TRAIN, tmp_path / "data", "r/d", stage)
+    message = str(info.value)
+    assert "\n" not in message and "exit 3" in message and str(stage / "train.log") in message
+    assert "boom" in (stage / "train.log").read_text()
+
+
+class _Enough(Exception):
+    pass
+
+
+class _HistoryPolicy:
+    """A stand-in policy that looks at its last two observations (as Diffusion does); it ends
+    the episode (by raising) once it was handed two."""
+
+    type = "stand-in"
+    cameras: dict = {}
+    history = 2
+
+    def __init__(self, action):
+        self.action = action
+        self.seen: list = []
+
+    def reset(self) -> None:
+        pass
+
+    def chunk(self, observations, task):
+        self.seen.append(observations)
+        if isinstance(observations, list) and len(observations) == 2:
+            raise _Enough
+        return self.action[None]
+
+
+def test_think_act_hands_a_history_policy_its_consecutive_observations():
+    import gymnasium as gym
+
+    from beavr_sim.datasets.recorder import CameraSet
+    from beavr_sim.eval.runner import ThinkAct
+
+    env = gym.make("beavr_sim/PickupBox-v0").unwrapped
+    cameras = CameraSet.of_env(env, (), 1, 1)
+    try:
+        env.reset(seed=0)
+        policy = _HistoryPolicy(env.agent_pos.copy())
+        with pytest.raises(RuntimeError, match="inference failed") as info:
+            ThinkAct(env, policy, cameras).run(seed=0, max_seconds=10.0)
+    finally:
+        cameras.close()
+        env.close()
+    assert isinstance(info.value.__cause__, _Enough), policy.seen
+    first, last = policy.seen[0], policy.seen[-1]
+    assert isinstance(first, list) and len(first) == 1  # the first tick: nothing before it
+    assert last[0] is not last[1]  # two ticks' observations, not one repeated
+    assert set(last[0]) == set(last[1]) >= {"agent_pos"}
+
+
+def test_a_history_policy_gets_its_observations_stacked_in_time_and_padded():
+    torch = pytest.importorskip("torch")
+    import numpy as np
+
+    from beavr_sim.eval.policy import LoadedPolicy
+
+    policy = LoadedPolicy.__new__(LoadedPolicy)  # the stacking alone, no folder loaded
+    policy._torch, policy.history = torch, 2
+    policy._batch = lambda o, task: {
+        "observation.state": torch.as_tensor(o["agent_pos"])[None],
+        "task": [task],
+    }
+    one, two, three = ({"agent_pos": np.full(3, v)} for v in (1.0, 2.0, 3.0))
+    batch = policy._stacked([one, two, three], "t")
+    assert batch["observation.state"].shape == (1, 2, 3) and batch["task"] == ["t"]
+    assert batch["observation.state"][0, :, 0].tolist() == [2.0, 3.0]  # the last two, in order
+    padded = policy._stacked([one], "t")["observation.state"]  # an episode's first tick
+    assert padded[0, :, 0].tolist() == [1.0, 1.0]
+
+
+# ---------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    """``--quick`` into a fresh folder, then the same command again (all cached)."""
+    pytest.importorskip("lerobot", reason="lerobot (>= 0.5) is not installed")
+    if not Path(sys.executable).with_name("lerobot-train").exists():
+        pytest.skip("lerobot-train is not installed beside this Python")
+    from beavr_sim.bench.__main__ import main
+
+    out = tmp_path_factory.mktemp("policies")
+    assert main(["policies", "--quick", "--out", str(out)]) == 0
+    first = json.loads((out / "table.json").read_text())
+    assert main(["policies", "--quick", "--out", str(out)]) == 0
+    again = json.loads((out / "table.json").read_text())
+    return out, first, again
+
+
+def test_quick_writes_the_table_and_its_json(quick):
+    out, result, _ = quick
+    rows = {(r["policy"], r["mode"]): r for r in result["rows"]}
+    assert set(rows) == {("act", "sync"), ("act", "async"), ("human", "teleop"),
+                         ("smolvla", ""), ("pi0", "")}  # fmt: skip
+    for key in (("act", "sync"), ("act", "async"), ("human", "teleop")):
+        row = rows[key]
+        assert row["episodes"] == 2 and 0 <= row["successes"] <= 2
+        assert row["success_ci95"] == [round(v, 4) for v in wilson_interval(row["successes"], 2)]
+    assert rows[("human", "teleop")]["successes"] == 2  # the expert succeeds on these seeds
+    assert rows[("human", "teleop")]["mean_success_time_s"] > 0
+    assert rows[("smolvla", "")]["note"] == rows[("pi0", "")]["note"] == NOT_RUN_OFFLINE
+    # The checkpoint was chosen on validation seeds, among the run's checkpoints.
+    act = rows[("act", "sync")]
+    assert [v["step"] for v in act["validation"]] == [10, 20]
+    best = max(act["validation"], key=lambda v: (v["successes"], v["step"]))
+    assert act["checkpoint_step"] == best["step"]
+    assert Path(act["checkpoint"]).is_dir()
+    # Training, validation and test seeds are disjoint.
+    (demos,) = (out / "demos").glob("*/stage.json")
+    train_seeds = set(json.loads(demos.read_text())["seeds"])
+    validation = set(range(VALIDATION_SEED, VALIDATION_SEED + 2))
+    test = set(range(TEST_SEED, TEST_SEED + 2))
+    assert len(train_seeds) == 2 and not train_seeds & validation and not train_seeds & test
+    table = (out / "table.md").read_text()
+    assert "| PickupBox | ACT | state + object poses | think-act |" in table
+    assert f"| PickupBox | SmolVLA |  |  | - | {NOT_RUN_OFFLINE} |" in table
+    assert "checkpoints chosen on seeds 2000-2001; tested on seeds 1000-1001" in table
+    assert result["budget"]["stages_cached"] == 0
+
+
+def test_quick_again_is_read_from_its_cache(quick):
+    _, first, again = quick
+    assert all(r["cached"] for r in again["stages"]) and len(again["stages"]) == 7
+    assert again["rows"] == first["rows"]
+    assert again["budget"]["this_run_wall_s"] == 0
+    assert again["budget"]["cpu_s"] == first["budget"]["cpu_s"]
