@@ -39,7 +39,7 @@ options = SessionOptions(
     task="PickupBox", source="trace", mirror_hardware=True, hardware_config="emulated",
     viser=False, headless=True, multiprocess=True, clock="paced", record=Path(sys.argv[1]),
     repo_id="test/frozen", episodes=1,
-    recording=RecordingConfig(cameras=(), episode_seconds=3.0, use_videos=False),
+    recording=RecordingConfig(cameras=(), episode_seconds=2.0, use_videos=False),
     transport=TransportConfig(ports=PortConfig.free()),
 )
 print(json.dumps(run_session(options).to_dict()))
@@ -240,7 +240,7 @@ def test_a_frozen_rig_spoils_the_episode_it_records_and_the_next_starts_synced(t
     summary = json.loads(out.decode().strip().splitlines()[-1])
     log = episode_log(root)
     assert [(r["kept"], bool(r["hardware_fault"])) for r in log] == [(False, True), (True, False)]
-    assert log[1]["frames"] == 3 * 30, log[1]  # the episode only: nothing of the sync
+    assert log[1]["frames"] == 2 * 30, log[1]  # the episode only: nothing of the sync
     runs = summary["per_run"]
     assert [(r["saved"], bool(r["hardware_fault"])) for r in runs] == [(False, True), (True, False)]
     assert all(r["sync_s"] >= 0 for r in runs), runs  # each run started from a synced rig
