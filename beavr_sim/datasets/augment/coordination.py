@@ -18,6 +18,12 @@ time (lockstep). Two constraints between arms, as in DexMimicGen:
   it) share one transform: the pieces of both with the same reference form a group, and the
   first of the group to reach its anchor decides the transform for all.
 
+- **Idle arm**: with two arms, an approach is carried in its object's frame for at most
+  :attr:`CoordinationRules.approach_frames` before the first touch. An arm that waits in the
+  source (one hand hovers while the other places the large block) waits where it waited in
+  the source, not moved with an object it touches seconds later: carried early, the waiting
+  hand drifts towards the middle with its object and meets the other arm there.
+
 With one arm there are no constraints: every piece is anchored at its start.
 """
 
@@ -36,6 +42,7 @@ HELD = ("grasp", "transport")  # segments in which the arm touches its object
 @dataclass(frozen=True)
 class CoordinationRules:
     still_speed: float = 0.05  # m/s: a let-go object has come to rest
+    approach_frames: int = 90  # with two arms, the longest an approach is carried (frames)
 
 
 @dataclass(frozen=True)
@@ -106,7 +113,12 @@ def coordinate(
     out: list[Piece] = []
     for piece in pieces:
         # the end of its first segment: the first touch (an approach), the placement (a transport)
-        first_stop = next(s.stop for s in by_arm[piece.arm] if s.start >= piece.start)
+        first = next(s for s in by_arm[piece.arm] if s.start >= piece.start)
+        first_stop = first.stop
+        if len(by_arm) > 1 and first.kind == "approach" and piece.lead > rules.approach_frames:
+            anchor = first_stop - rules.approach_frames  # idle until then (see the docstring)
+            piece = Piece(piece.arm, piece.reference, piece.start, piece.stop, anchor,
+                          first_stop - anchor, piece.group, piece.waits_for)  # fmt: skip
         before = [
             h for h in handlings
             if h.arm != piece.arm and h.object == piece.reference
@@ -116,7 +128,7 @@ def coordinate(
             out.append(piece)
             continue
         other = max(before, key=lambda h: h.let_go)
-        anchor = other.let_go
+        anchor = max(other.let_go, piece.anchor)
         if speed is not None and piece.reference in speed:
             moving = speed[piece.reference]
             while anchor < first_stop - 1 and moving[anchor] >= rules.still_speed:
