@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from beavr_sim.datasets.augment.mirror import M, M4, Mirror, _paired_hand_geoms
+from beavr_sim.datasets.augment.mirror import M4, M, Mirror, _paired_hand_geoms
 from beavr_sim.datasets.augment.replay import hand_body, hand_pose, make_env
 
 #: xArm7 joints that turn the other way in the reflected arm (checked: the arms' home poses

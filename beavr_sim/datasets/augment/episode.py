@@ -54,7 +54,8 @@ def _plan(root: str, index: int, mirrored: bool = False) -> tuple[Trajectory, li
     traj = replay(load_episode(source, index))
     if mirrored:
         mirror = _mirror(source.task, source.embodiment)
-        assert mirror is not None, "a mirrored plan of an embodiment without a mirror"
+        if mirror is None:
+            raise ValueError(f"{source.embodiment}'s arms are not mirror images: no mirrored plan")
         traj = mirror.trajectory(traj)
     return traj, find_segments(traj)
 

@@ -153,9 +153,7 @@ def recover(root, info: dict, config: RecoveryConfig | None = None) -> Recovered
     """The task, embodiment and seeds of the source at ``root`` (its ``info.json`` parsed as
     ``info``) from its frames; raises ValueError in one line saying what is missing."""
     lost = f"{root} has no {EPISODE_LOG} (LeRobot's editing tools drop it)"
-    record = (
-        f"record the source with --environment-state, or keep its {EPISODE_LOG}"
-    )
+    record = f"record the source with --environment-state, or keep its {EPISODE_LOG}"
     embodiment = info.get("robot_type")
     if not embodiment:
         raise ValueError(f"{lost} and its info.json names no robot_type (the embodiment)")
