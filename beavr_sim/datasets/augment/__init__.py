@@ -8,6 +8,7 @@ reference object, segments are bridged by interpolated moves (:mod:`.frames`), t
 through the operator's IK and the twin's guard, the fingers replay the source's, and the task's
 checker keeps the successes (:mod:`.episode`). Two arms: :mod:`.coordination` (DexMimicGen's
 constraints) and :mod:`.mirror` (a source episode's left/right mirror image). A source that
-lost its episode log: :mod:`.recover`, :mod:`.replay_match`. The run itself (seeds, workers, resume, merge)
-is :func:`beavr_sim.synthetic.generate.generate`'s, with a source in place of the expert.
+lost its episode log: :mod:`.recover`, :mod:`.replay_match`. The run itself (seeds, workers,
+resume, merge) is :func:`beavr_sim.synthetic.generate.generate`'s, with a source in place of
+the expert.
 """
