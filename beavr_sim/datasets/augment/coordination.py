@@ -29,8 +29,9 @@ time (lockstep). Two constraints between arms, as in DexMimicGen:
   :attr:`CoordinationRules.retreat_hold` frames, then bridges back to the source's own palm
   (a piece with reference :data:`WORLD`, transform identity) over
   :attr:`CoordinationRules.retreat_frames`: the hand withdraws to where it withdrew in the
-  source, on its own side, instead of to that place turned about the destination (a target
-  area turned by 40 degrees swung a withdrawn hand 15-20 cm into the other arm's way).
+  source, on its own side, instead of to that place turned about the destination (StackBlocks:
+  a withdrawal 28 cm from the target area's centre, the area turned 45 degrees, moves 21 cm,
+  into the other arm's way).
 
 With one arm there are no constraints: every piece is anchored at its start.
 """
