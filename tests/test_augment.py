@@ -5,6 +5,7 @@ thing that makes them succeed."""
 from __future__ import annotations
 
 import json
+import shutil
 from itertools import pairwise
 from pathlib import Path
 
@@ -68,6 +69,32 @@ def test_source_without_episode_log_is_refused(tmp_path):
     (tmp_path / "meta" / "info.json").write_text("{}")
     with pytest.raises(ValueError, match=r"beavr_episodes\.jsonl"):
         open_source(tmp_path)
+
+
+def test_a_source_without_environment_state_has_its_seed_found_by_replay(source_root, tmp_path):
+    """No episode log and no ``observation.environment_state`` (the default recording): the
+    seed is the candidate whose reset, with the recorded actions replayed, gives back the
+    recorded ``observation.state``; with the true seed not among the candidates, refused in
+    one line that says what is missing and how to record it."""
+    from beavr_sim.datasets.augment.recover import RecoveryConfig, recover
+    from beavr_sim.datasets.features import ENV_STATE
+    from beavr_sim.datasets.shards import EPISODE_LOG
+
+    (seed,) = open_source(source_root).seeds
+    edited = tmp_path / "edited"
+    shutil.copytree(source_root, edited)
+    (edited / EPISODE_LOG).unlink()
+    info = json.loads((edited / "meta" / "info.json").read_text())
+    assert ENV_STATE not in info["features"]
+    found = recover(edited, info, RecoveryConfig(seeds=range(seed, seed + 50)))
+    assert (found.task, found.embodiment) == ("PickPlace", "xarm7_leap_right")
+    assert found.seeds == {0: seed}
+    with pytest.raises(ValueError) as refused:
+        recover(edited, info, RecoveryConfig(seeds=range(seed + 1, seed + 4)))
+    message = str(refused.value)
+    assert "\n" not in message
+    assert f"no reset at seeds {seed + 1}..{seed + 3} reproduces its observation.state" in message
+    assert "--environment-state" in message and str(EPISODE_LOG) in message
 
 
 def test_augment_cli_says_what_is_wrong_in_one_line(tmp_path, capsys):

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from beavr_sim.datasets.augment.coordination import coordinate, pieces_of
+from beavr_sim.datasets.augment.coordination import WORLD, coordinate, pieces_of
 from beavr_sim.datasets.augment.segments import Segment
 
 
@@ -68,3 +68,31 @@ def test_a_placement_on_what_the_other_arm_set_down_waits_for_it():
     assert (by["left", "large"].start, by["left", "large"].anchor) == (60, 150)
     assert by["left", "large"].waits_for == "right:large"
     assert by["left", "small"].anchor == 0
+
+
+def test_an_arm_that_waits_in_the_source_waits_where_it_waited():
+    # StackBlocks on two arms: left hovers until 367 while right places the large block; its
+    # approach is carried with the small block only for the last 90 frames before the touch.
+    segments = handling("right", "large", "target", (0, 158, 175, 267, 501)) + handling(
+        "left", "small", "large", (0, 367, 378, 461, 501)
+    )
+    pieces = coordinate(segments)
+    by = {(p.arm, p.reference): p for p in pieces}
+    assert (by["left", "small"].anchor, by["left", "small"].lead) == (367 - 90, 90)
+    assert by["right", "large"].anchor == 158 - 90
+    assert by["right", "target"].anchor == 175  # a transport: carried from its start
+
+
+def test_an_arm_done_placing_withdraws_as_in_the_source():
+    # right places the large block and lets go at 267: 15 frames later it bridges back to its
+    # own source palm (reference WORLD) over 60 frames; left after its own last let-go.
+    segments = handling("right", "large", "target", (0, 158, 175, 267, 501)) + handling(
+        "left", "small", "large", (0, 367, 378, 461, 501)
+    )
+    retreats = [p for p in coordinate(segments) if p.reference == WORLD]
+    assert sorted((p.arm, p.anchor, p.lead, p.stop) for p in retreats) == [
+        ("left", 461 + 15, 60, 501),
+        ("right", 267 + 15, 60, 501),
+    ]
+    one_arm = handling("right", "item", "target", (0, 10, 15, 30, 40))
+    assert all(p.reference != WORLD for p in coordinate(one_arm))

@@ -18,6 +18,21 @@ time (lockstep). Two constraints between arms, as in DexMimicGen:
   it) share one transform: the pieces of both with the same reference form a group, and the
   first of the group to reach its anchor decides the transform for all.
 
+- **Idle arm**: with two arms, an approach is carried in its object's frame for at most
+  :attr:`CoordinationRules.approach_frames` before the first touch. An arm that waits in the
+  source (one hand hovers while the other places the large block) waits where it waited in
+  the source, not moved with an object it touches seconds later: carried early, the waiting
+  hand drifts towards the middle with its object and meets the other arm there.
+
+- **Retreat**: with two arms, an arm's last release (its hand leaving what it placed, to the
+  episode's end) is carried in the destination's frame for
+  :attr:`CoordinationRules.retreat_hold` frames, then bridges back to the source's own palm
+  (a piece with reference :data:`WORLD`, transform identity) over
+  :attr:`CoordinationRules.retreat_frames`: the hand withdraws to where it withdrew in the
+  source, on its own side, instead of to that place turned about the destination (StackBlocks:
+  a withdrawal 28 cm from the target area's centre, the area turned 45 degrees, moves 21 cm,
+  into the other arm's way).
+
 With one arm there are no constraints: every piece is anchored at its start.
 """
 
@@ -31,11 +46,15 @@ import numpy as np
 from beavr_sim.datasets.augment.segments import Segment
 
 HELD = ("grasp", "transport")  # segments in which the arm touches its object
+WORLD = ""  # the reference of a retreat piece: the world (the source's palm, untransformed)
 
 
 @dataclass(frozen=True)
 class CoordinationRules:
     still_speed: float = 0.05  # m/s: a let-go object has come to rest
+    approach_frames: int = 90  # with two arms, the longest an approach is carried (frames)
+    retreat_hold: int = 15  # frames after a last let-go still carried with the destination
+    retreat_frames: int = 60  # frames over which the retreat's bridge runs (its lead)
 
 
 @dataclass(frozen=True)
@@ -106,7 +125,12 @@ def coordinate(
     out: list[Piece] = []
     for piece in pieces:
         # the end of its first segment: the first touch (an approach), the placement (a transport)
-        first_stop = next(s.stop for s in by_arm[piece.arm] if s.start >= piece.start)
+        first = next(s for s in by_arm[piece.arm] if s.start >= piece.start)
+        first_stop = first.stop
+        if len(by_arm) > 1 and first.kind == "approach" and piece.lead > rules.approach_frames:
+            anchor = first_stop - rules.approach_frames  # idle until then (see the docstring)
+            piece = Piece(piece.arm, piece.reference, piece.start, piece.stop, anchor,
+                          first_stop - anchor, piece.group, piece.waits_for)  # fmt: skip
         before = [
             h for h in handlings
             if h.arm != piece.arm and h.object == piece.reference
@@ -116,7 +140,7 @@ def coordinate(
             out.append(piece)
             continue
         other = max(before, key=lambda h: h.let_go)
-        anchor = other.let_go
+        anchor = max(other.let_go, piece.anchor)
         if speed is not None and piece.reference in speed:
             moving = speed[piece.reference]
             while anchor < first_stop - 1 and moving[anchor] >= rules.still_speed:
@@ -124,7 +148,22 @@ def coordinate(
         anchor = min(anchor, first_stop - 1)
         out.append(Piece(piece.arm, piece.reference, piece.start, piece.stop, anchor,
                          first_stop - anchor, None, f"{other.arm}:{other.object}"))  # fmt: skip
+    if len(by_arm) > 1:
+        out += _retreats(by_arm, rules)
     return _group(out, handlings)
+
+
+def _retreats(by_arm: Mapping[str, list[Segment]], rules: CoordinationRules) -> list[Piece]:
+    """Per arm whose last segment is a release to the end, a retreat piece (see the module
+    docstring)."""
+    out = []
+    end = max(s.stop for segs in by_arm.values() for s in segs)
+    for arm, segments in by_arm.items():
+        last = segments[-1]
+        anchor = last.start + rules.retreat_hold
+        if last.kind == "release" and last.stop == end and anchor < end:
+            out.append(Piece(arm, WORLD, anchor, end, anchor, rules.retreat_frames))
+    return out
 
 
 def _group(pieces: list[Piece], handlings: list[_Handling]) -> list[Piece]:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from beavr_sim.datasets.augment.coordination import coordinate
+from beavr_sim.datasets.augment.coordination import WORLD, coordinate
 from beavr_sim.datasets.augment.frames import blend, carry, smoothstep
 from beavr_sim.datasets.augment.replay import Things, Trajectory, make_env
 from beavr_sim.datasets.augment.segments import Segment
@@ -174,7 +174,9 @@ def execute(
         for piece in anchors.get(i, ()):
             arm, ref = arms[piece.arm], piece.reference
             T = shared.get(piece.group) if piece.group is not None else None
-            if T is None:
+            if ref == WORLD:  # a retreat: back to the source's own palm (coordination)
+                T = np.eye(4)
+            elif T is None:
                 at = max(i - 1, 0)
                 src_pos = traj.pos[ref][at] if i else traj.start_pos[ref]
                 src_yaw = traj.yaw[ref][at] if i else traj.start_yaw[ref]

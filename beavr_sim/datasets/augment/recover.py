@@ -10,12 +10,16 @@ Recovered per episode:
   against the registered tasks;
 - **embodiment**: ``info.json``'s ``robot_type`` (every beavr_sim writer sets it to the
   embodiment);
-- **seed**: its first frame's ``observation.environment_state`` (object and fixture poses)
-  matched against the task's resets at seeds ``0 .. RecoveryConfig.max_seed - 1``: the seed
-  whose reset puts every thing within :attr:`RecoveryConfig.tolerance` of the recorded
-  positions, nearest first. A source recorded without environment state
-  (``--environment-state`` off, the default) has no seed in its frames: refused, with the
-  reason. So is an episode no candidate seed matches.
+- **seed**, with ``observation.environment_state`` (recorded with ``--environment-state``):
+  its first frame (object and fixture poses) matched against the task's resets at the
+  candidate seeds (:attr:`RecoveryConfig.seeds`): the seed whose reset puts every thing within
+  :attr:`RecoveryConfig.tolerance` of the recorded positions, nearest first;
+- **seed**, without it (the default recording): the first candidate seed whose reset, with
+  the episode's recorded actions replayed on it, gives back its ``observation.state`` frame by
+  frame (:mod:`.replay_match`).
+
+Refused in one line, naming what is missing and how to record it: no ``robot_type``, no
+``observation.state`` either, an episode no candidate seed matches.
 """
 
 from __future__ import annotations
@@ -25,15 +29,17 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
-from beavr_sim.datasets.features import ENV_STATE
+from beavr_sim.datasets.augment.replay_match import MatchConfig, Recorded, match_seeds
+from beavr_sim.datasets.features import ACTION, ENV_STATE, STATE
 from beavr_sim.datasets.shards import EPISODE_LOG
 from beavr_sim.tasks.registry import TASKS, task_class
 
 
 @dataclass(frozen=True)
 class RecoveryConfig:
-    max_seed: int = 10_000  # candidate seeds 0 .. max_seed - 1
+    seeds: range = range(10_000)  # candidate seeds, tried in order
     tolerance: float = 0.01  # m: largest position difference of a matching reset
+    joint_tolerance: float = 1e-3  # rad: largest joint difference of a reproduced frame
 
 
 @dataclass(frozen=True)
@@ -75,7 +81,7 @@ def recover_seeds(
         cols = _positions(list(state_names))
         wanted = {e: np.asarray(s, np.float64)[cols] for e, s in first_states.items()}
         best: dict[int, tuple[float, int]] = {}
-        for seed in range(config.max_seed):
+        for seed in config.seeds:
             env.reset(seed=seed)
             here = np.asarray(env.environment_state, np.float64)[cols]
             for e, s in wanted.items():
@@ -89,42 +95,81 @@ def recover_seeds(
     missing = sorted(set(wanted) - set(best))
     if missing:
         raise ValueError(
-            f"no reset of {task} at seeds 0..{config.max_seed - 1} matches the first frame of "
-            f"episodes {missing}"
+            f"no reset of {task} at seeds {config.seeds.start}..{config.seeds.stop - 1} matches "
+            f"the first frame of episodes {missing}"
         )
     return {e: seed for e, (_, seed) in best.items()}
 
 
-def recover(root, info: dict) -> Recovered:
-    """The task, embodiment and seeds of the source at ``root`` (its ``info.json`` parsed as
-    ``info``) from its frames; raises ValueError saying what is missing."""
+def _frames(root, columns: list[str]):
     import pandas as pd  # local: heavy
 
-    lost = f"{root} has no {EPISODE_LOG} (LeRobot's editing tools drop it)"
-    embodiment = info.get("robot_type")
-    if not embodiment:
-        raise ValueError(f"{lost} and its info.json names no robot_type (the embodiment)")
-    if ENV_STATE not in info.get("features", {}):
-        raise ValueError(
-            f"{lost} and no {ENV_STATE} to recover the seeds from: record the source "
-            "with --environment-state"
-        )
+    return pd.concat(
+        pd.read_parquet(f, columns=[*columns, "episode_index", "frame_index"])
+        for f in sorted((root / "data").glob("chunk-*/file-*.parquet"))
+    ).sort_values(["episode_index", "frame_index"])
+
+
+def _task(root) -> str:
+    import pandas as pd  # local: heavy
+
     episodes = pd.concat(
         pd.read_parquet(f, columns=["episode_index", "tasks"])
         for f in sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet"))
     )
-    texts = {str(t) for ts in episodes["tasks"] for t in ts}
-    tasks = {task_of(t) for t in texts}
+    tasks = {task_of(str(t)) for ts in episodes["tasks"] for t in ts}
     if len(tasks) != 1:
         raise ValueError(f"{root} mixes tasks {sorted(tasks)}: one please")
     (task,) = tasks
-    frames = pd.concat(
-        pd.read_parquet(f, columns=[ENV_STATE, "episode_index", "frame_index"])
-        for f in sorted((root / "data").glob("chunk-*/file-*.parquet"))
-    )
+    return task
+
+
+def replayed_seeds(
+    root, task: str, embodiment: str, config: RecoveryConfig | None = None
+) -> dict[int, int]:
+    """Episode index -> seed, by replaying each episode's actions at the candidate seeds
+    (:mod:`.replay_match`); raises ValueError naming the episodes none reproduced and why."""
+    config = config or RecoveryConfig()
+    frames = _frames(root, [ACTION, STATE])
+    episodes = {
+        int(e): Recorded(
+            np.stack(g[ACTION].to_numpy()).astype(np.float64),
+            np.stack(g[STATE].to_numpy()).astype(np.float64),
+        )
+        for e, g in frames.groupby("episode_index")
+    }
+    env = gym.make(f"beavr_sim/{task}-v0", embodiment=embodiment).unwrapped
+    try:
+        found, why = match_seeds(env, episodes, MatchConfig(config.seeds, config.joint_tolerance))
+    finally:
+        env.close()
+    if why:
+        lines = "; ".join(f"episode {e}: {w}" for e, w in sorted(why.items()))
+        raise ValueError(f"{lines} (no {ENV_STATE} recorded to match instead)")
+    return found
+
+
+def recover(root, info: dict, config: RecoveryConfig | None = None) -> Recovered:
+    """The task, embodiment and seeds of the source at ``root`` (its ``info.json`` parsed as
+    ``info``) from its frames; raises ValueError in one line saying what is missing."""
+    lost = f"{root} has no {EPISODE_LOG} (LeRobot's editing tools drop it)"
+    record = f"record the source with --environment-state, or keep its {EPISODE_LOG}"
+    embodiment = info.get("robot_type")
+    if not embodiment:
+        raise ValueError(f"{lost} and its info.json names no robot_type (the embodiment)")
+    features = info.get("features", {})
+    if ENV_STATE not in features and STATE not in features:
+        raise ValueError(f"{lost}, no {ENV_STATE} and no {STATE} to find the seeds from: {record}")
+    task = _task(root)
+    if ENV_STATE not in features:
+        try:
+            return Recovered(task, embodiment, replayed_seeds(root, task, embodiment, config))
+        except ValueError as exc:
+            raise ValueError(f"{lost}: {exc}: {record}") from None
+    frames = _frames(root, [ENV_STATE])
     first = frames[frames["frame_index"] == 0]
     states = {
         int(e): np.asarray(s) for e, s in zip(first["episode_index"], first[ENV_STATE], strict=True)
     }
-    names = info["features"][ENV_STATE]["names"]
-    return Recovered(task, embodiment, recover_seeds(task, embodiment, names, states))
+    names = features[ENV_STATE]["names"]
+    return Recovered(task, embodiment, recover_seeds(task, embodiment, names, states, config))
