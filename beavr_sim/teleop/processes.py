@@ -101,7 +101,12 @@ from beavr_sim.operator.operator import Operator
 from beavr_sim.robots import make_embodiment
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.announce import announce_view, announce_webxr
-from beavr_sim.teleop.episodes import KeyboardControl
+from beavr_sim.teleop.episodes import (
+    EpisodeControl,
+    KeyboardControl,
+    request_of,
+    session_command,
+)
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.mirroring import (
     MIRROR_SWITCH_INTERVAL_S,
@@ -222,6 +227,8 @@ class OperatorProcessConfig:
     webxr: WebXRConfig | None = None
     #: Send the hands' newest frames to the twin (its recorder's ``hand.keypoints``).
     keypoints: bool = False
+    #: Forward the record gesture to the twin (it records: the gesture starts / stops).
+    records: bool = False
 
 
 @dataclass(frozen=True)
@@ -407,6 +414,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     session_paused = False
     view_paused = False
     estop_events = 0
+    record_events = 0
     answered: tuple[int, int] | None = None  # lockstep: (epoch, tick) last commanded
     run_seen: int | None = None  # the twin's run of the last state (a new one: the trace over)
 
@@ -434,11 +442,16 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         run_seen = msg.run if run_seen is None else max(run_seen, msg.run)
 
     def forward_events(now: float) -> None:
-        """The both-hands pinch latches the twin's mirror (the e-stop gesture)."""
-        nonlocal estop_events
-        if stage.take_events(record=False).estop:
+        """The both-hands pinch latches the twin's mirror (the e-stop gesture); a recording
+        twin gets the record gestures (a long left pinch: start / stop an episode)."""
+        nonlocal estop_events, record_events
+        events = stage.take_events(record=config.records)
+        if events.estop:
             estop_events += 1
             commands.send(OPERATOR_EVENT_TOPIC, OperatorEventMsg(event="estop", t=now))
+        for _ in range(events.record):
+            record_events += 1
+            commands.send(OPERATOR_EVENT_TOPIC, OperatorEventMsg(event="record", t=now))
 
     def command_side(side: str, ok: bool) -> None:
         """Command ``side``'s effectors now, from what the operator has observed."""
@@ -563,6 +576,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     "frames_commanded": frames_commanded,
                     "clock_commands": clock_commands,
                     "estop_events": estop_events,
+                    "record_events": record_events,
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
@@ -781,6 +795,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             frames=lambda: process.frames,
             stop_on_success=config.stop_on_success,
             progress=config.progress,
+            seed=config.seed,
         )
     except (ValueError, OSError, CameraError) as exc:
         for close in reversed(closers):
@@ -837,6 +852,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             show_collision=config.view.show_collision,
             mirroring=mirror is not None,
             access=None if config.view.token is None else ViewAccess(config.view.token),
+            episode_control=runs.control if config.recording is not None else None,
         )
         announce_view(view.url, config.view.token or SessionToken("-", False))
     browser_estop = None
@@ -1061,8 +1077,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     def next_run() -> None:
         """The session's next run: the seeded start again (a new epoch); mirrored, once the
         rig is there."""
-        nonlocal positions, epoch, fixtures, done, new_run_due
+        nonlocal positions, epoch, fixtures, done, new_run_due, episode_seed
         done, new_run_due = False, True
+        episode_seed = runs.next_seed()
         positions = twin.reset(episode_seed)
         epoch += 1
         fixtures = fixtures_to_wire(env)
@@ -1080,11 +1097,13 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
 
     held_for_sync: dict[str, int] = {}
     sync_fault = ""
+    #: A live recording waits for a start request (the twin follows, nothing recorded).
+    idle = runs.waits_for_start
     if sync is not None:  # its timeout runs from here, not from the processes' handshake
         sync.begin(twin.action.copy(), Fixtures.of(env.data))
     if not config.lockstep:
         env.between_substeps = between_substeps
-        if sync is None:
+        if sync is None and not idle:
             begin_run()
     elif sync is None or not sync.syncing:
         start_episode()
@@ -1116,10 +1135,15 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
                 mirror.release()
+            asked = request_of(msg.command) if msg is not None else None
+            if asked is not None:
+                runs.request(asked, "keyboard")
             event = events.recv(0.0)
             while event is not None:
                 if event.event == "estop" and mirror is not None:
                     mirror.estop("headset gesture: both hands pinch")
+                if event.event == "record":
+                    runs.request("toggle", "headset gesture")
                 event = events.recv(0.0)
             if sync_fault:  # the session ends: the supervisor stops on the done state
                 if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
@@ -1144,7 +1168,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     mirror_reset(positions)
                     if config.lockstep:
                         start_episode()
-                    elif new_run_due:
+                    elif new_run_due and not idle:
                         begin_run()
                 else:
                     publish(state_message(st))
@@ -1172,14 +1196,24 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 st = stage.step()
                 ended = runs.stepped(st, source_finished_rt) if runs.playing else False
                 done = ended and config.ends_runs
+                if idle:  # a live recording between episodes
+                    what = runs.idle_step()
+                    if what == "start":
+                        idle = False
+                        next_run()
+                        continue
+                    done = what == "end"
             positions = st.positions
             if browser_estop is not None:
                 browser_estop(None)
             success = success or st.success
             details = {k: v for k, v in st.info.items() if k.startswith("task/")}
             if done and runs.end(sync_s()):  # the run ended; the next one follows
-                next_run()
-                continue
+                if runs.waits_for_start:  # ... on a start request: idle until then
+                    idle, done, new_run_due = True, False, True
+                else:
+                    next_run()
+                    continue
             if config.paced and not done:
                 schedule.wait()
             if config.lockstep:
@@ -1282,6 +1316,9 @@ class MultiprocessSession:
         self.exits: dict[str, int | None] = {}
         #: Resets requested (each names the reset epoch the operator waits for).
         self.resets = 0
+        #: Episode requests (keyboard, :meth:`request`) sent to the recording twin.
+        self.episode_control = EpisodeControl()
+        self.auto_start = bool(options.auto_start)
 
     @property
     def control_hz(self) -> float:
@@ -1331,6 +1368,11 @@ class MultiprocessSession:
             b"session", self._session_type(command=command, t=time.monotonic(), epoch=epoch)
         )
 
+    def request(self, what: str, origin: str = "") -> None:
+        """An episode request (``episodes.REQUESTS``) for the recording twin, from any
+        thread; sent from :meth:`run`'s."""
+        self.episode_control.request(what, origin)
+
     def dead(self) -> list[str]:
         return [n for n, p in self.processes.items() if not p.is_alive()]
 
@@ -1361,13 +1403,17 @@ class MultiprocessSession:
         of a run does."""
         self.start()
         requests: list[str] = []  # from the keyboard thread; sent from this one
-        if self.mirror_hardware and sys.stdin is not None and sys.stdin.isatty():
-            keyboard = KeyboardControl(
-                None,
-                actions={
+        live_recording = self.twin_config.recording is not None and not self.auto_start
+        interactive = sys.stdin is not None and sys.stdin.isatty()
+        if interactive and (self.mirror_hardware or live_recording):
+            actions = {}
+            if self.mirror_hardware:
+                actions = {
                     "e": ("emergency stop (every device holds)", lambda: requests.append("estop")),
                     "r": ("release the emergency stop", lambda: requests.append("release")),
-                },
+                }
+            keyboard = KeyboardControl(
+                self.episode_control if live_recording else None, actions=actions
             )
             print(keyboard.help, file=sys.stderr)
         reported: set[str] = set()
@@ -1378,6 +1424,8 @@ class MultiprocessSession:
                 state = self.state_sub.recv_latest(0.1)
                 while requests:
                     self.send(requests.pop(0))
+                for what in self.episode_control.take():
+                    self.send(session_command(what))
                 if state is not None:
                     success = success or state.success
                     if state.done:  # the twin ended the episode as one process's loop would,
@@ -1488,6 +1536,7 @@ def process_configs(
             source=options.source,
             real_cameras=tuple(options.real_cameras),
             rig_file=options.camera_rig_file(),
+            auto_start=bool(options.auto_start),
         )
     operator = OperatorProcessConfig(
         stage=stage,
@@ -1529,7 +1578,12 @@ def process_configs(
         ),
         attach=tuple(attach),
     )
-    return dataclasses.replace(operator, keypoints=twin.wants_keypoints), twin
+    return (
+        dataclasses.replace(
+            operator, keypoints=twin.wants_keypoints, records=twin.recording is not None
+        ),
+        twin,
+    )
 
 
 def run_multiprocess(options, interrupted=lambda: False) -> TeleopSummary:

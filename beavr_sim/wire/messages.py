@@ -23,8 +23,12 @@ SESSION_COMMANDS = (
     "resume",
     "reset",
     "stop",
+    # episode requests (``beavr_sim.teleop.episodes.session_command``) to the recording twin
+    "record_toggle",
     "record_start",
     "record_stop",
+    "record_discard",
+    "record_quit",
     "estop",  # hardware mirroring: every device holds, latched
     "release",  # ... until released
 )
@@ -266,12 +270,15 @@ class SessionMsg(msgspec.Struct, tag="session", kw_only=True, frozen=True):
 
 
 #: Session events the operator recognises in the hands (operator -> twin).
-OPERATOR_EVENTS = ("estop",)  # both hands pinch at once: the mirror latches its e-stop
+#: ``estop``: both hands pinch at once (the mirror latches its e-stop); ``record``: a long
+#: left pinch (a recording twin starts / stops an episode).
+OPERATOR_EVENTS = ("estop", "record")
 
 
 class OperatorEventMsg(msgspec.Struct, tag="operator_event", kw_only=True, frozen=True):
     """A session event the operator recognised (``event``, one of :data:`OPERATOR_EVENTS`) at
-    ``t`` (the operator's clock); the twin acts on it (the e-stop latches its mirror)."""
+    ``t`` (the operator's clock); the twin acts on it (the e-stop latches its mirror, the record
+    gesture toggles a recorded episode)."""
 
     event: str
     t: float = 0.0
