@@ -14,16 +14,22 @@ import json
 import os
 import signal
 import subprocess
-import time
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from websockets.sync.client import connect
 
 import beavr_sim
 from beavr_sim.datasets.features import ACTION, KEYPOINTS, STATE, TRACKED, RecordingConfig
+from beavr_sim.headset.layouts import LAYOUTS
+from beavr_sim.headset.webxr_protocol import encode_hands
+from beavr_sim.teleop.episodes import session_command
+from beavr_sim.teleop.processes import MultiprocessSession
 from beavr_sim.teleop.session import SessionOptions, run_session
+from beavr_sim.wire.hand import N_JOINTS
 from beavr_sim.wire.ports import PortConfig, TransportConfig
 
 #: The checkout whose package these tests import (subprocesses run the same code).
@@ -311,14 +317,6 @@ def test_a_live_webxr_session_records_the_episode_its_gesture_starts_and_a_reque
     idles, following the hands, until the operator's long left pinch (forwarded as an operator
     event) starts an episode; the supervisor's stop request (the keyboard's session command)
     saves it: one episode, with the hand frames sent while it recorded."""
-    from websockets.sync.client import connect
-
-    from beavr_sim.headset.layouts import LAYOUTS
-    from beavr_sim.headset.webxr_protocol import encode_hands
-    from beavr_sim.teleop.episodes import session_command
-    from beavr_sim.teleop.processes import MultiprocessSession
-    from beavr_sim.wire.hand import N_JOINTS
-
     root = tmp_path / "live"
     opts = SessionOptions(
         task="PickupBox",

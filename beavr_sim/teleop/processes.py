@@ -126,8 +126,9 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.runs import RunPlan
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
+from beavr_sim.teleop.twin_camera_stream import TwinCameraStream, attach_camera_stream
 from beavr_sim.teleop.twin_rerun import TwinRerun, attach_rerun
-from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns
+from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns, connect_real_cameras
 from beavr_sim.traces.format import TraceReader
 from beavr_sim.twin.twin import CommandOutcome, TwinInterface
 from beavr_sim.viz.twin_view import TwinView, subtree_bodies
@@ -267,6 +268,8 @@ class TwinProcessConfig:
     emulate_faults: str | None = None
     view: ViewConfig | None = None
     headset_images: HeadsetImagesConfig | None = None
+    #: ``--camera-stream-hz``: the camera panels streamed from this process (None: off).
+    camera_stream: TwinCameraStream | None = None
     attach: tuple[Attachment, ...] = ()
 
     @property
@@ -797,13 +800,21 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             progress=config.progress,
             seed=config.seed,
         )
+        closers.append(runs.close)
+        real = runs.real_cameras  # recording: the recorder's, streamed too
+        streaming = config.camera_stream
+        if streaming is not None and config.recording is None:
+            real = connect_real_cameras(
+                streaming.real_cameras, streaming.rig_file, int(round(env.control_hz))
+            )
+            if real is not None:
+                closers.append(real.close)
     except (ValueError, OSError, CameraError) as exc:
         for close in reversed(closers):
             close()
         conn.send_bytes(f"error: {exc}".encode())
         env.close()
         return
-    closers.append(runs.close)
     fixtures = fixtures_to_wire(env)
     subs = {
         e.name: Subscriber(
@@ -858,10 +869,14 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     browser_estop = None
     if view is not None and mirror is not None:
         browser_estop = BrowserEstop(view, mirror)
+    publisher = None
+    # the Quest app's camera panel shows the first real camera in place of the twin's images
+    quest_panel = streaming is not None and streaming.quest and real is not None
     if config.headset_images is not None:
         images = config.headset_images
         publisher = HeadsetImagePublisher(context, transport, rate_hz=images.rate_hz)
         closers.append(publisher.close)
+    if config.headset_images is not None and not quest_panel:
         renderer = HeadsetRenderer(
             publisher, env.render_model, headset_camera(env.embodiment), images.size
         )
@@ -878,6 +893,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         headset = ThreadedListener(renderer, snapshot=headset_pose, name="headset_images")
         closers.append(headset.close)
         stage.after_step.append(headset)
+    if streaming is not None:  # closed before the cameras, the view and the publisher
+        closers.append(attach_camera_stream(streaming, env, stage, real, view, publisher))
     process = TwinProcess(config, env, stage, mirror)
     if config.rerun is not None:
         closers.append(attach_rerun(process, config.rerun, real_time=not config.lockstep))
@@ -1574,6 +1591,18 @@ def process_configs(
         headset_images=(
             HeadsetImagesConfig(options.headset_image_hz, tuple(options.headset_image_size))
             if options.source == "quest" and not options.headless
+            else None
+        ),
+        camera_stream=(
+            TwinCameraStream(
+                options.camera_stream_hz,
+                options.camera_view,
+                placed=tuple(c.name for c in options.placed_cameras),
+                quest=options.source == "quest" and not options.headless,
+                real_cameras=tuple(options.real_cameras),
+                rig_file=options.camera_rig_file(),
+            )
+            if options.camera_stream_hz > 0
             else None
         ),
         attach=tuple(attach),

@@ -79,7 +79,7 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.processes import run_multiprocess
 from beavr_sim.teleop.runs import RunPlan, SessionRuns, episode_seeds
-from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed
+from beavr_sim.teleop.twin_camera_feed import twin_feed
 from beavr_sim.teleop.twin_runs import connect_real_cameras
 from beavr_sim.teleop.view import attach_view
 from beavr_sim.traces.bundled import find_bundled_trace
@@ -182,10 +182,10 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
-        if self.camera_stream_hz > 0 and self.multiprocess:
+        if self.camera_stream_hz > 0 and self.multiprocess and self.source == "webxr":
             raise ValueError(
-                "--camera-stream-hz runs in one process for now (the twin's renders follow the "
-                "one-process loop); leave out --multiprocess"
+                "--camera-stream-hz --multiprocess streams from the twin's process, and the "
+                "WebXR page's server is the operator's: leave out --multiprocess"
             )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
@@ -761,11 +761,9 @@ def twin_camera_panels(options: SessionOptions, loop: TeleopLoop) -> dict[str, o
     """The twin's renders for the streamed camera panels: a tick listener of ``loop`` copying
     the pose at the stream's rate, and the twin-only panels (the cameras ``--camera-poses``
     places, else the headset's camera) shown when the session has no real camera."""
-    env = loop.twin.env
-    fallback = headset_camera(env.embodiment)
-    feed = TwinCameraFeed(env.render_model, env.data, fallback, options.camera_stream_hz)
+    placed = tuple(c.name for c in options.placed_cameras)
+    feed, panels = twin_feed(loop.twin.env, options.camera_stream_hz, placed)
     loop.listeners.append(feed)
-    panels = tuple(c.name for c in options.placed_cameras) or (fallback,)
     return {"twin": feed, "twin_panels": panels}
 
 
