@@ -86,6 +86,7 @@ import zmq
 import beavr_sim  # noqa: F401  (registers the envs the twin process makes)
 from beavr_sim.cameras.errors import CameraError
 from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+from beavr_sim.envs.camera_pose import PlacedCamera
 from beavr_sim.hardware.device import MirrorError
 from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.headset.quest_io import HeadsetImagePublisher
@@ -248,6 +249,8 @@ class TwinProcessConfig:
     seed: int | None = None
     live: bool = True
     leap_variant: str | None = None
+    #: ``--camera-poses``: twin cameras at real cameras' poses (recorded, streamed, rendered).
+    placed_cameras: tuple[PlacedCamera, ...] = ()
     lockstep: bool = False
     paced: bool = False
     stop_on_success: bool = True
@@ -752,15 +755,24 @@ def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Calla
     return reset
 
 
-def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
-    _leave_ctrl_c_to_the_session()
-    context = zmq.Context()
+def make_twin_env(config: TwinProcessConfig):
+    """The twin process's env (unwrapped): the task and embodiment at the control rate, no
+    time limit when live, the LEAP variant and the placed cameras as one process's
+    ``build_loop`` makes them."""
     kwargs: dict = {"control_hz": config.control_hz}
     if config.live:
         kwargs["max_episode_seconds"] = 1e9
     if config.leap_variant:
         kwargs["hand_variant"] = config.leap_variant
-    env = gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
+    if config.placed_cameras:
+        kwargs["placed_cameras"] = config.placed_cameras
+    return gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
+
+
+def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
+    _leave_ctrl_c_to_the_session()
+    context = zmq.Context()
+    env = make_twin_env(config)
     twin = TwinInterface(env)
     stage = TwinStage(twin, latencies=LatencyLog())
     #: The seed of the episode (a reset from the supervisor or the browser replays it).
@@ -1569,6 +1581,7 @@ def process_configs(
         seed=seed,
         live=options.source != "trace",
         leap_variant=options.leap_variant,
+        placed_cameras=tuple(options.placed_cameras),
         lockstep=lockstep,
         paced=options.clock == "paced",
         stop_on_success=options.source == "trace",

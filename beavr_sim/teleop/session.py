@@ -201,10 +201,6 @@ class SessionOptions:
                 )
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
         if self.camera_poses is not None:
-            if self.multiprocess:
-                raise ValueError(
-                    "--camera-poses runs in one process for now; leave out --multiprocess"
-                )
             self._placed_cameras = rig_placed_cameras(self.camera_poses)
             if not self._placed_cameras:
                 raise ValueError(
