@@ -51,9 +51,13 @@ The twin process plays the session's runs (a ``--repeat`` trace, recorded ``--ep
 :class:`~beavr_sim.teleop.twin_runs.TwinRuns`, with the single-process session's per-run
 decisions) and records them (the recorder on its stage's ``after_step`` hook, fed the hands'
 keypoints the operator sends on the command stream, :class:`~beavr_sim.wire.messages.HandKeypointsMsg`);
-its states carry the run, and the operator plays a trace from its start on a new run; real
-cameras (``--camera``) are read there next to the recorder, and ``--rerun`` logs from a hook
-of its stage (:mod:`beavr_sim.teleop.twin_rerun`). A single real-time run without recording
+its states carry the run, and the operator plays a trace from its start on a new run. Live
+recorded episodes start and stop on requests taken there: the supervisor's keyboard (session
+commands ``record_*``), the browser view's buttons, the operator's record gesture (an
+:class:`~beavr_sim.wire.messages.OperatorEventMsg`). Real cameras (``--camera``) are read there
+next to the recorder and streamed from there (``--camera-stream-hz``:
+:mod:`beavr_sim.teleop.twin_camera_stream`), its env places ``--camera-poses``' cameras, and
+``--rerun`` logs from a hook of its stage (:mod:`beavr_sim.teleop.twin_rerun`). A single real-time run without recording
 is ended by the supervisor (success, ``--max-seconds``).
 
 Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
