@@ -343,17 +343,6 @@ def test_camera_flag_errors():
         SessionOptions(
             task="PickupBox", source="trace", viser=False, headless=True, camera_view="side"
         )
-    with pytest.raises(ValueError, match="WebXR page's server is the operator's"):
-        SessionOptions(
-            task="PickupBox",
-            source="webxr",
-            viser=False,
-            headless=True,
-            multiprocess=True,
-            record=Path("x"),
-            real_cameras=("front=opencv:0",),
-            camera_stream_hz=5.0,
-        )
     with pytest.raises(CameraSpecError, match="opencv:INDEX_OR_PATH"):
         SessionOptions(
             task="PickupBox",

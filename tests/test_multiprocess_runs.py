@@ -316,7 +316,8 @@ def test_a_live_webxr_session_records_the_episode_its_gesture_starts_and_a_reque
     """--source webxr --record --multiprocess (main refused live recording there): the twin
     idles, following the hands, until the operator's long left pinch (forwarded as an operator
     event) starts an episode; the supervisor's stop request (the keyboard's session command)
-    saves it: one episode, with the hand frames sent while it recorded."""
+    saves it: one episode, with the hand frames sent while it recorded. The twin's camera panel
+    (--camera-stream-hz, streamed from the twin process) reaches the page."""
     root = tmp_path / "live"
     opts = SessionOptions(
         task="PickupBox",
@@ -329,6 +330,7 @@ def test_a_live_webxr_session_records_the_episode_its_gesture_starts_and_a_reque
         record=root,
         repo_id="test/mp",
         recording=RECORDING,
+        camera_stream_hz=10.0,  # the twin's camera panel, streamed from the twin to the page
         transport=TransportConfig(ports=PortConfig.free()),
     )
     rng = np.random.default_rng(0)
@@ -366,6 +368,10 @@ def test_a_live_webxr_session_records_the_episode_its_gesture_starts_and_a_reque
                 send(pinch_left=False)
             session.send(session_command("stop"))
             state_where(lambda s: s.done, "ended the session after the saved episode")
+            deadline = time.monotonic() + 60.0
+            while (message := json.loads(ws.recv(timeout=60.0)))["type"] != "camera":
+                assert time.monotonic() < deadline, "no camera panel reached the page"
+            assert message["state"] == "live" and message["jpeg"]
     finally:
         session.stop()
     op, twin = session.results["operator"], session.results["twin"]

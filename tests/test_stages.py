@@ -287,8 +287,6 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("real control rate")
     if clock in ("virtual", "paced") and source != "trace":
         reasons.append("recorded source")
-    if multiprocess and feature == "camera_stream" and source == "webxr":
-        reasons.append("WebXR page's server")
     if feature == "repeat" and source != "trace":
         reasons.append("--source trace")
     if multiprocess and source == "webxr" and feature == "headset_images":
@@ -339,6 +337,7 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             and (twin.recording is None or twin.recording.auto_start == options.auto_start),
             "record_gesture": op.records == (twin.recording is not None),
             "camera_stream": (twin.camera_stream is not None) == (feature == "camera_stream"),
+            "camera_page": op.camera_panels == (feature == "camera_stream" and source == "webxr"),
             "camera_poses": twin.placed_cameras == options.placed_cameras
             and bool(twin.placed_cameras) == (feature == "camera_poses"),
             "camera": (twin.recording.real_cameras if twin.recording else ())

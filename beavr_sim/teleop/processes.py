@@ -131,7 +131,12 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.runs import RunPlan
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
-from beavr_sim.teleop.twin_camera_stream import TwinCameraStream, attach_camera_stream
+from beavr_sim.teleop.twin_camera_stream import (
+    PANEL_TOPIC,
+    PagePanels,
+    TwinCameraStream,
+    attach_camera_stream,
+)
 from beavr_sim.teleop.twin_rerun import TwinRerun, attach_rerun
 from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns, connect_real_cameras
 from beavr_sim.traces.format import TraceReader
@@ -140,6 +145,7 @@ from beavr_sim.viz.twin_view import TwinView, subtree_bodies
 from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.messages import (
+    CameraPanelMsg,
     FixtureMsg,
     HandFrameMsg,
     HandKeypointsMsg,
@@ -235,6 +241,8 @@ class OperatorProcessConfig:
     keypoints: bool = False
     #: Forward the record gesture to the twin (it records: the gesture starts / stops).
     records: bool = False
+    #: ``--camera-stream-hz`` with the WebXR page: the twin's panels to the page server.
+    camera_panels: bool = False
 
 
 @dataclass(frozen=True)
@@ -403,6 +411,16 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     session = Subscriber(
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
+    panels = None
+    if config.camera_panels:  # the twin's camera panels, for the page server hosted here
+        panels = Subscriber(
+            context,
+            transport.endpoint("robot_state", bind=False),
+            PANEL_TOPIC,
+            CameraPanelMsg,
+            conflate=False,
+            rcvhwm=8,
+        )
     commands = Publisher(context, transport.endpoint("commands", bind=True))
     # the twin's command subscribers, its operator-event subscriber (and its keypoints one)
     commands.wait_for_subscribers(
@@ -418,7 +436,12 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     frames_commanded = dict.fromkeys(sides, 0)
     clock_commands = dict.fromkeys(sides, 0)
     poller = zmq.Poller()
-    for socket in (*source.sockets, state.socket, session.socket):
+    for socket in (
+        *source.sockets,
+        state.socket,
+        session.socket,
+        *([panels.socket] if panels is not None else []),
+    ):
         poller.register(socket, zmq.POLLIN)
     overruns = 0
     session_paused = False
@@ -540,6 +563,10 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     started = started or msg.command == "resume"
                 if msg.command == "reset":
                     rehome.expect(msg.epoch)
+            panel = panels.recv(0.0) if panels is not None else None
+            while panel is not None:  # to the page (never blocks: its server's thread sends)
+                source.server.publish(panel.kind, json.loads(panel.message))
+                panel = panels.recv(0.0)
             latest = state.recv_latest(0.0)
             if latest is not None:
                 take_state(latest)
@@ -603,7 +630,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             ).encode()
         )
         source.close()
-        for s in (state, session, commands):
+        for s in (state, session, commands, *([panels] if panels is not None else [])):
             s.close()
         context.term()
 
@@ -862,7 +889,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     state_pub = Publisher(context, transport.endpoint("robot_state", bind=True))
-    state_pub.wait_for_subscribers(2, HANDSHAKE_TIMEOUT_S)  # operator + supervisor
+    # operator + supervisor (+ the operator's page panels)
+    page = config.camera_stream is not None and config.camera_stream.page
+    state_pub.wait_for_subscribers(2 + int(page), HANDSHAKE_TIMEOUT_S)
     view = None
     if config.view is not None:
         joints = env.joints
@@ -886,6 +915,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     if view is not None and mirror is not None:
         browser_estop = BrowserEstop(view, mirror)
     publisher = None
+    page_panels: PagePanels | None = None
     # the Quest app's camera panel shows the first real camera in place of the twin's images
     quest_panel = streaming is not None and streaming.quest and real is not None
     if config.headset_images is not None:
@@ -910,7 +940,10 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         closers.append(headset.close)
         stage.after_step.append(headset)
     if streaming is not None:  # closed before the cameras, the view and the publisher
-        closers.append(attach_camera_stream(streaming, env, stage, real, view, publisher))
+        page_panels = PagePanels() if streaming.page else None
+        closers.append(
+            attach_camera_stream(streaming, env, stage, real, view, publisher, page_panels)
+        )
     process = TwinProcess(config, env, stage, mirror)
     if config.rerun is not None:
         closers.append(attach_rerun(process, config.rerun, real_time=not config.lockstep))
@@ -990,6 +1023,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         nonlocal last_state, asked_at
         last_state, asked_at = msg, time.monotonic()
         state_pub.send(b"state", msg)
+        for panel in page_panels.take() if page_panels is not None else ():
+            state_pub.send(PANEL_TOPIC, panel)
 
     def take_keypoints() -> None:
         """The operator's keypoints: real time, this epoch's (for the next recorded step);
@@ -1616,6 +1651,7 @@ def process_configs(
                 options.camera_view,
                 placed=tuple(c.name for c in options.placed_cameras),
                 quest=options.source == "quest" and not options.headless,
+                page=options.source == "webxr",
                 real_cameras=tuple(options.real_cameras),
                 rig_file=options.camera_rig_file(),
             )
@@ -1626,7 +1662,10 @@ def process_configs(
     )
     return (
         dataclasses.replace(
-            operator, keypoints=twin.wants_keypoints, records=twin.recording is not None
+            operator,
+            keypoints=twin.wants_keypoints,
+            records=twin.recording is not None,
+            camera_panels=twin.camera_stream is not None and twin.camera_stream.page,
         ),
         twin,
     )

@@ -182,11 +182,6 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
-        if self.camera_stream_hz > 0 and self.multiprocess and self.source == "webxr":
-            raise ValueError(
-                "--camera-stream-hz --multiprocess streams from the twin's process, and the "
-                "WebXR page's server is the operator's: leave out --multiprocess"
-            )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,

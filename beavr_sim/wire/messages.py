@@ -309,6 +309,28 @@ class HandKeypointsMsg(msgspec.Struct, tag="hand_keypoints", kw_only=True, froze
             raise ValueError(f"one frame per side at most, got sides {sides}")
 
 
+#: The longest camera panel message carried (characters: a JPEG panel in base64, its status).
+MAX_PANEL_CHARS = 8_000_000
+
+
+class CameraPanelMsg(msgspec.Struct, tag="camera_panel", kw_only=True, frozen=True):
+    """A streamed camera panel for the WebXR page (twin -> operator, whose process hosts the
+    page's server): ``kind``, the page's message kind (``camera:NAME``), and ``message``, the
+    page's message as JSON text."""
+
+    kind: str
+    message: str
+
+    def __post_init__(self) -> None:
+        if not self.kind.startswith("camera:") or len(self.kind) > 200:
+            raise ValueError(f"a camera panel's kind is 'camera:NAME', got {self.kind[:200]!r}")
+        if len(self.message) > MAX_PANEL_CHARS:
+            raise ValueError(
+                f"a camera panel message has at most {MAX_PANEL_CHARS} characters, got "
+                f"{len(self.message)}"
+            )
+
+
 Message = (
     HandFrameMsg
     | JointCommandMsg
@@ -316,6 +338,7 @@ Message = (
     | SessionMsg
     | OperatorEventMsg
     | HandKeypointsMsg
+    | CameraPanelMsg
 )
 MESSAGE_TYPES: tuple[type, ...] = (
     HandFrameMsg,
@@ -324,6 +347,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     RobotStateMsg,
     SessionMsg,
     OperatorEventMsg,
+    CameraPanelMsg,
 )
 
 
