@@ -7,6 +7,7 @@ The same components as the single-process loop (``pipeline.py``), connected by t
     operator  --commands (JointCommandMsg, topic = effector)-->  twin
     twin      --robot_state (RobotStateMsg, every tick: its heartbeat)-->  operator, supervisor
     supervisor --session (SessionMsg)-->  operator, twin
+    twin      --camera panels (CameraPanelMsg, --camera-stream-hz, WebXR)-->  operator
 
 The pipeline is event-driven: nothing waits for a fixed clock on the way from a hand frame to
 the actuators. The operator process owns the headset's sockets (``headset/``: parse, validate,
