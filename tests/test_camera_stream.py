@@ -317,3 +317,47 @@ def test_twin_only_panels_render_on_the_stream_thread_at_the_rate():
         stream.close()
     assert all(f.state == LIVE and f.image.mean() == 60 for f in frames)
     assert twin.threads == {"camera-stream"} and twin.closed_on == "camera-stream"
+
+
+class _Panel(_Collect):
+    """A browser view's camera panel stand-in: collects what the stream sends it."""
+
+    def attach(self, stream) -> None:
+        self.stream = stream
+
+
+class _View:
+    def __init__(self) -> None:
+        self.panel = _Panel()
+
+    def add_camera_panel(self, shapes):
+        self.shapes = dict(shapes)
+        return self.panel
+
+
+def test_the_twin_process_streams_its_renders_to_the_view_from_its_steps():
+    """--camera-stream-hz --multiprocess (main refused it): the twin process's stream (as
+    twin_main attaches it) renders the twin's camera from the poses its stage's steps copy, and
+    the browser view's panel gets them live."""
+    from beavr_sim.teleop.processes import TwinProcessConfig, make_twin_env
+    from beavr_sim.teleop.stages import TwinStage
+    from beavr_sim.teleop.twin_camera_stream import TwinCameraStream, attach_camera_stream
+    from beavr_sim.twin.twin import TwinInterface
+
+    env = make_twin_env(TwinProcessConfig(task="PickupBox", embodiment="rx1", control_hz=30.0))
+    twin = TwinInterface(env)
+    twin.reset(0)
+    stage = TwinStage(twin)
+    view = _View()
+    close = attach_camera_stream(TwinCameraStream(20.0), env, stage, None, view=view)
+    try:
+        deadline = time.monotonic() + WAIT_S
+        while len(view.panel.frames) < 2:  # the stream renders what the steps copied
+            assert time.monotonic() < deadline, "no panel reached the view"
+            stage.step()
+            view.panel.arrived.wait(0.02)
+    finally:
+        close()
+        env.close()
+    assert view.panel.stream is not None and list(view.shapes) == [view.panel.frames[0].name]
+    assert all(f.state == LIVE and f.image.std() > 0 for f in view.panel.frames)

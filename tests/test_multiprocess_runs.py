@@ -15,14 +15,21 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from websockets.sync.client import connect
 
 import beavr_sim
 from beavr_sim.datasets.features import ACTION, KEYPOINTS, STATE, TRACKED, RecordingConfig
+from beavr_sim.headset.layouts import LAYOUTS
+from beavr_sim.headset.webxr_protocol import encode_hands
+from beavr_sim.teleop.episodes import session_command
+from beavr_sim.teleop.processes import MultiprocessSession
 from beavr_sim.teleop.session import SessionOptions, run_session
+from beavr_sim.wire.hand import N_JOINTS
 from beavr_sim.wire.ports import PortConfig, TransportConfig
 
 #: The checkout whose package these tests import (subprocesses run the same code).
@@ -301,3 +308,76 @@ def test_a_rerun_log_of_the_twin_process_holds_what_one_process_logs(short_trace
     hands = "/world/hands/right/keypoints"
     assert rows_multi.get(hands) == rows_one.get(hands) > ticks // 4
     assert multi[hands] == one[hands]
+
+
+def test_a_live_webxr_session_records_the_episode_its_gesture_starts_and_a_request_stops(
+    tmp_path,
+):
+    """--source webxr --record --multiprocess (main refused live recording there): the twin
+    idles, following the hands, until the operator's long left pinch (forwarded as an operator
+    event) starts an episode; the supervisor's stop request (the keyboard's session command)
+    saves it: one episode, with the hand frames sent while it recorded. The twin's camera panel
+    (--camera-stream-hz, streamed from the twin process) reaches the page."""
+    root = tmp_path / "live"
+    opts = SessionOptions(
+        task="PickupBox",
+        embodiment="rx1",
+        source="webxr",
+        viser=False,
+        headless=True,
+        progress=False,
+        multiprocess=True,
+        record=root,
+        repo_id="test/mp",
+        recording=RECORDING,
+        camera_stream_hz=10.0,  # the twin's camera panel, streamed from the twin to the page
+        transport=TransportConfig(ports=PortConfig.free()),
+    )
+    rng = np.random.default_rng(0)
+    canonical = np.array([0.3, 0.0, 1.1]) + rng.uniform(-0.09, 0.09, size=(N_JOINTS, 3))
+    hand = LAYOUTS["webxr25"].from_canonical(canonical)
+    hands = {"left": hand, "right": hand}
+    session = MultiprocessSession(opts)
+    session.start()
+
+    def state_where(ok, what: str):
+        deadline = time.monotonic() + 120.0
+        while time.monotonic() < deadline:
+            state = session.state_sub.recv_latest(0.5)
+            if state is not None and ok(state):
+                return state
+        raise AssertionError(f"the twin never {what}")
+
+    sent = 0
+    try:
+        with connect(f"ws://127.0.0.1:{opts.webxr_config().port}/ws") as ws:
+            assert json.loads(ws.recv())["type"] == "welcome"
+
+            def send(pinch_left: bool) -> None:
+                nonlocal sent
+                pinch = {"left": pinch_left, "right": False}
+                ws.send(encode_hands(1.7e12 + 33 * sent, hands, seq=sent, pinch=pinch))
+                sent += 1
+
+            assert state_where(lambda s: s.tick == -1, "published").run == 0  # idle
+            for i in range(45):  # a left pinch held 1.4 s (source time), then let go
+                send(pinch_left=i < 42)
+            state_where(lambda s: s.run == 1, "started the episode on the gesture")
+            for _ in range(15):  # a frame a control tick while it records
+                state_where(lambda s: True, "ticked")
+                send(pinch_left=False)
+            session.send(session_command("stop"))
+            state_where(lambda s: s.done, "ended the session after the saved episode")
+            deadline = time.monotonic() + 60.0
+            while (message := json.loads(ws.recv(timeout=60.0)))["type"] != "camera":
+                assert time.monotonic() < deadline, "no camera panel reached the page"
+            assert message["state"] == "live" and message["jpeg"]
+    finally:
+        session.stop()
+    op, twin = session.results["operator"], session.results["twin"]
+    assert op["record_events"] == 1 and op["detector"]["frames_received"] == 2 * sent
+    assert twin["runs"]["runs"] == 1 and twin["stopped_early"] == ""
+    assert [r["kept"] for r in episode_log(root)] == [True]
+    data = recorded(root)
+    assert np.unique(data["episode_index"]).tolist() == [0] and len(data[ACTION]) > 0
+    assert data[TRACKED].any(), "the hand frames sent while it recorded are in the episode"

@@ -231,8 +231,18 @@ FEATURES = (
     "sync_timeout",
     "emulate_faults",
     "camera",
+    "camera_stream",
+    "camera_poses",
     "repeat",
 )
+#: ``--camera-poses``: a twin camera placed 1.5 m in front of the world origin, looking back.
+CAMERA_POSES = """
+[cameras.placed]
+type = "opencv"
+index_or_path = 0
+fovy_deg = 60.0
+T_world_camera = [[0, 0, -1, 1.5], [-1, 0, 0, 0], [0, 1, 0, 1.0], [0, 0, 0, 1]]
+"""
 MIRRORED_FEATURES = ("mirror", "estop_inputs", "sync_timeout", "emulate_faults")
 
 
@@ -258,6 +268,12 @@ def matrix_options(source, clock, feature, multiprocess, tmp_path) -> dict:
         kwargs["rerun"] = tmp_path / "session.rrd"
     if feature == "camera":  # a real camera (parsed, never opened here) records with --record
         kwargs.update(real_cameras=("wrist=opencv:0",), record=tmp_path / "dataset")
+    if feature == "camera_stream":
+        kwargs["camera_stream_hz"] = 5.0
+    if feature == "camera_poses":
+        poses = tmp_path / "poses.toml"
+        poses.write_text(CAMERA_POSES)
+        kwargs["camera_poses"] = poses
     if feature == "repeat":
         kwargs["repeat"] = 2
     return kwargs
@@ -271,8 +287,6 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("real control rate")
     if clock in ("virtual", "paced") and source != "trace":
         reasons.append("recorded source")
-    if multiprocess and feature in ("record", "camera") and source != "trace":
-        reasons.append("--record")
     if feature == "repeat" and source != "trace":
         reasons.append("--source trace")
     if multiprocess and source == "webxr" and feature == "headset_images":
@@ -319,7 +333,13 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "headset_images": (twin.headset_images is not None)
             == (feature == "headset_images" and source == "quest"),
             "control_rate": op.stage.control_hz == twin.control_hz,
-            "record": (twin.recording is not None) == (feature in ("record", "camera")),
+            "record": (twin.recording is not None) == (feature in ("record", "camera"))
+            and (twin.recording is None or twin.recording.auto_start == options.auto_start),
+            "record_gesture": op.records == (twin.recording is not None),
+            "camera_stream": (twin.camera_stream is not None) == (feature == "camera_stream"),
+            "camera_page": op.camera_panels == (feature == "camera_stream" and source == "webxr"),
+            "camera_poses": twin.placed_cameras == options.placed_cameras
+            and bool(twin.placed_cameras) == (feature == "camera_poses"),
             "camera": (twin.recording.real_cameras if twin.recording else ())
             == options.real_cameras,
             "keypoints": op.keypoints == (feature in ("record", "camera", "rerun")),

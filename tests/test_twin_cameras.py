@@ -201,6 +201,7 @@ def test_twin_depth_recorded_in_metres():
 def test_session_camera_poses_place_the_twin_camera(tmp_path, monkeypatch):
     from beavr_sim.assets import bundled_trace
     from beavr_sim.teleop import session
+    from beavr_sim.teleop.processes import make_twin_env, process_configs
 
     rig = tmp_path / "rig.toml"
     rig.write_text(RIG)
@@ -223,8 +224,16 @@ def test_session_camera_poses_place_the_twin_camera(tmp_path, monkeypatch):
     with pytest.raises(_Built):
         session.build_loop(options)
     assert made["placed_cameras"] == options.placed_cameras  # (placement: the test above)
-    with pytest.raises(ValueError, match="--camera-poses runs in one process"):
-        session.SessionOptions(**common, multiprocess=True, headless=True, camera_poses=rig)
+    # --multiprocess (main refused it): the twin process's env gets the same cameras
+    multi = session.SessionOptions(
+        **common, viser=False, multiprocess=True, headless=True, camera_poses=rig
+    )
+    _, twin = process_configs(multi)
+    assert twin.placed_cameras == options.placed_cameras
+    made.clear()
+    with pytest.raises(_Built):
+        make_twin_env(twin)
+    assert made["placed_cameras"] == options.placed_cameras
     bare = tmp_path / "bare.toml"
     bare.write_text('[cameras.front]\ntype = "opencv"\nindex_or_path = 0\n')
     with pytest.raises(ValueError, match=r"no \[cameras\.NAME\] table has a T_world_camera"):

@@ -8,8 +8,12 @@
 - headset: the operator's record gesture, a left-hand pinch held for a second
   (:meth:`beavr_sim.operator.operator.Operator.take_gestures`).
 
-The recording session (:func:`beavr_sim.teleop.session.record_episodes`) takes the requests
-once per control tick, so all of them act at tick boundaries, in one thread.
+The recording session (:func:`beavr_sim.teleop.session.record_episodes`, or under
+``--multiprocess`` the twin process's :class:`~beavr_sim.teleop.twin_runs.TwinRuns`) takes the
+requests once per control tick through :class:`EpisodeRequests`, so all of them act at tick
+boundaries, in one thread. Under ``--multiprocess`` the keyboard is the supervisor's and its
+requests reach the twin as session commands (:func:`session_command`, :func:`request_of`); the
+headset gesture is recognised by the operator process and forwarded as an operator event.
 """
 
 from __future__ import annotations
@@ -45,6 +49,45 @@ class EpisodeControl:
         with self._lock:
             pending, self._pending = self._pending, []
         return pending
+
+
+def session_command(what: str) -> str:
+    """The session command (``SessionMsg.command``) carrying the episode request ``what``."""
+    return "record_" + check_name("episode request", what, REQUESTS)
+
+
+def request_of(command: str) -> str | None:
+    """The episode request a session command carries (None: it carries none)."""
+    what = command.removeprefix("record_")
+    return what if command.startswith("record_") and what in REQUESTS else None
+
+
+class EpisodeRequests:
+    """``stop_when`` for a recording loop: takes the episode requests (and turns the record
+    gestures ``gestures()`` counts since it was last asked into toggles); true when one of
+    ``accepted`` came, which is kept in :attr:`last`."""
+
+    def __init__(self, control: EpisodeControl, gestures: Callable[[], int] = lambda: 0):
+        self.control = control
+        self.gestures = gestures
+        self.last: list[str] = []
+
+    def taker(self, *accepted: str) -> Callable[[], bool]:
+        for what in accepted:
+            check_name("episode request", what, REQUESTS)
+
+        def stop_when() -> bool:
+            for _ in range(self.gestures()):
+                self.control.request("toggle", "headset gesture")
+            self.last = [r for r in self.control.take() if r in accepted]
+            return bool(self.last)
+
+        return stop_when
+
+
+#: What an idle session waits for, and what ends a recorded episode.
+STARTS = ("toggle", "start", "quit")
+STOPS = ("toggle", "stop", "discard", "quit")
 
 
 class KeyboardControl:

@@ -7,6 +7,7 @@ The same components as the single-process loop (``pipeline.py``), connected by t
     operator  --commands (JointCommandMsg, topic = effector)-->  twin
     twin      --robot_state (RobotStateMsg, every tick: its heartbeat)-->  operator, supervisor
     supervisor --session (SessionMsg)-->  operator, twin
+    twin      --camera panels (CameraPanelMsg, --camera-stream-hz, WebXR)-->  operator
 
 The pipeline is event-driven: nothing waits for a fixed clock on the way from a hand frame to
 the actuators. The operator process owns the headset's sockets (``headset/``: parse, validate,
@@ -51,9 +52,13 @@ The twin process plays the session's runs (a ``--repeat`` trace, recorded ``--ep
 :class:`~beavr_sim.teleop.twin_runs.TwinRuns`, with the single-process session's per-run
 decisions) and records them (the recorder on its stage's ``after_step`` hook, fed the hands'
 keypoints the operator sends on the command stream, :class:`~beavr_sim.wire.messages.HandKeypointsMsg`);
-its states carry the run, and the operator plays a trace from its start on a new run; real
-cameras (``--camera``) are read there next to the recorder, and ``--rerun`` logs from a hook
-of its stage (:mod:`beavr_sim.teleop.twin_rerun`). A single real-time run without recording
+its states carry the run, and the operator plays a trace from its start on a new run. Live
+recorded episodes start and stop on requests taken there: the supervisor's keyboard (session
+commands ``record_*``), the browser view's buttons, the operator's record gesture (an
+:class:`~beavr_sim.wire.messages.OperatorEventMsg`). Real cameras (``--camera``) are read there
+next to the recorder and streamed from there (``--camera-stream-hz``:
+:mod:`beavr_sim.teleop.twin_camera_stream`), its env places ``--camera-poses``' cameras, and
+``--rerun`` logs from a hook of its stage (:mod:`beavr_sim.teleop.twin_rerun`). A single real-time run without recording
 is ended by the supervisor (success, ``--max-seconds``).
 
 Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
@@ -86,6 +91,7 @@ import zmq
 import beavr_sim  # noqa: F401  (registers the envs the twin process makes)
 from beavr_sim.cameras.errors import CameraError
 from beavr_sim.envs.beavr_env import DEFAULT_CONTROL_HZ
+from beavr_sim.envs.camera_pose import PlacedCamera
 from beavr_sim.hardware.device import MirrorError
 from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.headset.quest_io import HeadsetImagePublisher
@@ -101,7 +107,12 @@ from beavr_sim.operator.operator import Operator
 from beavr_sim.robots import make_embodiment
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
 from beavr_sim.teleop.announce import announce_view, announce_webxr
-from beavr_sim.teleop.episodes import KeyboardControl
+from beavr_sim.teleop.episodes import (
+    EpisodeControl,
+    KeyboardControl,
+    request_of,
+    session_command,
+)
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.mirroring import (
     MIRROR_SWITCH_INTERVAL_S,
@@ -121,14 +132,21 @@ from beavr_sim.teleop.pipeline import (
 )
 from beavr_sim.teleop.runs import RunPlan
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
+from beavr_sim.teleop.twin_camera_stream import (
+    PANEL_TOPIC,
+    PagePanels,
+    TwinCameraStream,
+    attach_camera_stream,
+)
 from beavr_sim.teleop.twin_rerun import TwinRerun, attach_rerun
-from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns
+from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns, connect_real_cameras
 from beavr_sim.traces.format import TraceReader
 from beavr_sim.twin.twin import CommandOutcome, TwinInterface
 from beavr_sim.viz.twin_view import TwinView, subtree_bodies
 from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.messages import (
+    CameraPanelMsg,
     FixtureMsg,
     HandFrameMsg,
     HandKeypointsMsg,
@@ -222,6 +240,10 @@ class OperatorProcessConfig:
     webxr: WebXRConfig | None = None
     #: Send the hands' newest frames to the twin (its recorder's ``hand.keypoints``).
     keypoints: bool = False
+    #: Forward the record gesture to the twin (it records: the gesture starts / stops).
+    records: bool = False
+    #: ``--camera-stream-hz`` with the WebXR page: the twin's panels to the page server.
+    camera_panels: bool = False
 
 
 @dataclass(frozen=True)
@@ -240,6 +262,8 @@ class TwinProcessConfig:
     seed: int | None = None
     live: bool = True
     leap_variant: str | None = None
+    #: ``--camera-poses``: twin cameras at real cameras' poses (recorded, streamed, rendered).
+    placed_cameras: tuple[PlacedCamera, ...] = ()
     lockstep: bool = False
     paced: bool = False
     stop_on_success: bool = True
@@ -260,6 +284,8 @@ class TwinProcessConfig:
     emulate_faults: str | None = None
     view: ViewConfig | None = None
     headset_images: HeadsetImagesConfig | None = None
+    #: ``--camera-stream-hz``: the camera panels streamed from this process (None: off).
+    camera_stream: TwinCameraStream | None = None
     attach: tuple[Attachment, ...] = ()
 
     @property
@@ -386,6 +412,16 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     session = Subscriber(
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
+    panels = None
+    if config.camera_panels:  # the twin's camera panels, for the page server hosted here
+        panels = Subscriber(
+            context,
+            transport.endpoint("robot_state", bind=False),
+            PANEL_TOPIC,
+            CameraPanelMsg,
+            conflate=False,
+            rcvhwm=8,
+        )
     commands = Publisher(context, transport.endpoint("commands", bind=True))
     # the twin's command subscribers, its operator-event subscriber (and its keypoints one)
     commands.wait_for_subscribers(
@@ -401,12 +437,18 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
     frames_commanded = dict.fromkeys(sides, 0)
     clock_commands = dict.fromkeys(sides, 0)
     poller = zmq.Poller()
-    for socket in (*source.sockets, state.socket, session.socket):
+    for socket in (
+        *source.sockets,
+        state.socket,
+        session.socket,
+        *([panels.socket] if panels is not None else []),
+    ):
         poller.register(socket, zmq.POLLIN)
     overruns = 0
     session_paused = False
     view_paused = False
     estop_events = 0
+    record_events = 0
     answered: tuple[int, int] | None = None  # lockstep: (epoch, tick) last commanded
     run_seen: int | None = None  # the twin's run of the last state (a new one: the trace over)
 
@@ -434,11 +476,16 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         run_seen = msg.run if run_seen is None else max(run_seen, msg.run)
 
     def forward_events(now: float) -> None:
-        """The both-hands pinch latches the twin's mirror (the e-stop gesture)."""
-        nonlocal estop_events
-        if stage.take_events(record=False).estop:
+        """The both-hands pinch latches the twin's mirror (the e-stop gesture); a recording
+        twin gets the record gestures (a long left pinch: start / stop an episode)."""
+        nonlocal estop_events, record_events
+        events = stage.take_events(record=config.records)
+        if events.estop:
             estop_events += 1
             commands.send(OPERATOR_EVENT_TOPIC, OperatorEventMsg(event="estop", t=now))
+        for _ in range(events.record):
+            record_events += 1
+            commands.send(OPERATOR_EVENT_TOPIC, OperatorEventMsg(event="record", t=now))
 
     def command_side(side: str, ok: bool) -> None:
         """Command ``side``'s effectors now, from what the operator has observed."""
@@ -517,6 +564,10 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     started = started or msg.command == "resume"
                 if msg.command == "reset":
                     rehome.expect(msg.epoch)
+            panel = panels.recv(0.0) if panels is not None else None
+            while panel is not None:  # to the page (never blocks: its server's thread sends)
+                source.server.publish(panel.kind, json.loads(panel.message))
+                panel = panels.recv(0.0)
             latest = state.recv_latest(0.0)
             if latest is not None:
                 take_state(latest)
@@ -563,6 +614,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     "frames_commanded": frames_commanded,
                     "clock_commands": clock_commands,
                     "estop_events": estop_events,
+                    "record_events": record_events,
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
@@ -579,7 +631,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             ).encode()
         )
         source.close()
-        for s in (state, session, commands):
+        for s in (state, session, commands, *([panels] if panels is not None else [])):
             s.close()
         context.term()
 
@@ -735,15 +787,24 @@ def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Calla
     return reset
 
 
-def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
-    _leave_ctrl_c_to_the_session()
-    context = zmq.Context()
+def make_twin_env(config: TwinProcessConfig):
+    """The twin process's env (unwrapped): the task and embodiment at the control rate, no
+    time limit when live, the LEAP variant and the placed cameras as one process's
+    ``build_loop`` makes them."""
     kwargs: dict = {"control_hz": config.control_hz}
     if config.live:
         kwargs["max_episode_seconds"] = 1e9
     if config.leap_variant:
         kwargs["hand_variant"] = config.leap_variant
-    env = gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
+    if config.placed_cameras:
+        kwargs["placed_cameras"] = config.placed_cameras
+    return gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
+
+
+def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
+    _leave_ctrl_c_to_the_session()
+    context = zmq.Context()
+    env = make_twin_env(config)
     twin = TwinInterface(env)
     stage = TwinStage(twin, latencies=LatencyLog())
     #: The seed of the episode (a reset from the supervisor or the browser replays it).
@@ -781,14 +842,23 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             frames=lambda: process.frames,
             stop_on_success=config.stop_on_success,
             progress=config.progress,
+            seed=config.seed,
         )
+        closers.append(runs.close)
+        real = runs.real_cameras  # recording: the recorder's, streamed too
+        streaming = config.camera_stream
+        if streaming is not None and config.recording is None:
+            real = connect_real_cameras(
+                streaming.real_cameras, streaming.rig_file, int(round(env.control_hz))
+            )
+            if real is not None:
+                closers.append(real.close)
     except (ValueError, OSError, CameraError) as exc:
         for close in reversed(closers):
             close()
         conn.send_bytes(f"error: {exc}".encode())
         env.close()
         return
-    closers.append(runs.close)
     fixtures = fixtures_to_wire(env)
     subs = {
         e.name: Subscriber(
@@ -820,7 +890,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     state_pub = Publisher(context, transport.endpoint("robot_state", bind=True))
-    state_pub.wait_for_subscribers(2, HANDSHAKE_TIMEOUT_S)  # operator + supervisor
+    # operator + supervisor (+ the operator's page panels)
+    page = config.camera_stream is not None and config.camera_stream.page
+    state_pub.wait_for_subscribers(2 + int(page), HANDSHAKE_TIMEOUT_S)
     view = None
     if config.view is not None:
         joints = env.joints
@@ -837,15 +909,21 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             show_collision=config.view.show_collision,
             mirroring=mirror is not None,
             access=None if config.view.token is None else ViewAccess(config.view.token),
+            episode_control=runs.control if config.recording is not None else None,
         )
         announce_view(view.url, config.view.token or SessionToken("-", False))
     browser_estop = None
     if view is not None and mirror is not None:
         browser_estop = BrowserEstop(view, mirror)
+    publisher = None
+    page_panels: PagePanels | None = None
+    # the Quest app's camera panel shows the first real camera in place of the twin's images
+    quest_panel = streaming is not None and streaming.quest and real is not None
     if config.headset_images is not None:
         images = config.headset_images
         publisher = HeadsetImagePublisher(context, transport, rate_hz=images.rate_hz)
         closers.append(publisher.close)
+    if config.headset_images is not None and not quest_panel:
         renderer = HeadsetRenderer(
             publisher, env.render_model, headset_camera(env.embodiment), images.size
         )
@@ -862,6 +940,11 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         headset = ThreadedListener(renderer, snapshot=headset_pose, name="headset_images")
         closers.append(headset.close)
         stage.after_step.append(headset)
+    if streaming is not None:  # closed before the cameras, the view and the publisher
+        page_panels = PagePanels() if streaming.page else None
+        closers.append(
+            attach_camera_stream(streaming, env, stage, real, view, publisher, page_panels)
+        )
     process = TwinProcess(config, env, stage, mirror)
     if config.rerun is not None:
         closers.append(attach_rerun(process, config.rerun, real_time=not config.lockstep))
@@ -941,6 +1024,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         nonlocal last_state, asked_at
         last_state, asked_at = msg, time.monotonic()
         state_pub.send(b"state", msg)
+        for panel in page_panels.take() if page_panels is not None else ():
+            state_pub.send(PANEL_TOPIC, panel)
 
     def take_keypoints() -> None:
         """The operator's keypoints: real time, this epoch's (for the next recorded step);
@@ -1061,8 +1146,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     def next_run() -> None:
         """The session's next run: the seeded start again (a new epoch); mirrored, once the
         rig is there."""
-        nonlocal positions, epoch, fixtures, done, new_run_due
+        nonlocal positions, epoch, fixtures, done, new_run_due, episode_seed
         done, new_run_due = False, True
+        episode_seed = runs.next_seed()
         positions = twin.reset(episode_seed)
         epoch += 1
         fixtures = fixtures_to_wire(env)
@@ -1080,11 +1166,13 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
 
     held_for_sync: dict[str, int] = {}
     sync_fault = ""
+    #: A live recording waits for a start request (the twin follows, nothing recorded).
+    idle = runs.waits_for_start
     if sync is not None:  # its timeout runs from here, not from the processes' handshake
         sync.begin(twin.action.copy(), Fixtures.of(env.data))
     if not config.lockstep:
         env.between_substeps = between_substeps
-        if sync is None:
+        if sync is None and not idle:
             begin_run()
     elif sync is None or not sync.syncing:
         start_episode()
@@ -1116,10 +1204,15 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
                 mirror.release()
+            asked = request_of(msg.command) if msg is not None else None
+            if asked is not None:
+                runs.request(asked, "keyboard")
             event = events.recv(0.0)
             while event is not None:
                 if event.event == "estop" and mirror is not None:
                     mirror.estop("headset gesture: both hands pinch")
+                if event.event == "record":
+                    runs.request("toggle", "headset gesture")
                 event = events.recv(0.0)
             if sync_fault:  # the session ends: the supervisor stops on the done state
                 if time.monotonic() - asked_at > LOCKSTEP_ASK_AGAIN_S:
@@ -1144,7 +1237,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     mirror_reset(positions)
                     if config.lockstep:
                         start_episode()
-                    elif new_run_due:
+                    elif new_run_due and not idle:
                         begin_run()
                 else:
                     publish(state_message(st))
@@ -1172,14 +1265,24 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 st = stage.step()
                 ended = runs.stepped(st, source_finished_rt) if runs.playing else False
                 done = ended and config.ends_runs
+                if idle:  # a live recording between episodes
+                    what = runs.idle_step()
+                    if what == "start":
+                        idle = False
+                        next_run()
+                        continue
+                    done = what == "end"
             positions = st.positions
             if browser_estop is not None:
                 browser_estop(None)
             success = success or st.success
             details = {k: v for k, v in st.info.items() if k.startswith("task/")}
             if done and runs.end(sync_s()):  # the run ended; the next one follows
-                next_run()
-                continue
+                if runs.waits_for_start:  # ... on a start request: idle until then
+                    idle, done, new_run_due = True, False, True
+                else:
+                    next_run()
+                    continue
             if config.paced and not done:
                 schedule.wait()
             if config.lockstep:
@@ -1282,6 +1385,9 @@ class MultiprocessSession:
         self.exits: dict[str, int | None] = {}
         #: Resets requested (each names the reset epoch the operator waits for).
         self.resets = 0
+        #: Episode requests (keyboard, :meth:`request`) sent to the recording twin.
+        self.episode_control = EpisodeControl()
+        self.auto_start = bool(options.auto_start)
 
     @property
     def control_hz(self) -> float:
@@ -1331,6 +1437,11 @@ class MultiprocessSession:
             b"session", self._session_type(command=command, t=time.monotonic(), epoch=epoch)
         )
 
+    def request(self, what: str, origin: str = "") -> None:
+        """An episode request (``episodes.REQUESTS``) for the recording twin, from any
+        thread; sent from :meth:`run`'s."""
+        self.episode_control.request(what, origin)
+
     def dead(self) -> list[str]:
         return [n for n, p in self.processes.items() if not p.is_alive()]
 
@@ -1361,13 +1472,17 @@ class MultiprocessSession:
         of a run does."""
         self.start()
         requests: list[str] = []  # from the keyboard thread; sent from this one
-        if self.mirror_hardware and sys.stdin is not None and sys.stdin.isatty():
-            keyboard = KeyboardControl(
-                None,
-                actions={
+        live_recording = self.twin_config.recording is not None and not self.auto_start
+        interactive = sys.stdin is not None and sys.stdin.isatty()
+        if interactive and (self.mirror_hardware or live_recording):
+            actions = {}
+            if self.mirror_hardware:
+                actions = {
                     "e": ("emergency stop (every device holds)", lambda: requests.append("estop")),
                     "r": ("release the emergency stop", lambda: requests.append("release")),
-                },
+                }
+            keyboard = KeyboardControl(
+                self.episode_control if live_recording else None, actions=actions
             )
             print(keyboard.help, file=sys.stderr)
         reported: set[str] = set()
@@ -1378,6 +1493,8 @@ class MultiprocessSession:
                 state = self.state_sub.recv_latest(0.1)
                 while requests:
                     self.send(requests.pop(0))
+                for what in self.episode_control.take():
+                    self.send(session_command(what))
                 if state is not None:
                     success = success or state.success
                     if state.done:  # the twin ended the episode as one process's loop would,
@@ -1488,6 +1605,7 @@ def process_configs(
             source=options.source,
             real_cameras=tuple(options.real_cameras),
             rig_file=options.camera_rig_file(),
+            auto_start=bool(options.auto_start),
         )
     operator = OperatorProcessConfig(
         stage=stage,
@@ -1503,6 +1621,7 @@ def process_configs(
         seed=seed,
         live=options.source != "trace",
         leap_variant=options.leap_variant,
+        placed_cameras=tuple(options.placed_cameras),
         lockstep=lockstep,
         paced=options.clock == "paced",
         stop_on_success=options.source == "trace",
@@ -1527,9 +1646,30 @@ def process_configs(
             if options.source == "quest" and not options.headless
             else None
         ),
+        camera_stream=(
+            TwinCameraStream(
+                options.camera_stream_hz,
+                options.camera_view,
+                placed=tuple(c.name for c in options.placed_cameras),
+                quest=options.source == "quest" and not options.headless,
+                page=options.source == "webxr",
+                real_cameras=tuple(options.real_cameras),
+                rig_file=options.camera_rig_file(),
+            )
+            if options.camera_stream_hz > 0
+            else None
+        ),
         attach=tuple(attach),
     )
-    return dataclasses.replace(operator, keypoints=twin.wants_keypoints), twin
+    return (
+        dataclasses.replace(
+            operator,
+            keypoints=twin.wants_keypoints,
+            records=twin.recording is not None,
+            camera_panels=twin.camera_stream is not None and twin.camera_stream.page,
+        ),
+        twin,
+    )
 
 
 def run_multiprocess(options, interrupted=lambda: False) -> TeleopSummary:

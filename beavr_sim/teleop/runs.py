@@ -19,6 +19,8 @@ process (``twin_runs.py``) call these; neither decides on its own.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from beavr_sim.datasets.episode_end import EpisodeEnd
@@ -64,6 +66,15 @@ class RunPlan:
     def several(self) -> bool:
         """More than one run may be played."""
         return (self.episodes if self.recording else self.repeat) != 1
+
+
+def episode_seeds(seed: int | None, trace: bool) -> Callable[[int], int | None]:
+    """Each recorded episode's seed by attempt: a trace plays its own layout (``seed``) every
+    time; live episodes get seed, seed + 1, ... (a seed from the clock where none is given)."""
+    if trace:
+        return lambda attempt: seed
+    first = int(time.time()) % 100_000 if seed is None else seed
+    return lambda attempt: first + attempt
 
 
 class SessionRuns:

@@ -51,7 +51,13 @@ from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.announce import announce_view, announce_webxr
 from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
 from beavr_sim.teleop.console import CONSOLE
-from beavr_sim.teleop.episodes import EpisodeControl, KeyboardControl
+from beavr_sim.teleop.episodes import (
+    STARTS,
+    STOPS,
+    EpisodeControl,
+    EpisodeRequests,
+    KeyboardControl,
+)
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.mirroring import (
@@ -72,8 +78,8 @@ from beavr_sim.teleop.pipeline import (
     ThreadedListener,
 )
 from beavr_sim.teleop.processes import run_multiprocess
-from beavr_sim.teleop.runs import RunPlan, SessionRuns
-from beavr_sim.teleop.twin_camera_feed import TwinCameraFeed
+from beavr_sim.teleop.runs import RunPlan, SessionRuns, episode_seeds
+from beavr_sim.teleop.twin_camera_feed import twin_feed
 from beavr_sim.teleop.twin_runs import connect_real_cameras
 from beavr_sim.teleop.view import attach_view
 from beavr_sim.traces.bundled import find_bundled_trace
@@ -176,11 +182,6 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
-        if self.camera_stream_hz > 0 and self.multiprocess:
-            raise ValueError(
-                "--camera-stream-hz runs in one process for now (the twin's renders follow the "
-                "one-process loop); leave out --multiprocess"
-            )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
@@ -195,10 +196,6 @@ class SessionOptions:
                 )
         self._placed_cameras: tuple[PlacedCamera, ...] = ()
         if self.camera_poses is not None:
-            if self.multiprocess:
-                raise ValueError(
-                    "--camera-poses runs in one process for now; leave out --multiprocess"
-                )
             self._placed_cameras = rig_placed_cameras(self.camera_poses)
             if not self._placed_cameras:
                 raise ValueError(
@@ -276,16 +273,6 @@ class SessionOptions:
             )
         if self.auto_start is None:
             self.auto_start = self.source == "trace"
-        if (
-            self.record is not None
-            and self.multiprocess
-            and not (self.source == "trace" and self.auto_start)
-        ):
-            raise ValueError(
-                "--record --multiprocess records a trace's episodes, each started at once; "
-                "live episodes (started and stopped by keyboard, browser or gesture) record in "
-                "one process for now: leave out --multiprocess"
-            )
         if self.rerun is not None:
             from beavr_sim.viz.rerun_log import check_rrd_path  # local: heavy (rerun, ~360 ms)
 
@@ -765,11 +752,9 @@ def twin_camera_panels(options: SessionOptions, loop: TeleopLoop) -> dict[str, o
     """The twin's renders for the streamed camera panels: a tick listener of ``loop`` copying
     the pose at the stream's rate, and the twin-only panels (the cameras ``--camera-poses``
     places, else the headset's camera) shown when the session has no real camera."""
-    env = loop.twin.env
-    fallback = headset_camera(env.embodiment)
-    feed = TwinCameraFeed(env.render_model, env.data, fallback, options.camera_stream_hz)
+    placed = tuple(c.name for c in options.placed_cameras)
+    feed, panels = twin_feed(loop.twin.env, options.camera_stream_hz, placed)
     loop.listeners.append(feed)
-    panels = tuple(c.name for c in options.placed_cameras) or (fallback,)
     return {"twin": feed, "twin_panels": panels}
 
 
@@ -836,25 +821,6 @@ def _play_runs(options: SessionOptions, loop: TeleopLoop, progress, mirror, sync
     return summary
 
 
-class _EpisodeRequests:
-    """``stop_when`` for the loop: takes the episode requests (and turns the operator's record
-    gesture into one); true when one of ``accepted`` came, which is kept in :attr:`last`."""
-
-    def __init__(self, control, operator):
-        self.control = control
-        self.operator = operator
-        self.last: list[str] = []
-
-    def taker(self, *accepted: str):
-        def stop_when() -> bool:
-            for _ in self.operator.take_gestures("record"):
-                self.control.request("toggle", "headset gesture")
-            self.last = [r for r in self.control.take() if r in accepted]
-            return bool(self.last)
-
-        return stop_when
-
-
 def _real_cameras(options: SessionOptions, fps: int):
     """The session's real cameras, connected (None when there are none); a camera that does
     not open fails here with one line naming it."""
@@ -895,13 +861,10 @@ def record_episodes(
     if int(round(env.control_hz)) != config.fps:
         raise ValueError(f"--fps must equal the env's control rate ({env.control_hz:g} Hz)")
     control = control or EpisodeControl()
-    requests = _EpisodeRequests(control, loop.operator)
+    requests = EpisodeRequests(control, lambda: len(loop.operator.take_gestures("record")))
     trace = options.source == "trace"
     # A trace plays its own layout every time; live episodes get seed, seed + 1, ...
-    first_seed = loop.seed if trace or options.seed is not None else int(time.time()) % 100_000
-
-    def seed_of(attempt: int) -> int | None:
-        return loop.seed if trace else first_seed + attempt
+    seed_of = episode_seeds(loop.seed if trace or options.seed is not None else None, trace)
 
     note = repeated_trace_note(options, loop.seed)
     if note:
@@ -960,7 +923,7 @@ def record_episodes(
                         max_seconds=runs.remaining(),
                         stop_on_success=False,
                         progress=progress,
-                        stop_when=requests.taker("toggle", "start", "quit"),
+                        stop_when=requests.taker(*STARTS),
                     )
                     runs.played += idle.duration_s
                     if requests.last or (trace and loop.source.finished) or out_of_time():
@@ -987,7 +950,7 @@ def record_episodes(
                 recorder,
                 config,
                 progress=progress,
-                stop_when=requests.taker("toggle", "stop", "discard", "quit"),
+                stop_when=requests.taker(*STOPS),
                 max_seconds=remaining,
             )
             asked = requests.last

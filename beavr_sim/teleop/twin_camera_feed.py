@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import mujoco
 import numpy as np
 
 from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.naming import check_name
-from beavr_sim.teleop.images import ScenePose
+from beavr_sim.teleop.images import ScenePose, headset_camera
 
 #: A twin-only panel's size (HxW) when its camera gives none (a placed camera's intrinsics do).
 TWIN_PANEL_SIZE = (480, 640)
@@ -130,3 +130,14 @@ class TwinCameraFeed:
         for cameras in self._renderers.values():
             cameras.close()
         self._renderers.clear()
+
+
+def twin_feed(
+    env, rate_hz: float, placed: Sequence[str] = ()
+) -> tuple[TwinCameraFeed, tuple[str, ...]]:
+    """The twin's renders for a session's camera panels (both layouts): the feed (a tick /
+    ``after_step`` hook to add) and the twin-only panels shown when the session has no real
+    camera: the cameras ``--camera-poses`` places (``placed``), else the headset's camera."""
+    fallback = headset_camera(env.embodiment)
+    feed = TwinCameraFeed(env.render_model, env.data, fallback, rate_hz)
+    return feed, tuple(placed) or (fallback,)

@@ -18,6 +18,13 @@ its states with the run; the operator process restarts a trace on a new run.
 - :meth:`TwinRuns.stepped` says when the episode ends, by the single-process loop's rules
   (success, failure, the time limit, the end of a trace plus its tail, a hardware fault;
   recording: the recording's tail after success);
+- live episodes (``TwinRecording.auto_start`` false: a headset's) start and stop on requests
+  (:meth:`TwinRuns.request`: the supervisor's keyboard, the browser view's buttons, the
+  operator's record gesture) taken once per step through the single-process session's
+  :class:`~beavr_sim.teleop.episodes.EpisodeRequests`: until a start the twin follows the
+  hands and nothing is recorded (:meth:`TwinRuns.idle_step`); a stop saves the episode, a
+  discard drops it, a quit saves it and ends the session; idle time counts towards
+  ``max_seconds`` as in one process;
 - :meth:`TwinRuns.end` ends it through :func:`~beavr_sim.datasets.episode_end.end_recorded_episode`
   (a faulty episode discarded, or kept marked ``hardware_fault``; an interrupted one never
   saved) and says whether another run follows.
@@ -33,8 +40,9 @@ from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch
 from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.teleop.episodes import STARTS, STOPS, EpisodeControl, EpisodeRequests
 from beavr_sim.teleop.mirroring import episode_fault, failed_for_good, follow_limits
-from beavr_sim.teleop.runs import RunPlan, SessionRuns
+from beavr_sim.teleop.runs import RunPlan, SessionRuns, episode_seeds
 from beavr_sim.wire.hand import HandFrame
 from beavr_sim.wire.records import TwinState
 
@@ -56,6 +64,8 @@ class TwinRecording:
     #: tables add more (None: not a rig file).
     real_cameras: tuple[str, ...] = ()
     rig_file: str | None = None
+    #: Start each episode at once (a trace); false: on a start request (live sources).
+    auto_start: bool = True
 
 
 def connect_real_cameras(camera_args: tuple[str, ...], rig_file: str | None, fps: int):
@@ -89,9 +99,11 @@ class TwinRuns:
         frames: Callable[[], Sequence[HandFrame]] = tuple,
         stop_on_success: bool = True,
         progress: bool = False,
+        seed: int | None = None,
     ):
         self.plan = plan
         self.runs = SessionRuns(plan)
+        self._seed_of = episode_seeds(seed, plan.trace or recording is None)
         self.env = env
         self.mirror = mirror
         self.recording = recording
@@ -114,6 +126,45 @@ class TwinRuns:
         self._run_ticks = 0
         self._limit: float | None = None
         self.seed: int | None = None
+        #: Live recording: the episode requests (any thread) and those that ended the episode.
+        self.control = EpisodeControl()
+        self._requests = EpisodeRequests(self.control)
+        self.asked: tuple[str, ...] = ()
+        self._said_idle = False
+
+    @staticmethod
+    def _live(recording: TwinRecording | None) -> bool:
+        return recording is not None and not recording.auto_start
+
+    @property
+    def waits_for_start(self) -> bool:
+        """Episodes start on a start request (a live recording), not at once."""
+        return self._live(self.recording)
+
+    def request(self, what: str, origin: str = "") -> None:
+        """An episode request (one of ``episodes.REQUESTS``), taken at the next step."""
+        self.control.request(what, origin)
+
+    def next_seed(self) -> int | None:
+        """The next episode's seed: the session's (a trace's every time); live recorded
+        episodes seed, seed + 1, ... as in one process."""
+        return self._seed_of(self.runs.attempts)
+
+    def idle_step(self) -> str:
+        """A step while waiting for a start (the twin follows the hands, nothing recorded):
+        ``"start"`` (a start request came: reset and begin the next episode), ``"end"`` (a
+        quit, or the session's time is up) or ``""``."""
+        if self.progress and not self._said_idle:
+            self._said_idle = True
+            print(
+                f"\n{self.runs.name()}: idle (start: Enter, Record button, long left pinch)",
+                file=sys.stderr,
+            )
+        self.runs.played += self.dt
+        took = self._requests.taker(*STARTS)()
+        if "quit" in self._requests.last or self.runs.time_up():
+            return "end"
+        return "start" if took else ""
 
     def _open_recorder(self, recording: TwinRecording, stage) -> None:
         config = recording.config
@@ -181,6 +232,9 @@ class TwinRuns:
         self._finished_at = None
         self._tail = None
         self._run_ticks = 0
+        self.asked = ()
+        self._said_idle = False
+        self.control.take()  # requests from before the start are not this episode's
         limit = self.recording.config.episode_seconds if self.recording is not None else None
         self._limit = self.runs.episode_limit(limit)
         if self.recorder is not None:
@@ -197,6 +251,10 @@ class TwinRuns:
             return self._tail <= 0 or bool(self.fault)
         self.success = self.success or bool(state.success)
         elapsed = self.ticks * self.dt
+        if self.recorder is not None and self._requests.taker(*STOPS)():
+            self.asked = tuple(self._requests.last)  # stop, discard or quit: no tail
+            self._run_ticks = self.ticks
+            return True
         ended = (state.success and self.stop_on_success) or state.failure or bool(self.fault)
         # not recording: a device failed for good ends the run (nobody re-arms it here)
         ended = ended or (self.recorder is None and self._failed())
@@ -236,6 +294,7 @@ class TwinRuns:
             end = EpisodeEnd(
                 fault=self.recorder.fault,
                 interrupted=interrupted,
+                asked=self.asked,
                 task_success=self.success,
                 keep_faulty=self.recording.keep_faulty,
             )
@@ -252,7 +311,7 @@ class TwinRuns:
             line = runs.run_line(record)
         if self.progress:
             print("\n" + line, file=sys.stderr)
-        if interrupted:
+        if interrupted or "quit" in self.asked or self.runs.time_up():
             return False
         if self.mirror is not None and failed_for_good(self.mirror):
             runs.stop(f"{name}: {record.hardware_fault or episode_fault(self.mirror)}")

@@ -23,8 +23,12 @@ SESSION_COMMANDS = (
     "resume",
     "reset",
     "stop",
+    # episode requests (``beavr_sim.teleop.episodes.session_command``) to the recording twin
+    "record_toggle",
     "record_start",
     "record_stop",
+    "record_discard",
+    "record_quit",
     "estop",  # hardware mirroring: every device holds, latched
     "release",  # ... until released
 )
@@ -266,12 +270,15 @@ class SessionMsg(msgspec.Struct, tag="session", kw_only=True, frozen=True):
 
 
 #: Session events the operator recognises in the hands (operator -> twin).
-OPERATOR_EVENTS = ("estop",)  # both hands pinch at once: the mirror latches its e-stop
+#: ``estop``: both hands pinch at once (the mirror latches its e-stop); ``record``: a long
+#: left pinch (a recording twin starts / stops an episode).
+OPERATOR_EVENTS = ("estop", "record")
 
 
 class OperatorEventMsg(msgspec.Struct, tag="operator_event", kw_only=True, frozen=True):
     """A session event the operator recognised (``event``, one of :data:`OPERATOR_EVENTS`) at
-    ``t`` (the operator's clock); the twin acts on it (the e-stop latches its mirror)."""
+    ``t`` (the operator's clock); the twin acts on it (the e-stop latches its mirror, the record
+    gesture toggles a recorded episode)."""
 
     event: str
     t: float = 0.0
@@ -302,6 +309,28 @@ class HandKeypointsMsg(msgspec.Struct, tag="hand_keypoints", kw_only=True, froze
             raise ValueError(f"one frame per side at most, got sides {sides}")
 
 
+#: The longest camera panel message carried (characters: a JPEG panel in base64, its status).
+MAX_PANEL_CHARS = 8_000_000
+
+
+class CameraPanelMsg(msgspec.Struct, tag="camera_panel", kw_only=True, frozen=True):
+    """A streamed camera panel for the WebXR page (twin -> operator, whose process hosts the
+    page's server): ``kind``, the page's message kind (``camera:NAME``), and ``message``, the
+    page's message as JSON text."""
+
+    kind: str
+    message: str
+
+    def __post_init__(self) -> None:
+        if not self.kind.startswith("camera:") or len(self.kind) > 200:
+            raise ValueError(f"a camera panel's kind is 'camera:NAME', got {self.kind[:200]!r}")
+        if len(self.message) > MAX_PANEL_CHARS:
+            raise ValueError(
+                f"a camera panel message has at most {MAX_PANEL_CHARS} characters, got "
+                f"{len(self.message)}"
+            )
+
+
 Message = (
     HandFrameMsg
     | JointCommandMsg
@@ -309,6 +338,7 @@ Message = (
     | SessionMsg
     | OperatorEventMsg
     | HandKeypointsMsg
+    | CameraPanelMsg
 )
 MESSAGE_TYPES: tuple[type, ...] = (
     HandFrameMsg,
@@ -317,6 +347,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     RobotStateMsg,
     SessionMsg,
     OperatorEventMsg,
+    CameraPanelMsg,
 )
 
 
