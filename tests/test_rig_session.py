@@ -109,7 +109,7 @@ def test_recorded_mirrored_episodes_follow_their_commands(tmp_path, capsys):
     code = teleop_main(
         ["--task", "pickup_box", "--source", "trace", *MIRRORED, "--quiet",
          "--record", str(root), "--repo-id", "test/day", "--episodes", "3",
-         "--episode-seconds", "4", "--cameras", "none", "--no-keypoints"]
+         "--episode-seconds", "3", "--cameras", "none", "--no-keypoints"]
     )  # fmt: skip
     summary = _summary(capsys)
     assert code == 0
@@ -123,7 +123,7 @@ def test_rx1_recorded_episodes_follow_their_commands(tmp_path, capsys):
         ["--task", "pickup_box", "--embodiment", "rx1", "--source", "trace",
          "--trace", str(RX1_TRACE), *MIRRORED, "--quiet",
          "--record", str(root), "--repo-id", "test/rx1", "--episodes", "2",
-         "--episode-seconds", "4", "--cameras", "none", "--no-keypoints"]
+         "--episode-seconds", "3", "--cameras", "none", "--no-keypoints"]
     )  # fmt: skip
     summary = _summary(capsys)
     assert code == 0
