@@ -528,7 +528,7 @@ def test_recording_while_mirroring_stores_the_measured_hardware_state(tmp_path, 
             "--task", "pickup_box", "--source", "trace", "--no-viser", "--headless", "--quiet",
             "--mirror-hardware", "--hardware-config", "emulated",
             "--record", str(root), "--repo-id", "test/mirrored", "--cameras", "none",
-            "--no-keypoints",
+            "--no-keypoints", "--episode-seconds", "7",  # the grasp closes at 4-5.5 s
         ]
     )  # fmt: skip
     assert code == 0

@@ -42,6 +42,9 @@ ARM_GAP_RAD = 0.5
 HAND_GAP_RAD = 0.8
 #: ... from the commands of the last quarter second (MirrorConfig.device_lag_s) at 30 fps.
 LAG_FRAMES = 8
+#: ``--max-seconds`` of the ``--repeat 3`` session: two whole PickupBox traces (9.0 s each at
+#: 30 Hz) and a third run cut after about half a second.
+REPEAT_SECONDS = 18.5
 
 
 def _summary(capsys) -> dict:
@@ -106,7 +109,7 @@ def test_recorded_mirrored_episodes_follow_their_commands(tmp_path, capsys):
     code = teleop_main(
         ["--task", "pickup_box", "--source", "trace", *MIRRORED, "--quiet",
          "--record", str(root), "--repo-id", "test/day", "--episodes", "3",
-         "--episode-seconds", "4", "--cameras", "none", "--no-keypoints"]
+         "--episode-seconds", "3", "--cameras", "none", "--no-keypoints"]
     )  # fmt: skip
     summary = _summary(capsys)
     assert code == 0
@@ -120,7 +123,7 @@ def test_rx1_recorded_episodes_follow_their_commands(tmp_path, capsys):
         ["--task", "pickup_box", "--embodiment", "rx1", "--source", "trace",
          "--trace", str(RX1_TRACE), *MIRRORED, "--quiet",
          "--record", str(root), "--repo-id", "test/rx1", "--episodes", "2",
-         "--episode-seconds", "4", "--cameras", "none", "--no-keypoints"]
+         "--episode-seconds", "3", "--cameras", "none", "--no-keypoints"]
     )  # fmt: skip
     summary = _summary(capsys)
     assert code == 0
@@ -134,7 +137,7 @@ def test_repeated_session_syncs_every_run_and_reports_them_all(capsys):
     last (which alone read ``success: false``)."""
     code = teleop_main(
         ["--task", "pickup_box", "--source", "trace", *MIRRORED, "--quiet",
-         "--repeat", "3", "--max-seconds", "20"]
+         "--repeat", "3", "--max-seconds", str(REPEAT_SECONDS)]
     )  # fmt: skip
     summary = _summary(capsys)
     assert code == 0
@@ -147,10 +150,10 @@ def test_repeated_session_syncs_every_run_and_reports_them_all(capsys):
     # The last run is the cut-short one the old summary described alone.
     assert runs[-1]["duration_s"] < runs[0]["duration_s"]
     assert summary["duration_s"] == pytest.approx(runs[-1]["duration_s"], abs=1e-3)
-    assert sum(r["duration_s"] for r in runs) == pytest.approx(20.0, abs=0.1)
+    assert sum(r["duration_s"] for r in runs) == pytest.approx(REPEAT_SECONDS, abs=0.1)
     assert summary["failed_devices"] == []
     # The arm was written all session long (on the old code it held from the first reset).
-    assert summary["hardware"]["right_arm"]["commands_sent"] >= 0.8 * 20 * 30
+    assert summary["hardware"]["right_arm"]["commands_sent"] >= 0.8 * REPEAT_SECONDS * 30
 
 
 def test_a_dry_run_reports_no_writes(capsys):

@@ -73,8 +73,9 @@ def _catch_up(
     env, start: np.ndarray, goal: np.ndarray, detour: bool = True
 ) -> tuple[np.ndarray, dict]:
     """The emulated arm holds at ``start`` and the twin stands at ``goal`` (its heartbeats,
-    one control period apart, until the mirror's target reaches it, then 20 more; at most 10
-    straight catch-ups' worth): every arm target the emulator received, and the arm's summary.
+    one control period apart, until the mirror's target reaches it, then 20 more, or until it
+    has held still for a straight catch-up's worth; at most 10 straight catch-ups' worth):
+    every arm target the emulator received, and the arm's summary.
     ``detour=False``: the mirror's planner gets no budget (it finds no way around)."""
     rig = EmulatedRig(env.embodiment, env.joints, q_start=start)
     try:
@@ -96,15 +97,22 @@ def _catch_up(
             mirror.begin_episode(measured, Fixtures.of(env.data))  # this episode's fixtures
             distance = float(np.abs(goal - measured).max())
             ticks = math.ceil(distance / (mirror_config.arm_catch_up_speed * period))
-            after = 20
+            after, still, last = 20, 0, None
             for _ in range(10 * ticks):
                 clock.t += period
                 mirror.submit(goal, goal)
                 time.sleep(period)  # paced like the twin (nothing is counted against it)
-                if np.array_equal(mirror.dispatched.target, goal):
+                target = mirror.dispatched.target
+                if np.array_equal(target, goal):
                     after -= 1
                     if not after:
                         break
+                # Held short: the target has not moved for a whole straight catch-up's time
+                # (the catch-up plans once per goal; held, it holds for good).
+                still = still + 1 if last is not None and np.array_equal(target, last) else 0
+                last = target.copy()
+                if still >= ticks:
+                    break
             summary = mirror.summary()["right_arm"]
         finally:
             mirror.close()

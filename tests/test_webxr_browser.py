@@ -78,6 +78,20 @@ def _target(sess) -> np.ndarray | None:
     return None if T is None else T[:3, 3].copy()
 
 
+def _settled(sess, moved, timeout_s: float = 30.0) -> None:
+    """Wait until ``moved()`` holds and the arm target has stopped moving (the same over two
+    polls 0.2 s apart): the hand's last frames have arrived and been applied."""
+    end = time.monotonic() + timeout_s
+    previous = None
+    while True:
+        now = _target(sess)
+        if previous is not None and np.linalg.norm(now - previous) < 1e-4 and moved():
+            return
+        assert time.monotonic() < end, "the arm target never settled after the hand's move"
+        previous = now
+        time.sleep(0.2)
+
+
 @contextmanager
 def _page():
     """A headless chromium page (640x360) and the list its page errors are collected in."""
@@ -144,15 +158,15 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
             # the hand back brings the target back.
             time.sleep(0.5)
             target0, q0 = _target(sess), sess.loop.twin.action[arm].copy()
-            page.evaluate("window.__moveHand('right', 0, 0.10, 0, 1.5)")
-            time.sleep(2.5)
+            page.evaluate("window.__moveHand('right', 0, 0.10, 0, 1.5)")  # awaits the move
+            _settled(sess, lambda: np.abs(sess.loop.twin.action[arm] - q0).max() > 0.02)
             target1, q1 = _target(sess), sess.loop.twin.action[arm].copy()
             moved = np.linalg.norm(target1 - target0)
             assert 0.07 < moved < 0.12, f"arm target moved {moved:.3f} m for a 0.10 m hand move"
             assert np.abs(q1 - q0).max() > 0.02, "the arm did not follow its target"
             page.screenshot(path=ARTIFACTS / "1_in_session.png")
             page.evaluate("window.__moveHand('right', 0, -0.10, 0, 1.5)")
-            time.sleep(2.5)
+            _settled(sess, lambda: np.linalg.norm(_target(sess) - target1) > 0.05)
             back = np.linalg.norm(_target(sess) - target0)
             assert back < 0.02, f"hand back at the start, target {back:.3f} m from its start"
 
