@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import multiprocessing
 import time
 
 import gymnasium as gym
@@ -776,6 +777,8 @@ def test_cli_refuses_to_start_naming_the_unreachable_device(tmp_path, capsys, mu
     err = capsys.readouterr().err
     assert code == 3
     assert "cannot start mirroring: right_arm" in err and str(port) in err
+    if multiprocess:  # the processes of the failed start are all ended, none left running
+        assert [p.name for p in multiprocessing.active_children()] == []
 
 
 def test_dry_run_connects_and_reads_but_never_writes():

@@ -1417,11 +1417,11 @@ class MultiprocessSession:
             self.processes[name], self.pipes[name] = proc, parent
         for name, pipe in self.pipes.items():
             if not pipe.poll(60.0):
-                self.stop()
+                self._abort_start()
                 raise RuntimeError(f"{name} process did not become ready within 60 s")
             reply = pipe.recv_bytes()
             if reply != b"ready":
-                self.stop()
+                self._abort_start(replied=name)
                 raise MirrorError(reply.decode(errors="replace").removeprefix("error: "))
         self.session_pub.wait_for_subscribers(len(TARGETS), HANDSHAKE_TIMEOUT_S)
         self.send("resume")  # everyone is ready: the operator starts a trace now
@@ -1444,6 +1444,25 @@ class MultiprocessSession:
 
     def dead(self) -> list[str]:
         return [n for n, p in self.processes.items() if not p.is_alive()]
+
+    def _abort_start(self, replied: str = "") -> None:
+        """A start that failed (a process answered an error, or one never became ready): no
+        process has begun the session, so none has a report to give or a command to finish.
+        The one that ``replied`` its error has closed what it opened and is exiting; the
+        others are ended at once (a ``"stop"`` sent now may reach a process that has not
+        subscribed yet, and would be waited for in vain)."""
+        for name, proc in self.processes.items():
+            if name != replied and proc.is_alive():
+                proc.terminate()
+        for name, proc in self.processes.items():
+            proc.join(5.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(1.0)
+            self.exits[name] = proc.exitcode
+        self.session_pub.close()
+        self.state_sub.close()
+        self.context.term()
 
     def stop(self) -> None:
         self.send("stop")
