@@ -18,7 +18,7 @@ import pytest
 
 import beavr_sim  # noqa: F401
 from beavr_sim.headset.webxr_scene import QUANT, TwinGeometry, decode_mesh, encode_mesh
-from beavr_sim.headset.webxr_server import STATIC_DIR, _encode
+from beavr_sim.headset.webxr_server import STATIC_DIR, encode_page_message
 
 #: Poses are sent to 1e-4 (position and rotation entries), vertices to 1/65534 of the box.
 WORLD_TOLERANCE_M = 5e-4
@@ -34,7 +34,7 @@ def scene(request):
     # The page draws the render model (visual meshes) at the physics model's body poses:
     # checked below against MuJoCo's own geom poses in the render model's data.
     geometry = TwinGeometry.from_model(env.render_model)
-    message = json.loads(_encode(geometry.scene_message(env.data, task="Pour")))
+    message = json.loads(encode_page_message(geometry.scene_message(env.data, task="Pour")))
     yield env.render_model, env.render_data(), geometry, message
     env.close()
 
