@@ -468,7 +468,10 @@ def next_page_message(ws, kind: str, deadline: float) -> dict:
     import json
 
     while (remaining := deadline - time.monotonic()) > 0:
-        message = json.loads(ws.recv(timeout=remaining))
+        try:
+            message = json.loads(ws.recv(timeout=remaining))
+        except TimeoutError:
+            break
         if message["type"] == kind:
             return message
     raise AssertionError(f"no {kind!r} message came to the page")
