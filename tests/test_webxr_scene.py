@@ -204,8 +204,9 @@ class _Page:
 def test_the_twin_carried_between_processes_reaches_the_page_as_one_process_sends_it():
     """``--multiprocess``: the twin process's feed and the operator's relay give the page the
     same ``scene`` and ``twin`` messages as one process's ``TwinFeed`` (the status from the
-    operator's pause and commands), at the same rate, never a pose before the scene; the wire
-    refuses a pose that is no whole number of geoms or not finite."""
+    operator's pause and commands), at the same rate, never a pose before the scene; a scene
+    that is no JSON is dropped and counted; the wire refuses a pose that is no whole number of
+    geoms or not finite."""
     from types import SimpleNamespace
 
     import zmq
@@ -218,7 +219,7 @@ def test_the_twin_carried_between_processes_reaches_the_page_as_one_process_send
         TwinPageFeed,
         TwinPageStream,
     )
-    from beavr_sim.wire.messages import TwinPosesMsg
+    from beavr_sim.wire.messages import TwinPosesMsg, TwinSceneMsg
     from beavr_sim.wire.ports import PortConfig, TransportConfig
     from beavr_sim.wire.records import JointCommand, Tick, TwinState
     from beavr_sim.wire.transport import Publisher
@@ -257,8 +258,10 @@ def test_the_twin_carried_between_processes_reaches_the_page_as_one_process_send
                 assert socket.poll(10_000, zmq.POLLIN), "nothing arrived"
             relay.relay()
 
+        publisher.send(SCENE_TOPIC, TwinSceneMsg(message="{not json"))
         publisher.send(POSES_TOPIC, poses)
-        relay_when_arrived(relay.poses.socket)
+        relay_when_arrived(relay.scene.socket, relay.poses.socket)
+        assert relay.bad_scenes == 1  # dropped, counted, never raised
         assert page.published == []  # no pose before the scene
         publisher.send(SCENE_TOPIC, feed.scene)
         publisher.send(POSES_TOPIC, poses)

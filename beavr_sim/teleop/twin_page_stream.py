@@ -13,8 +13,8 @@ holds: :func:`~beavr_sim.headset.webxr_scene.page_status`).
 
 Contract: :class:`TwinPageStream` is frozen (passed whole to the spawned twin); the feed never
 raises into the step (a stage hook), copies a few hundred numbers per due step and encodes the
-scene once; the relay never blocks (the page server's thread sends) and sends no pose before
-the scene.
+scene once; the relay never blocks (the page server's thread sends), never raises (a scene
+that is no page ``scene`` message is dropped and counted) and sends no pose before the scene.
 """
 
 from __future__ import annotations
@@ -90,6 +90,8 @@ class PageTwinRelay:
         self.commands: dict[str, JointCommand] = {}
         self.scene_sent = False
         self.poses_sent = 0
+        #: Scene messages that were no page ``scene`` message (not JSON, another type).
+        self.bad_scenes = 0
 
     @property
     def sockets(self) -> tuple[zmq.Socket, ...]:
@@ -102,8 +104,17 @@ class PageTwinRelay:
     def relay(self) -> None:
         """Hand what arrived to the page server (never blocks)."""
         scene = self.scene.recv(0.0)
+        message = None
         if scene is not None:
-            self.server.publish("scene", json.loads(scene.message))
+            try:
+                message = json.loads(scene.message)
+            except ValueError:
+                pass
+            if not isinstance(message, dict) or message.get("type") != "scene":
+                self.bad_scenes += 1  # dropped, never handed to the page
+                message = None
+        if message is not None:
+            self.server.publish("scene", message)
             self.scene_sent = True
         poses = self.poses.recv_latest(0.0)
         if poses is not None and self.scene_sent:
