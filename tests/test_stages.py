@@ -495,6 +495,7 @@ def test_a_webxr_page_drives_a_multiprocess_session_sees_its_twin_and_its_pinch_
         task="PickupBox",
         embodiment="rx1",
         source="webxr",
+        seed=0,  # the twin's reset once the rig is in sync places the box where it was
         viser=False,
         headless=False,
         progress=False,
@@ -527,7 +528,6 @@ def test_a_webxr_page_drives_a_multiprocess_session_sees_its_twin_and_its_pinch_
                     moved = rest
                     while np.abs(np.subtract(moved["pose"], rest["pose"])).max() < 0.01:
                         moved = next_page_message(ws, "twin", deadline)
-                    assert moved["t"] > rest["t"]
             while time.monotonic() < deadline:  # the twin's states say when it latched
                 state = session.state_sub.recv_latest(0.5)
                 if state is not None and state.paused:
@@ -540,5 +540,6 @@ def test_a_webxr_page_drives_a_multiprocess_session_sees_its_twin_and_its_pinch_
         session.stop()
     op, twin = session.results["operator"], session.results["twin"]
     assert op["detector"]["frames_received"] == 80 and op["estop_events"] == 1
+    assert op["page_twin"]["poses_sent"] > 0 and op["page_twin"]["bad_scenes"] == 0
     for name, device in twin["hardware"].items():
         assert "headset gesture" in device["holding"], (name, device)

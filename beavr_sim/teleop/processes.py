@@ -637,6 +637,12 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     "clock_commands": clock_commands,
                     "estop_events": estop_events,
                     "record_events": record_events,
+                    # the twin drawn on the page: poses handed to it, scenes dropped as bad
+                    "page_twin": (
+                        {"poses_sent": relay.poses_sent, "bad_scenes": relay.bad_scenes}
+                        if relay is not None
+                        else {}
+                    ),
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
