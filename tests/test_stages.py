@@ -289,8 +289,6 @@ def refusals(source, clock, feature, multiprocess) -> tuple[str, ...]:
         reasons.append("recorded source")
     if feature == "repeat" and source != "trace":
         reasons.append("--source trace")
-    if multiprocess and source == "webxr" and feature == "headset_images":
-        reasons.append("--headless")
     return tuple(reasons)
 
 
@@ -332,6 +330,13 @@ def test_every_source_clock_and_feature_works_in_both_layouts_or_is_refused(mult
             "view": (twin.view is not None) == (feature in ("view", "estop_inputs")),
             "headset_images": (twin.headset_images is not None)
             == (feature == "headset_images" and source == "quest"),
+            "page_twin": op.page_twin
+            == (twin.page_twin is not None)
+            == (feature == "headset_images" and source == "webxr")
+            and (
+                twin.page_twin is None
+                or twin.page_twin.rate_hz == options.webxr_config().twin_rate_hz
+            ),
             "control_rate": op.stage.control_hz == twin.control_hz,
             "record": (twin.recording is not None) == (feature in ("record", "camera"))
             and (twin.recording is None or twin.recording.auto_start == options.auto_start),
@@ -458,12 +463,26 @@ def test_the_twin_stage_counts_latency_per_command_and_isolates_its_hooks():
 
 
 # ------------------------------------------------------------------ WebXR across processes
-def test_a_webxr_page_drives_a_multiprocess_session_and_its_pinch_latches_every_device():
-    """--source webxr --multiprocess (main refused it): the operator process hosts the page
-    server; a raw WebSocket client sends both hands, then both pinch: every emulated device
-    latches the e-stop (the twin's state says the operator holds)."""
+def next_page_message(ws, kind: str, deadline: float) -> dict:
+    """The next message of ``kind`` the page gets (others skipped), before ``deadline``."""
     import json
 
+    while (remaining := deadline - time.monotonic()) > 0:
+        try:
+            message = json.loads(ws.recv(timeout=remaining))
+        except TimeoutError:
+            break
+        if message["type"] == kind:
+            return message
+    raise AssertionError(f"no {kind!r} message came to the page")
+
+
+def test_a_webxr_page_drives_a_multiprocess_session_sees_its_twin_and_its_pinch_latches_every_device():
+    """--source webxr --multiprocess without --headless (main refused both): the operator
+    process hosts the page server; a raw WebSocket client gets the twin's scene and poses
+    from the twin process, sends both hands moving (the poses follow the twin), then both
+    pinch: every emulated device latches the e-stop (the twin's state, and the page's twin
+    message, say the operator holds paused)."""
     from websockets.sync.client import connect
 
     from beavr_sim.headset.layouts import LAYOUTS
@@ -476,8 +495,9 @@ def test_a_webxr_page_drives_a_multiprocess_session_and_its_pinch_latches_every_
         task="PickupBox",
         embodiment="rx1",
         source="webxr",
+        seed=0,  # the twin's reset once the rig is in sync places the box where it was
         viser=False,
-        headless=True,
+        headless=False,
         progress=False,
         multiprocess=True,
         mirror_hardware=True,
@@ -486,28 +506,40 @@ def test_a_webxr_page_drives_a_multiprocess_session_and_its_pinch_latches_every_
     )
     rng = np.random.default_rng(0)
     canonical = np.array([0.3, 0.0, 1.1]) + rng.uniform(-0.09, 0.09, size=(N_JOINTS, 3))
-    hand = LAYOUTS["webxr25"].from_canonical(canonical)
     session = MultiprocessSession(options)
     session.start()  # returns once both processes are ready: the page server is up
     try:
         url = f"ws://127.0.0.1:{options.webxr_config().port}/ws"
         t_ms = 1.7e12
+        deadline = time.monotonic() + 120.0
         with connect(url) as ws:
-            assert json.loads(ws.recv())["type"] == "welcome"
-            for i in range(40):
+            assert next_page_message(ws, "welcome", deadline)["server"] == "beavr_sim"
+            scene = next_page_message(ws, "scene", deadline)
+            assert scene["embodiment"] == "rx1" and scene["meshes"]
+            rest = next_page_message(ws, "twin", deadline)
+            assert len(rest["pose"]) == 12 * len(scene["dynamic"]) and not rest["paused"]
+            for i in range(40):  # 20 frames moving the hands 8 cm forward, then both pinch
+                shift = np.array([0.004 * min(i, 20), 0.0, 0.0])
+                hand = LAYOUTS["webxr25"].from_canonical(canonical + shift)
                 pinch = {"left": i >= 20, "right": i >= 20}
                 hands = {"left": hand, "right": hand}
                 ws.send(encode_hands(t_ms + 33 * i, hands, seq=i, pinch=pinch))
-            deadline = time.monotonic() + 120.0
+                if i == 19:  # the page's poses follow the twin's motion
+                    moved = rest
+                    while np.abs(np.subtract(moved["pose"], rest["pose"])).max() < 0.01:
+                        moved = next_page_message(ws, "twin", deadline)
             while time.monotonic() < deadline:  # the twin's states say when it latched
                 state = session.state_sub.recv_latest(0.5)
                 if state is not None and state.paused:
                     break
             else:
                 raise AssertionError("the mirror never latched its e-stop")
+            while not next_page_message(ws, "twin", deadline)["paused"]:
+                pass  # the page's twin says the operator holds paused
     finally:
         session.stop()
     op, twin = session.results["operator"], session.results["twin"]
     assert op["detector"]["frames_received"] == 80 and op["estop_events"] == 1
+    assert op["page_twin"]["poses_sent"] > 0 and op["page_twin"]["bad_scenes"] == 0
     for name, device in twin["hardware"].items():
         assert "headset gesture" in device["holding"], (name, device)

@@ -1,7 +1,9 @@
 """The twin's meshes on the WebXR page: each distinct mesh of the compiled model sent once in the
 ``scene`` message (quantised vertices, faces), with the counts of the model's mesh, decoding to
 the model's vertices where the geom is in the world; the page's decoder (``twin_gl.js``, run
-with node) reads the same vertices and triangles and refuses a damaged payload, saying why."""
+with node) reads the same vertices and triangles and refuses a damaged payload, saying why.
+Under ``--multiprocess`` the scene and poses the twin process sends reach the page as one
+process sends them."""
 
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import pytest
 
 import beavr_sim  # noqa: F401
 from beavr_sim.headset.webxr_scene import QUANT, TwinGeometry, decode_mesh, encode_mesh
-from beavr_sim.headset.webxr_server import STATIC_DIR, _encode
+from beavr_sim.headset.webxr_server import STATIC_DIR, encode_page_message
 
 #: Poses are sent to 1e-4 (position and rotation entries), vertices to 1/65534 of the box.
 WORLD_TOLERANCE_M = 5e-4
@@ -34,7 +36,7 @@ def scene(request):
     # The page draws the render model (visual meshes) at the physics model's body poses:
     # checked below against MuJoCo's own geom poses in the render model's data.
     geometry = TwinGeometry.from_model(env.render_model)
-    message = json.loads(_encode(geometry.scene_message(env.data, task="Pour")))
+    message = json.loads(encode_page_message(geometry.scene_message(env.data, task="Pour")))
     yield env.render_model, env.render_data(), geometry, message
     env.close()
 
@@ -187,3 +189,92 @@ def test_the_pages_decoder_reads_the_same_triangles_and_refuses_damaged_ones(sce
     assert all("error" in r for r in bad), bad
     assert "bytes for" in bad[0]["error"] and "vertex" in bad[1]["error"]
     assert "counts" in bad[2]["error"]
+
+
+class _Page:
+    """A page server that keeps what it is given to publish, as the page would read it."""
+
+    def __init__(self) -> None:
+        self.published: list[tuple[str, dict]] = []
+
+    def publish(self, kind: str, message: dict) -> None:
+        self.published.append((kind, json.loads(encode_page_message(message))))
+
+
+def test_the_twin_carried_between_processes_reaches_the_page_as_one_process_sends_it():
+    """``--multiprocess``: the twin process's feed and the operator's relay give the page the
+    same ``scene`` and ``twin`` messages as one process's ``TwinFeed`` (the status from the
+    operator's pause and commands), at the same rate, never a pose before the scene; a scene
+    that is no JSON is dropped and counted; the wire refuses a pose that is no whole number of
+    geoms or not finite."""
+    from types import SimpleNamespace
+
+    import zmq
+
+    from beavr_sim.headset.webxr_scene import TwinFeed
+    from beavr_sim.teleop.twin_page_stream import (
+        POSES_TOPIC,
+        SCENE_TOPIC,
+        PageTwinRelay,
+        TwinPageFeed,
+        TwinPageStream,
+    )
+    from beavr_sim.wire.messages import TwinPosesMsg, TwinSceneMsg
+    from beavr_sim.wire.ports import PortConfig, TransportConfig
+    from beavr_sim.wire.records import JointCommand, Tick, TwinState
+    from beavr_sim.wire.transport import Publisher
+
+    env = gym.make("beavr_sim/PickupBox-v0", embodiment="rx1").unwrapped
+    env.reset(seed=0)
+    home = env.agent_pos
+    env.step(home + np.random.default_rng(0).normal(0, 0.1, home.shape).astype(np.float32))
+    operator = SimpleNamespace(paused=True)
+    names = [e.name for e in env.embodiment.effectors]
+    commands = {n: JointCommand(n, np.zeros(1), 0.0, 0.0) for n in names}
+    commands[names[0]] = JointCommand(names[0], np.zeros(1), 0.0, 0.0, True, "ik_infeasible")
+    q = env.agent_pos
+    state = TwinState(1.25, q, q, q, False, False, False, False)
+    info = {"task": env.task.name, "embodiment": env.embodiment.name}
+    one = _Page()
+    TwinFeed(one, env.render_model, env.data, 15.0, operator, info, clock=lambda: 0.0)(
+        Tick(1.25, (), commands, state)
+    )
+    feed = TwinPageFeed(env, TwinPageStream(15.0), clock=lambda: 0.0)
+    feed(state)
+    poses = feed.take()
+    feed(state)  # not due again within the period: nothing new
+    assert poses is not None and feed.take() is None
+    context = zmq.Context()
+    transport = TransportConfig(ports=PortConfig.free())
+    publisher = Publisher(context, transport.endpoint("robot_state", bind=True))
+    page = _Page()
+    relay = PageTwinRelay(context, transport, page, operator)
+    try:
+        relay.note(commands)
+        assert publisher.wait_for_subscribers(2, 10.0)
+
+        def relay_when_arrived(*sockets) -> None:
+            for socket in sockets:
+                assert socket.poll(10_000, zmq.POLLIN), "nothing arrived"
+            relay.relay()
+
+        publisher.send(SCENE_TOPIC, TwinSceneMsg(message="{not json"))
+        publisher.send(POSES_TOPIC, poses)
+        relay_when_arrived(relay.scene.socket, relay.poses.socket)
+        assert relay.bad_scenes == 1  # dropped, counted, never raised
+        assert page.published == []  # no pose before the scene
+        publisher.send(SCENE_TOPIC, feed.scene)
+        publisher.send(POSES_TOPIC, poses)
+        relay_when_arrived(relay.scene.socket, relay.poses.socket)
+    finally:
+        relay.close()
+        publisher.close()
+        context.term()
+        env.close()
+    assert [kind for kind, _ in page.published] == ["scene", "twin"]
+    assert page.published == one.published
+    assert one.published[1][1]["paused"] is True
+    assert one.published[1][1]["holds"] == {names[0]: "ik_infeasible"}
+    for bad in ([0.0] * 11, [float("nan")] * 12):
+        with pytest.raises(ValueError, match="pose"):
+            TwinPosesMsg(t=0.0, pose=bad)

@@ -18,15 +18,16 @@ the world frame (Z up): position, then ``R_world_geom`` row by row.
 from __future__ import annotations
 
 import base64
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
 from beavr_sim.headset.webxr_protocol import PROTOCOL_VERSION
-from beavr_sim.wire.records import Tick
+from beavr_sim.wire.records import JointCommand, Tick
 
 SHAPES = {
     int(mujoco.mjtGeom.mjGEOM_BOX): "box",
@@ -191,14 +192,44 @@ class TwinGeometry:
             "meshes": list(self.meshes),
         }
 
+    def moving_poses(self, data: mujoco.MjData) -> np.ndarray:
+        """The ``twin`` message's ``pose``: the moving geoms' poses, rounded, flat."""
+        return np.round(self.poses(data, self.dynamic), DECIMALS).ravel()
+
     def twin_message(self, data: mujoco.MjData, t: float, **status: object) -> dict:
-        return {
-            "v": PROTOCOL_VERSION,
-            "type": "twin",
-            "t": round(float(t), 4),
-            "pose": np.round(self.poses(data, self.dynamic), DECIMALS).ravel(),
-            **status,
-        }
+        return twin_message(t, self.moving_poses(data), **status)
+
+
+def twin_message(t: float, pose: np.ndarray | list[float], **status: object) -> dict:
+    """The ``twin`` message: the moving geoms' poses (:meth:`TwinGeometry.moving_poses`) at
+    twin time ``t``, with ``status`` (:func:`page_status`)."""
+    return {"v": PROTOCOL_VERSION, "type": "twin", "t": round(float(t), 4), "pose": pose, **status}
+
+
+def page_status(commands: Mapping[str, JointCommand], paused: bool) -> dict:
+    """The ``twin`` message's status: whether the operator holds paused and why each
+    effector of ``commands`` (the newest per effector) holds."""
+    holds = {name: cmd.reason or "hold" for name, cmd in commands.items() if cmd.hold}
+    return {"paused": bool(paused), "holds": holds}
+
+
+class RateGate:
+    """At most ``rate_hz`` openings per second of ``clock``: :meth:`due` is true once per
+    period (a late call moves the next opening on; no catch-up)."""
+
+    def __init__(self, rate_hz: float, clock: Callable[[], float] = time.monotonic):
+        if not rate_hz > 0:
+            raise ValueError(f"rate_hz must be positive, got {rate_hz!r}")
+        self.period_s = 1.0 / rate_hz
+        self.clock = clock
+        self._next = -math.inf
+
+    def due(self) -> bool:
+        now = self.clock()
+        if now < self._next:
+            return False
+        self._next = now + self.period_s
+        return True
 
 
 def _add_mesh(
@@ -237,23 +268,16 @@ class TwinFeed:
         info: dict | None = None,
         clock: Callable[[], float] = time.monotonic,
     ):
-        if not rate_hz > 0:
-            raise ValueError(f"rate_hz must be positive, got {rate_hz!r}")
+        self.gate = RateGate(rate_hz, clock)
         self.server = server
         self.data = data
-        self.period_s = 1.0 / rate_hz
         self.operator = operator
         self.geometry = TwinGeometry.from_model(model)
-        self.clock = clock
-        self._next = 0.0
         server.publish("scene", self.geometry.scene_message(data, **(info or {})))
 
     def __call__(self, tick: Tick) -> None:
-        now = self.clock()
-        if now < self._next:
+        if not self.gate.due():
             return
-        self._next = now + self.period_s
-        holds = {name: cmd.reason or "hold" for name, cmd in tick.commands.items() if cmd.hold}
         paused = bool(self.operator.paused) if self.operator is not None else False
-        message = self.geometry.twin_message(self.data, tick.state.t, paused=paused, holds=holds)
-        self.server.publish("twin", message)
+        status = page_status(tick.commands, paused)
+        self.server.publish("twin", self.geometry.twin_message(self.data, tick.state.t, **status))

@@ -156,7 +156,9 @@ def _load_static() -> dict[str, tuple[bytes, str]]:
     return files
 
 
-def _encode(obj: object) -> str:
+def encode_page_message(obj: object) -> str:
+    """A page message as JSON text (numpy arrays as lists)."""
+
     def enc_hook(o: object) -> object:
         if isinstance(o, np.ndarray):
             return o.tolist()
@@ -393,7 +395,7 @@ class WebXRServer:
         self._connections.add(ws)
         self.stats.connections += 1
         try:
-            await ws.send(_encode(self._welcome))
+            await ws.send(encode_page_message(self._welcome))
             for kind in ("scene", "twin"):
                 if kind in self._latest:
                     await ws.send(self._latest[kind])
@@ -437,7 +439,7 @@ class WebXRServer:
     def _send_all(self, kind: str, message: dict) -> None:
         from websockets.asyncio.server import broadcast
 
-        text = _encode(message)
+        text = encode_page_message(message)
         self._latest[kind] = text
         ready = []
         for ws in self._connections:

@@ -8,6 +8,7 @@ The same components as the single-process loop (``pipeline.py``), connected by t
     twin      --robot_state (RobotStateMsg, every tick: its heartbeat)-->  operator, supervisor
     supervisor --session (SessionMsg)-->  operator, twin
     twin      --camera panels (CameraPanelMsg, --camera-stream-hz, WebXR)-->  operator
+    twin      --the page's twin (TwinSceneMsg once, TwinPosesMsg; WebXR, not headless)-->  operator
 
 The pipeline is event-driven: nothing waits for a fixed clock on the way from a hand frame to
 the actuators. The operator process owns the headset's sockets (``headset/``: parse, validate,
@@ -59,7 +60,9 @@ commands ``record_*``), the browser view's buttons, the operator's record gestur
 next to the recorder and streamed from there (``--camera-stream-hz``:
 :mod:`beavr_sim.teleop.twin_camera_stream`), its env places ``--camera-poses``' cameras, and
 ``--rerun`` logs from a hook of its stage (:mod:`beavr_sim.teleop.twin_rerun`). A single real-time run without recording
-is ended by the supervisor (success, ``--max-seconds``).
+is ended by the supervisor (success, ``--max-seconds``). The WebXR page draws the twin from
+its scene and poses sent by the twin process to the operator's page server
+(:mod:`beavr_sim.teleop.twin_page_stream`).
 
 Resets are numbered (epochs): the twin stamps every state with its epoch and drops commands
 of an older one; the operator re-homes from the first state of a newer epoch only, and after
@@ -137,6 +140,13 @@ from beavr_sim.teleop.twin_camera_stream import (
     PagePanels,
     TwinCameraStream,
     attach_camera_stream,
+)
+from beavr_sim.teleop.twin_page_stream import (
+    POSES_TOPIC,
+    SCENE_TOPIC,
+    PageTwinRelay,
+    TwinPageFeed,
+    TwinPageStream,
 )
 from beavr_sim.teleop.twin_rerun import TwinRerun, attach_rerun
 from beavr_sim.teleop.twin_runs import TwinRecording, TwinRuns, connect_real_cameras
@@ -244,6 +254,8 @@ class OperatorProcessConfig:
     records: bool = False
     #: ``--camera-stream-hz`` with the WebXR page: the twin's panels to the page server.
     camera_panels: bool = False
+    #: ``--source webxr`` without ``--headless``: the twin's scene and poses to the page server.
+    page_twin: bool = False
 
 
 @dataclass(frozen=True)
@@ -286,6 +298,8 @@ class TwinProcessConfig:
     headset_images: HeadsetImagesConfig | None = None
     #: ``--camera-stream-hz``: the camera panels streamed from this process (None: off).
     camera_stream: TwinCameraStream | None = None
+    #: ``--source webxr`` without ``--headless``: the twin drawn on the operator's page.
+    page_twin: TwinPageStream | None = None
     attach: tuple[Attachment, ...] = ()
 
     @property
@@ -422,6 +436,9 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             conflate=False,
             rcvhwm=8,
         )
+    relay = None
+    if config.page_twin:  # the twin drawn on the page served here
+        relay = PageTwinRelay(context, transport, source.server, operator)
     commands = Publisher(context, transport.endpoint("commands", bind=True))
     # the twin's command subscribers, its operator-event subscriber (and its keypoints one)
     commands.wait_for_subscribers(
@@ -442,6 +459,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         state.socket,
         session.socket,
         *([panels.socket] if panels is not None else []),
+        *(relay.sockets if relay is not None else ()),
     ):
         poller.register(socket, zmq.POLLIN)
     overruns = 0
@@ -456,6 +474,8 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         stage.set_paused(session_paused or view_paused)
 
     def send(out: dict[str, JointCommand], now: float, **lockstep) -> None:
+        if relay is not None:
+            relay.note(out)
         for name, cmd in out.items():
             commands.send(name.encode(), command_to_wire(cmd, now, rehome.epoch, **lockstep))
 
@@ -568,6 +588,8 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
             while panel is not None:  # to the page (never blocks: its server's thread sends)
                 source.server.publish(panel.kind, json.loads(panel.message))
                 panel = panels.recv(0.0)
+            if relay is not None:
+                relay.relay()
             latest = state.recv_latest(0.0)
             if latest is not None:
                 take_state(latest)
@@ -615,6 +637,12 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     "clock_commands": clock_commands,
                     "estop_events": estop_events,
                     "record_events": record_events,
+                    # the twin drawn on the page: poses handed to it, scenes dropped as bad
+                    "page_twin": (
+                        {"poses_sent": relay.poses_sent, "bad_scenes": relay.bad_scenes}
+                        if relay is not None
+                        else {}
+                    ),
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
@@ -633,6 +661,8 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         source.close()
         for s in (state, session, commands, *([panels] if panels is not None else [])):
             s.close()
+        if relay is not None:
+            relay.close()
         context.term()
 
 
@@ -890,9 +920,16 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     state_pub = Publisher(context, transport.endpoint("robot_state", bind=True))
-    # operator + supervisor (+ the operator's page panels)
+    page_twin = None
+    if config.page_twin is not None:  # the twin drawn on the operator's page
+        page_twin = TwinPageFeed(env, config.page_twin)
+        stage.after_step.append(page_twin)
+    # operator + supervisor (+ the operator's page panels, its page's scene and poses)
     page = config.camera_stream is not None and config.camera_stream.page
-    state_pub.wait_for_subscribers(2 + int(page), HANDSHAKE_TIMEOUT_S)
+    subscribers = 2 + int(page) + 2 * int(page_twin is not None)
+    state_pub.wait_for_subscribers(subscribers, HANDSHAKE_TIMEOUT_S)
+    if page_twin is not None:
+        state_pub.send(SCENE_TOPIC, page_twin.scene)
     view = None
     if config.view is not None:
         joints = env.joints
@@ -1026,6 +1063,9 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         state_pub.send(b"state", msg)
         for panel in page_panels.take() if page_panels is not None else ():
             state_pub.send(PANEL_TOPIC, panel)
+        poses = page_twin.take() if page_twin is not None else None
+        if poses is not None:
+            state_pub.send(POSES_TOPIC, poses)
 
     def take_keypoints() -> None:
         """The operator's keypoints: real time, this epoch's (for the next recorded step);
@@ -1678,6 +1718,11 @@ def process_configs(
             if options.camera_stream_hz > 0
             else None
         ),
+        page_twin=(
+            TwinPageStream(options.webxr_config().twin_rate_hz)
+            if options.source == "webxr" and not options.headless
+            else None
+        ),
         attach=tuple(attach),
     )
     return (
@@ -1686,6 +1731,7 @@ def process_configs(
             keypoints=twin.wants_keypoints,
             records=twin.recording is not None,
             camera_panels=twin.camera_stream is not None and twin.camera_stream.page,
+            page_twin=twin.page_twin is not None,
         ),
         twin,
     )

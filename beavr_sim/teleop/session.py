@@ -222,11 +222,6 @@ class SessionOptions:
             raise ValueError("--trace needs --source trace")
         if self.source == "webxr":
             self.webxr_config()  # raises on a bad host or port
-            if self.multiprocess and not self.headless:
-                raise ValueError(
-                    "--source webxr --multiprocess: the twin drawn on the page needs the twin "
-                    "in the page server's process; add --headless or leave out --multiprocess"
-                )
         if self.mirror_hardware:
             if self.clock == "virtual":
                 raise ValueError(

@@ -331,6 +331,46 @@ class CameraPanelMsg(msgspec.Struct, tag="camera_panel", kw_only=True, frozen=Tr
             )
 
 
+#: The longest twin scene carried (characters: the WebXR page's ``scene`` message as JSON, its
+#: meshes in base64; a two-arm scene is ~0.3 MB).
+MAX_SCENE_CHARS = 32_000_000
+#: The most numbers a :class:`TwinPosesMsg` carries (12 per moving geom).
+MAX_POSE_NUMBERS = 12 * 100_000
+
+
+class TwinSceneMsg(msgspec.Struct, tag="twin_scene", kw_only=True, frozen=True):
+    """The twin's scene as the WebXR page draws it (twin -> operator, whose process hosts the
+    page's server; sent once): ``message``, the page's ``scene`` message as JSON text."""
+
+    message: str
+
+    def __post_init__(self) -> None:
+        if len(self.message) > MAX_SCENE_CHARS:
+            raise ValueError(
+                f"a twin scene message has at most {MAX_SCENE_CHARS} characters, got "
+                f"{len(self.message)}"
+            )
+
+
+class TwinPosesMsg(msgspec.Struct, tag="twin_poses", kw_only=True, frozen=True):
+    """The twin's moving geoms for the WebXR page (twin -> operator, at the page's twin rate,
+    newest only): ``t``, twin time (s); ``pose``, 12 numbers per moving geom of the scene
+    (position, then ``R_world_geom`` row by row)."""
+
+    t: float
+    pose: list[float]
+
+    def __post_init__(self) -> None:
+        _coerce(self, ("t",), ("pose",))
+        _check_finite("t", self.t)
+        if len(self.pose) % 12 or len(self.pose) > MAX_POSE_NUMBERS:
+            raise ValueError(
+                f"pose must hold 12 numbers per geom, at most {MAX_POSE_NUMBERS}, got "
+                f"{len(self.pose)}"
+            )
+        _check_finite("pose", self.pose)
+
+
 Message = (
     HandFrameMsg
     | JointCommandMsg
@@ -339,6 +379,8 @@ Message = (
     | OperatorEventMsg
     | HandKeypointsMsg
     | CameraPanelMsg
+    | TwinSceneMsg
+    | TwinPosesMsg
 )
 MESSAGE_TYPES: tuple[type, ...] = (
     HandFrameMsg,
@@ -348,6 +390,8 @@ MESSAGE_TYPES: tuple[type, ...] = (
     SessionMsg,
     OperatorEventMsg,
     CameraPanelMsg,
+    TwinSceneMsg,
+    TwinPosesMsg,
 )
 
 
