@@ -55,8 +55,11 @@ class FakeMirror:
     polls: int = 0
     estopped: bool = False
 
+    fixtures: list = field(default_factory=list)
+
     def begin_episode(self, q_start, fixtures=None) -> None:
         self.begun.append(np.array(q_start))
+        self.fixtures.append(fixtures)
         self.polls = 0
 
     def in_sync(self) -> bool:
@@ -142,6 +145,25 @@ def test_sync_ticks_without_consuming_the_trace_then_resets(loop):
     assert not loop.operator.paused and sync.synced == 1
     summary = loop.run(max_seconds=1.0, stop_on_success=False)
     assert summary.frames_received > 0  # the trace plays from its start
+
+
+def test_an_unseeded_episode_keeps_its_layout_through_the_sync(loop):
+    """A session without a seed (a live headset's): the episode the rig syncs to and the one
+    it then plays are the same layout, so the mirror's guard was given this episode's
+    fixtures (before: the reset after the sync drew a new layout, the fixture up to 28 cm
+    from where the guard had it)."""
+    mirror = FakeMirror(sync_after=3)
+    sync = HardwareSync(loop, mirror, ProgressLine(loop, enabled=False), timeout_s=60)
+    loop.listeners.append(sync)
+    data = loop.twin.env.data
+    for _ in range(3):
+        loop.reset(None)
+        assert isinstance(loop.seed, int)
+        at_sync_start = data.mocap_pos.copy()
+        assert sync.run() == ""
+        np.testing.assert_array_equal(mirror.fixtures[-1].mocap_pos, at_sync_start)
+        np.testing.assert_array_equal(data.mocap_pos, at_sync_start)  # the episode's layout
+    assert len({tuple(f.mocap_pos.ravel()) for f in mirror.fixtures}) > 1  # drawn per reset
 
 
 def test_sync_times_out_or_ends_on_a_failed_device(loop):

@@ -133,6 +133,14 @@ class TickSchedule:
 _EMPTY = object()
 
 
+def concrete_seed(seed: int | None) -> int:
+    """``seed``, or one drawn now where none is given. An episode's layout is always some
+    seed's, so resetting to the episode's start again (after the rig's sync, a browser Reset)
+    replays the same layout: the fixtures the mirror's guard was given at the sync's start
+    are where the episode has them."""
+    return int(np.random.SeedSequence().entropy % (1 << 31)) if seed is None else int(seed)
+
+
 class LatencyLog:
     """Per-command latencies (ms) in bounded memory, read like the list they replace.
 
@@ -570,7 +578,9 @@ class TeleopLoop:
     # ------------------------------------------------------------------ control
     def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> None:
         """Reset the twin (new episode; the robot at ``robot_qpos`` or home) and re-home the
-        operator from the measured joints."""
+        operator from the measured joints. No ``seed``: one is drawn (:func:`concrete_seed`)
+        and kept in :attr:`seed`, so ``reset(loop.seed)`` replays this layout."""
+        seed = concrete_seed(seed)
         self.seed = seed
         self.resets += 1
         q = self.twin.reset(seed, robot_qpos)

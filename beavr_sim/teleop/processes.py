@@ -132,6 +132,7 @@ from beavr_sim.teleop.pipeline import (
     ThreadedListener,
     TickSchedule,
     _percentiles,
+    concrete_seed,
 )
 from beavr_sim.teleop.runs import RunPlan
 from beavr_sim.teleop.stages import OperatorConfig, OperatorStage, TwinStage, count_hold
@@ -838,7 +839,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     twin = TwinInterface(env)
     stage = TwinStage(twin, latencies=LatencyLog())
     #: The seed of the episode (a reset from the supervisor or the browser replays it).
-    episode_seed = config.seed
+    episode_seed = concrete_seed(config.seed)
     positions = twin.reset(episode_seed)  # the twin's measured joints after its last step
     mirror = None
     sync = None
@@ -1188,7 +1189,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         rig is there."""
         nonlocal positions, epoch, fixtures, done, new_run_due, episode_seed
         done, new_run_due = False, True
-        episode_seed = runs.next_seed()
+        episode_seed = concrete_seed(runs.next_seed())
         positions = twin.reset(episode_seed)
         epoch += 1
         fixtures = fixtures_to_wire(env)
