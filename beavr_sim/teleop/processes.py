@@ -428,6 +428,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
         context, transport.endpoint("session", bind=False), b"session", SessionMsg, conflate=False
     )
     panels = None
+    bad_panels = 0  # camera panels that were no JSON object: dropped
     if config.camera_panels:  # the twin's camera panels, for the page server hosted here
         panels = Subscriber(
             context,
@@ -587,7 +588,14 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                     rehome.expect(msg.epoch)
             panel = panels.recv(0.0) if panels is not None else None
             while panel is not None:  # to the page (never blocks: its server's thread sends)
-                source.server.publish(panel.kind, json.loads(panel.message))
+                try:
+                    message = json.loads(panel.message)
+                except ValueError:
+                    message = None
+                if isinstance(message, dict):
+                    source.server.publish(panel.kind, message)
+                else:
+                    bad_panels += 1  # dropped and counted, never raised in this loop
                 panel = panels.recv(0.0)
             if relay is not None:
                 relay.relay()
@@ -644,6 +652,7 @@ def operator_main(config: OperatorProcessConfig, transport: TransportConfig, con
                         if relay is not None
                         else {}
                     ),
+                    "bad_camera_panels": bad_panels,
                     "detector": {
                         "frames_received": received,
                         "frames_rejected": validator.rejected,
