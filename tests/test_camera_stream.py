@@ -339,9 +339,10 @@ def test_the_twin_process_streams_its_renders_to_the_view_from_its_steps():
     """--camera-stream-hz --multiprocess (main refused it): the twin process's stream (as
     twin_main attaches it) renders the twin's camera from the poses its stage's steps copy, and
     the browser view's panel gets them live."""
-    from beavr_sim.teleop.processes import TwinProcessConfig, make_twin_env
+    from beavr_sim.teleop.process_config import TwinProcessConfig
     from beavr_sim.teleop.stages import TwinStage
     from beavr_sim.teleop.twin_camera_stream import TwinCameraStream, attach_camera_stream
+    from beavr_sim.teleop.twin_process import make_twin_env
     from beavr_sim.twin.twin import TwinInterface
 
     env = make_twin_env(TwinProcessConfig(task="PickupBox", embodiment="rx1", control_hz=30.0))

@@ -433,7 +433,7 @@ def test_fixtures_travel_to_the_operator_process_unchanged():
     import gymnasium as gym
 
     from beavr_sim.operator.obstacles import fixture_obstacles
-    from beavr_sim.teleop.processes import fixtures_to_wire, obstacles_from_wire
+    from beavr_sim.teleop.process_config import fixtures_to_wire, obstacles_from_wire
     from beavr_sim.wire.messages import FixtureMsg, RobotStateMsg
 
     env = gym.make("beavr_sim/Pour-v0").unwrapped

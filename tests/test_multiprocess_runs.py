@@ -156,7 +156,8 @@ def digest_ticks(process, path: str):
 def test_a_repeated_trace_plays_the_same_runs_in_both_layouts(short_trace, tmp_path):
     """``--repeat 2`` with --multiprocess (main refused it): the trace played twice from a
     reset, every tick's commands as in one process, the summary's runs the same."""
-    from beavr_sim.teleop.processes import Attachment, MultiprocessSession
+    from beavr_sim.teleop.process_config import Attachment
+    from beavr_sim.teleop.processes import MultiprocessSession
 
     digest = hashlib.sha256()
 

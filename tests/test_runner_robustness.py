@@ -452,7 +452,7 @@ def test_tick_schedule_skips_the_deadlines_a_stall_passed_and_counts_them():
 
 
 def test_the_operator_process_rehomes_only_from_the_reset_epoch():
-    from beavr_sim.teleop.processes import OperatorRehome
+    from beavr_sim.teleop.operator_process import OperatorRehome
     from beavr_sim.wire.messages import RobotStateMsg
 
     class Operator:

@@ -81,7 +81,7 @@ def _frame(side: str, t: float = 1.0) -> HandFrame:
 
 
 def test_the_keypoints_message_keeps_the_newest_frame_of_each_side():
-    from beavr_sim.teleop.processes import keypoints_from_wire, keypoints_to_wire
+    from beavr_sim.teleop.process_config import keypoints_from_wire, keypoints_to_wire
 
     frames = [_frame("right", 1.0), _frame("left", 1.0), _frame("right", 2.0)]
     msg = keypoints_to_wire(frames, ("right",), epoch=3, tick=7)

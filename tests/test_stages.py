@@ -176,7 +176,8 @@ def one_process_digest(task: str, embodiment: str | None, clock: str):
 
 
 def multiprocess_digest(task: str, embodiment: str | None, clock: str, tmp_path):
-    from beavr_sim.teleop.processes import Attachment, MultiprocessSession
+    from beavr_sim.teleop.process_config import Attachment
+    from beavr_sim.teleop.processes import MultiprocessSession
     from beavr_sim.wire.ports import PortConfig, TransportConfig
 
     options = SessionOptions(
@@ -409,7 +410,7 @@ def test_an_ik_infeasible_hold_moves_the_fingers_in_the_twin_process_as_in_one()
     """The operator's ``ik_infeasible`` hold keeps the arm and moves the fingers: the twin
     process applies its positions as one process does (main's twin_main skipped every hold,
     fingers included); a hold without positions keeps the last targets."""
-    from beavr_sim.teleop.processes import command_from_wire
+    from beavr_sim.teleop.process_config import command_from_wire
     from beavr_sim.wire.messages import JointCommandMsg
 
     positions = [0.1 * i for i in range(23)]

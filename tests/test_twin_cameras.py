@@ -201,7 +201,8 @@ def test_twin_depth_recorded_in_metres():
 def test_session_camera_poses_place_the_twin_camera(tmp_path, monkeypatch):
     from beavr_sim.assets import bundled_trace
     from beavr_sim.teleop import session
-    from beavr_sim.teleop.processes import make_twin_env, process_configs
+    from beavr_sim.teleop.processes import process_configs
+    from beavr_sim.teleop.twin_process import make_twin_env
 
     rig = tmp_path / "rig.toml"
     rig.write_text(RIG)

@@ -10,7 +10,7 @@ the headset's sockets and the detector's parsing, and the twin process, over loo
 ZeroMQ) or the single-process runner (``--layout single``), mirroring to the emulated hardware
 (``hardware_config="emulated"``), with a timing log written by the twin: the benchmark
 attaches to the twin stage's hooks (:func:`attach_twin_timing`, a
-:class:`~beavr_sim.teleop.processes.Attachment` of the twin process; the single process's
+:class:`~beavr_sim.teleop.process_config.Attachment` of the twin process; the single process's
 command hook), as any user's code can.
 
 The pipeline is event-driven: one command per hand frame at the headset rate, each applied by
@@ -504,8 +504,10 @@ def _max_payload(lives) -> bytes:
 
 def start_session(live: LiveSession) -> None:
     """Start ``live``'s ``--multiprocess`` pipeline on its own free ports, with a timing log."""
-    from beavr_sim.teleop.processes import (  # local: heavy (the pipeline: mink, scipy)
+    from beavr_sim.teleop.process_config import (  # local: heavy (the pipeline: mink, scipy)
         Attachment,
+    )
+    from beavr_sim.teleop.processes import (  # local: heavy (the pipeline: mink, scipy)
         MultiprocessSession,
     )
     from beavr_sim.teleop.session import SessionOptions  # local: heavy (the pipeline: mink, scipy)
@@ -580,7 +582,7 @@ def write_latency_log(path, control_hz, applied_log, submit_log, mirror, stage_l
 
 def attach_twin_timing(process, path: str):
     """The timing log, attached to the twin process's stage (an
-    :class:`~beavr_sim.teleop.processes.Attachment`): every command applied and every action
+    :class:`~beavr_sim.teleop.process_config.Attachment`): every command applied and every action
     handed to the mirror (its hooks run first), written to ``path`` when the process ends."""
     stage, mirror = process.stage, process.mirror
     names = [e.name for e in process.env.embodiment.effectors]

@@ -52,7 +52,7 @@ class _LoopView:
 
 def attach_rerun(process, config: TwinRerun, real_time: bool) -> Callable[[], None]:
     """Log the twin process's steps (``process``: a
-    :class:`~beavr_sim.teleop.processes.TwinProcess`) to ``config.path``; returns the closer."""
+    :class:`~beavr_sim.teleop.twin_process.TwinProcess`) to ``config.path``; returns the closer."""
     from beavr_sim.viz.rerun_log import RerunLogger  # local: heavy (rerun, ~360 ms)
 
     view = _LoopView(process, real_time)
