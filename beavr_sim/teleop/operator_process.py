@@ -15,7 +15,6 @@ import logging
 import math
 import time
 from dataclasses import asdict
-from typing import TYPE_CHECKING
 
 import numpy as np
 import zmq
@@ -60,9 +59,6 @@ from beavr_sim.wire.messages import (
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import JointCommand
 from beavr_sim.wire.transport import Publisher, Subscriber
-
-if TYPE_CHECKING:
-    pass
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 

@@ -84,7 +84,6 @@ import logging
 import multiprocessing as mp
 import sys
 import time
-from typing import TYPE_CHECKING
 
 import zmq
 
@@ -135,9 +134,6 @@ from beavr_sim.wire.messages import (
 )
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.transport import Publisher, Subscriber
-
-if TYPE_CHECKING:
-    pass
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 
@@ -235,15 +231,7 @@ class MultiprocessSession:
         for name, proc in self.processes.items():
             if name != replied and proc.is_alive():
                 proc.terminate()
-        for name, proc in self.processes.items():
-            proc.join(5.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(1.0)
-            self.exits[name] = proc.exitcode
-        self.session_pub.close()
-        self.state_sub.close()
-        self.context.term()
+        self._join_all()
 
     def stop(self) -> None:
         self.send("stop")
@@ -256,6 +244,12 @@ class MultiprocessSession:
                     self.results[name] = json.loads(pipe.recv_bytes())
                 except (EOFError, ValueError):
                     pass
+        self._join_all()
+
+    def _join_all(self) -> None:
+        """Every process joined (killed if it has not ended within 5 s), its exit code kept;
+        the supervisor's sockets closed."""
+        for name, proc in self.processes.items():
             proc.join(5.0)
             if proc.is_alive():
                 proc.kill()

@@ -15,7 +15,6 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
@@ -85,9 +84,6 @@ from beavr_sim.wire.messages import (
 from beavr_sim.wire.ports import TransportConfig
 from beavr_sim.wire.records import JointCommand, TwinState
 from beavr_sim.wire.transport import Publisher, Subscriber
-
-if TYPE_CHECKING:
-    pass
 
 log = logging.getLogger("beavr_sim.teleop.processes")
 
