@@ -4,7 +4,7 @@
 // NO SIGNAL panel is the server's own image, and the quads are cleared when the connection
 // drops, so a last image never stays up as if live.
 
-import { worldToXr } from "./twin_gl.js";
+import { linkProgram, worldToXr } from "./twin_gl.js";
 
 const VERTEX_SHADER = `#version 300 es
 layout(location = 0) in vec3 aPosition;
@@ -26,16 +26,6 @@ void main() {
   outColor = vec4(texture(uImage, vUv).rgb, 1.0);
 }`;
 
-function compile(gl, type, source) {
-  const shader = gl.createShader(type);
-  gl.shaderSource(shader, source);
-  gl.compileShader(shader);
-  if (!gl.getShaderParameter(shader, gl.COMPILE_STATUS)) {
-    throw new Error(`camera quad shader: ${gl.getShaderInfoLog(shader)}`);
-  }
-  return shader;
-}
-
 function bytesOf(base64) {
   if (Uint8Array.fromBase64) return Uint8Array.fromBase64(base64);
   const binary = atob(base64);
@@ -48,13 +38,7 @@ export class CameraQuads {
   // gl: the page's WebGL2 context (the twin's).
   constructor(gl) {
     this.gl = gl;
-    const program = gl.createProgram();
-    gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX_SHADER));
-    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT_SHADER));
-    gl.linkProgram(program);
-    if (!gl.getProgramParameter(program, gl.LINK_STATUS)) {
-      throw new Error(`camera quad program: ${gl.getProgramInfoLog(program)}`);
-    }
+    const program = linkProgram(gl, VERTEX_SHADER, FRAGMENT_SHADER, "camera quad");
     this.program = program;
     this.uProjection = gl.getUniformLocation(program, "uProjection");
     this.uView = gl.getUniformLocation(program, "uView");

@@ -75,14 +75,26 @@ const U16_VERTICES = 65536;
 const MAX_TRIANGLES = 1 << 20;
 const LITTLE_ENDIAN = new Uint8Array(new Uint16Array([1]).buffer)[0] === 1;
 
-function compile(gl, type, source) {
+function compile(gl, type, source, label) {
   const shader = gl.createShader(type);
   gl.shaderSource(shader, source);
   gl.compileShader(shader);
   if (!gl.getShaderParameter(shader, gl.COMPILE_STATUS)) {
-    throw new Error(`shader: ${gl.getShaderInfoLog(shader)}`);
+    throw new Error(`${label} shader: ${gl.getShaderInfoLog(shader)}`);
   }
   return shader;
+}
+
+// A linked WebGL2 program of the two shaders' sources; errors name `label`.
+export function linkProgram(gl, vertexSource, fragmentSource, label) {
+  const program = gl.createProgram();
+  gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, vertexSource, label));
+  gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, fragmentSource, label));
+  gl.linkProgram(program);
+  if (!gl.getProgramParameter(program, gl.LINK_STATUS)) {
+    throw new Error(`${label} program: ${gl.getProgramInfoLog(program)}`);
+  }
+  return program;
 }
 
 // Instances of one mesh, grown as needed.
@@ -226,13 +238,7 @@ export class TwinRenderer {
   // gl: a WebGL2 context.
   constructor(gl) {
     this.gl = gl;
-    const program = gl.createProgram();
-    gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX_SHADER));
-    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT_SHADER));
-    gl.linkProgram(program);
-    if (!gl.getProgramParameter(program, gl.LINK_STATUS)) {
-      throw new Error(`program: ${gl.getProgramInfoLog(program)}`);
-    }
+    const program = linkProgram(gl, VERTEX_SHADER, FRAGMENT_SHADER, "twin");
     this.program = program;
     this.uProjection = gl.getUniformLocation(program, "uProjection");
     this.uView = gl.getUniformLocation(program, "uView");
