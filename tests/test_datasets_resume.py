@@ -4,7 +4,10 @@ and says which on stderr; serially and with worker processes."""
 
 from __future__ import annotations
 
+import io
 import json
+import shutil
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import pytest
@@ -17,11 +20,31 @@ from beavr_sim.datasets.shards import read_log
 TINY = ["--cameras", "front", "--image-size", "24x32", "--no-keypoints", "--quiet"]
 
 
+def _argv(out: Path, *args: str) -> list[str]:
+    return ["generate", "--task", "pickup_box", "--seed", "0", "--out", str(out), *TINY, *args]
+
+
 def _run(capsys, out: Path, *args: str) -> tuple[dict, str]:
-    argv = ["generate", "--task", "pickup_box", "--seed", "0", "--out", str(out), *TINY, *args]
-    assert main(argv) == 0
+    assert main(_argv(out, *args)) == 0
     captured = capsys.readouterr()
     return json.loads(captured.out.strip().splitlines()[-1]), captured.err
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory) -> tuple[Path, dict, str]:
+    """The command every test starts with, run once: one episode (seed 0) into a new dataset on
+    one worker. (dataset, its summary, its stderr); a test copies the dataset before using it."""
+    out = tmp_path_factory.mktemp("first") / "ds"
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with redirect_stdout(stdout), redirect_stderr(stderr):
+        assert main(_argv(out, "--episodes", "1", "--workers", "1")) == 0
+    return out, json.loads(stdout.getvalue().strip().splitlines()[-1]), stderr.getvalue()
+
+
+def _copy(first_run: tuple[Path, dict, str], tmp_path: Path) -> Path:
+    out = tmp_path / "ds"
+    shutil.copytree(first_run[0], out)
+    return out
 
 
 def _seeds(out: Path) -> list[int]:
@@ -32,9 +55,11 @@ def _episodes(out: Path) -> int:
     return json.loads((out / "meta" / "info.json").read_text())["total_episodes"]
 
 
-def test_a_rerun_resumes_skipping_seeds_already_there_serial_and_parallel(tmp_path, capsys):
-    out = tmp_path / "ds"
-    summary, err = _run(capsys, out, "--episodes", "1", "--workers", "1")
+def test_a_rerun_resumes_skipping_seeds_already_there_serial_and_parallel(
+    first_run, tmp_path, capsys
+):
+    out = _copy(first_run, tmp_path)
+    _, summary, err = first_run
     assert summary["mode"] == "new" and "new dataset" in err
     assert _seeds(out) == [0]
 
@@ -57,9 +82,8 @@ def test_a_rerun_resumes_skipping_seeds_already_there_serial_and_parallel(tmp_pa
     assert _seeds(out) == [0, 1] and _episodes(out) == 2
 
 
-def test_overwrite_starts_anew_and_says_so(tmp_path, capsys):
-    out = tmp_path / "ds"
-    _run(capsys, out, "--episodes", "1", "--workers", "1")
+def test_overwrite_starts_anew_and_says_so(first_run, tmp_path, capsys):
+    out = _copy(first_run, tmp_path)
     summary, err = _run(capsys, out, "--episodes", "1", "--workers", "1", "--overwrite")
     assert summary["mode"] == "overwrite" and "overwriting" in err and "1 episodes" in err
     assert summary["episodes_written"] == 1 and summary["seeds_skipped"] == []
