@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml $(addsuffix /pyproject.toml,$(PLUGINS))
 	@if [ -z "$(PYTHON312)" ]; then echo "python3.12 not found: install Python 3.12 (e.g. pyenv install 3.12) or set PYTHON312=/path/to/python3.12" >&2; exit 1; fi
 	@test -x $(PY) || $(PYTHON312) -m venv $(VENV)
 	@if [ "$(USE_UV)" = 1 ] && { test -x $(UV) || $(PY) -m pip install --quiet --target $(UV_DIR) uv; } \
-	  && $(UV) pip install --quiet --python $(PY) --upgrade-package pip pip $(INSTALL_ARGS); then \
+	  && $(UV) pip install --quiet --compile-bytecode --python $(PY) --upgrade-package pip pip $(INSTALL_ARGS); then \
 	  echo "installed with uv"; \
 	else \
 	  [ "$(USE_UV)" != 1 ] || echo "uv unavailable or failed: installing with pip" >&2; \
