@@ -27,7 +27,9 @@ INSTALL_ARGS := -e ".[$(EXTRAS)]" $(addprefix -e ,$(PLUGINS))
 # uv installs the same packages as pip (same resolution from PyPI) in a fraction of the time:
 # parallel downloads and a cache (~/.cache/uv) it links from. It is fetched from PyPI into
 # $(UV_DIR), beside the venv's packages (not among them); plain pip is the fallback whenever uv
-# cannot be fetched or fails (USE_UV=0 forces it).
+# cannot be fetched or fails (USE_UV=0 forces it). Like pip, it compiles the bytecode at install
+# (--compile-bytecode): where PYTHONDONTWRITEBYTECODE is set every process would otherwise
+# recompile torch & co. on import. The same `pip freeze --all`, pip or uv.
 UV_DIR := $(VENV)/.uv
 UV := $(UV_DIR)/bin/uv
 USE_UV ?= 1
