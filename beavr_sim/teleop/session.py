@@ -63,7 +63,8 @@ from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.mirroring import (
     MIRROR_SWITCH_INTERVAL_S,
     BrowserEstop,
-    MirrorListener,
+    HeadsetEstop,
+    MirrorFollower,
     RigChoice,
     RigSync,
     connect_mirror,
@@ -1025,8 +1026,9 @@ def headset_listener(
 
 def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
-    add the mirror as the loop's first listener and command hook: it gets every guarded
-    command the moment the twin applies it."""
+    let the mirror follow the loop's twin stage (:class:`MirrorFollower`: it gets every
+    guarded command the moment the twin applies it); the headset's e-stop gesture is the
+    loop's first listener."""
 
     mirror, q_measured = connect_mirror(RigChoice.of(options), loop.twin.env, closers)
     loop.twin.follow_speed_caps(mirror.speed_caps)
@@ -1035,7 +1037,6 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     previous = sys.getswitchinterval()
     sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)
     closers.append(lambda: sys.setswitchinterval(previous))
-    listener = MirrorListener(mirror, loop)
-    loop.listeners.insert(0, listener)
-    loop.command_hooks.append(listener.on_command)
+    MirrorFollower(loop.twin_stage, mirror)
+    loop.listeners.insert(0, HeadsetEstop(mirror, loop.operator))
     return mirror

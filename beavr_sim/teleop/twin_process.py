@@ -17,7 +17,6 @@ import time
 from collections.abc import Callable
 
 import gymnasium as gym
-import numpy as np
 import zmq
 
 import beavr_sim  # noqa: F401  (registers the envs the twin process makes)
@@ -33,6 +32,7 @@ from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.mirroring import (
     MIRROR_SWITCH_INTERVAL_S,
     BrowserEstop,
+    MirrorFollower,
     RigChoice,
     RigSync,
     connect_mirror,
@@ -70,7 +70,7 @@ from beavr_sim.teleop.twin_page_stream import (
 )
 from beavr_sim.teleop.twin_rerun import attach_rerun
 from beavr_sim.teleop.twin_runs import TwinRuns, connect_real_cameras
-from beavr_sim.twin.twin import CommandOutcome, TwinInterface
+from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.viz.twin_view import TwinView, subtree_bodies
 from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
@@ -110,33 +110,6 @@ class TwinProcess:
         self.received: dict[str, tuple[float, float]] = {}
         self.tick_commands: dict[str, JointCommand] = {}
         self.frames: list = []
-
-
-def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Callable[[], None]:
-    """The hardware mirror follows the twin through its hooks: every command written (the
-    guarded action, at once) and, after a step without one, the same targets (its heartbeat).
-    ``positions``: the twin's joints at the start. Returns ``reset(positions)`` for a new
-    episode."""
-    twin = stage.twin
-    last = {"positions": positions.copy(), "submitted": False}
-
-    def after_command(outcome: CommandOutcome, commands) -> None:
-        mirror.submit(twin.action.copy(), last["positions"], outcome.blocked)
-        last["submitted"] = True
-
-    def after_step(state: TwinState) -> None:
-        if not last["submitted"]:  # no command this period: the same targets (heartbeat)
-            mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
-        last["submitted"] = False
-        last["positions"] = state.positions
-
-    def reset(q: np.ndarray) -> None:
-        last["positions"] = np.asarray(q, dtype=np.float64).copy()
-
-    after_command.__name__, after_step.__name__ = "mirror", "mirror"
-    stage.after_command.insert(0, after_command)
-    stage.after_step.insert(0, after_step)
-    return reset
 
 
 def make_twin_env(config: TwinProcessConfig):
@@ -183,7 +156,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         # are taken (as one process's HardwareSync).
         sync = RigSync(mirror, config.sync_timeout_s or mirror.rig.mirror.sync_timeout_s)
         positions = twin.reset(episode_seed)
-        mirror_reset = follow_with_mirror(stage, mirror, positions)
+        mirror_reset = MirrorFollower(stage, mirror, positions).reset
     try:  # the session's runs; recording: the dataset opened (a bad folder fails here)
         runs = TwinRuns(
             config.plan,
