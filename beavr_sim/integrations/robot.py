@@ -117,9 +117,8 @@ class BeavrSimRobot(Robot):
         twin at the measured pose (nothing moves at connect)."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        # local: heavy (the pipeline: mink, scipy)
-        from beavr_sim.teleop.stages import TwinStage
-        from beavr_sim.twin.twin import TwinInterface
+        from beavr_sim.teleop.stages import TwinStage  # local: heavy (the operator: mink)
+        from beavr_sim.twin.twin import TwinInterface  # local: heavy (the guard: mink, scipy)
 
         cfg = self.config
         hand_variant = self._hand_variant()
