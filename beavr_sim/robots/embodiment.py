@@ -426,9 +426,12 @@ def make_embodiment(name: str) -> Embodiment:
     return Embodiment(embodiment_spec(name))
 
 
-def embodiment_layout(spec: EmbodimentSpec) -> str | None:
+def embodiment_layout(spec: EmbodimentSpec | str) -> str | None:
     """The built-in embodiment with the same effectors (names and sides) and no body, which
-    tasks and traces written for it serve; ``None`` if there is none. A built-in is its own."""
+    tasks and traces written for it serve; ``None`` if there is none. A built-in is its own.
+    ``spec``: an embodiment, or a name :func:`embodiment_spec` takes."""
+    if isinstance(spec, str):
+        spec = embodiment_spec(spec)
     if spec.name in EMBODIMENTS:
         return spec.name
     effectors = sorted((e.name, e.side) for e in spec.effectors)

@@ -74,7 +74,11 @@ def load_robot_file(path: str | Path) -> EmbodimentSpec:
         effectors,
         description,
         workspace=robot.workspace,
-        guard_box=robot.guard_box,
+        guard_box=(
+            None
+            if robot.guard_box is None
+            else tuple((x, y, z + TABLE_TOP_Z) for x, y, z in robot.guard_box)  # type: ignore[misc]
+        ),
     )
 
 

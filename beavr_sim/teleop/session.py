@@ -45,7 +45,7 @@ from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.headset.webxr_server import WebXRConfig
 from beavr_sim.naming import check_name
 from beavr_sim.operator.operator import Operator
-from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT, embodiment_layout
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.announce import announce_view, announce_webxr
@@ -571,7 +571,11 @@ def build_loop(options: SessionOptions, context=None):
                 f"trace {options.trace} was recorded for task {meta['task']}, not {options.task}"
             )
         trace_embodiment = meta.get("embodiment")
-        if embodiment is not None and trace_embodiment and embodiment != trace_embodiment:
+        if (
+            embodiment is not None
+            and trace_embodiment
+            and embodiment_layout(embodiment) != embodiment_layout(trace_embodiment)
+        ):
             raise ValueError(f"trace {options.trace} drives {trace_embodiment}, not {embodiment}")
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
