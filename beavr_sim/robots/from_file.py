@@ -126,7 +126,7 @@ def load_arm_spec(robot: RobotFile, arm: ArmFile) -> mujoco.MjSpec:
             raise
         raise RobotFileError(f"{where}.model: MuJoCo cannot read {arm.model}: {e}") from e
     _absolute_meshes(spec, arm, where)
-    bodies = [b.name for b in spec.bodies if b.name]
+    bodies = [b.name for b in spec.bodies if b.name and b.name != spec.worldbody.name]
     for key, name in (("base_body", arm.base_body), ("flange.body", arm.flange.body)):
         if name and spec.body(name) is None:
             raise RobotFileError(f"{where}.{key}: no body {name!r}; bodies: {', '.join(bodies)}")
@@ -192,7 +192,8 @@ def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Pa
             body.iquat = compiled.iquat.tolist()
             body.inertia = compiled.inertia.tolist()
             body.fullinertia = [math.nan] * 6
-            body.gravcomp = 1.0 if arm.gravity_compensation else 0.0
+            moving = body.name != arm.base_body
+            body.gravcomp = 1.0 if arm.gravity_compensation and moving else 0.0
     for geom in spec.geoms:
         if geom.contype or geom.conaffinity:
             geom.group = COLLISION_GROUP
