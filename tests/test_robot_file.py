@@ -74,7 +74,10 @@ def write(tmp_path):
     ("replace", "message"),
     [
         ({"extra": "colour = 1"}, "arms.xarm: unknown key 'colour'; valid keys: model,"),
-        ({"side": '"middle"'}, "effectors[0].side: Unknown side 'middle'. Valid sides: left, right"),
+        (
+            {"side": '"middle"'},
+            "effectors[0].side: Unknown side 'middle'. Valid sides: left, right",
+        ),
         ({"hand": '"shadow"'}, "effectors[0].hand: Unknown hand 'shadow'. Valid hands: leap"),
         ({"model": '"missing.xml"'}, "arms.xarm.model:"),
         ({"home_deg": "[0, 1]"}, "arms.xarm.home_deg: expected a list of 7 numbers"),
@@ -82,7 +85,7 @@ def write(tmp_path):
     ],
 )
 def test_a_bad_robot_file_names_the_key_and_the_valid_choices(write, replace, message):
-    with pytest.raises(RobotFileError, match="robot.toml: ") as err:
+    with pytest.raises(RobotFileError, match=r"robot\.toml: ") as err:
         read_robot_file(write(xarm_toml(**replace)))
     assert message in str(err.value)
     assert "\n" not in str(err.value)
@@ -207,7 +210,7 @@ def test_a_joint_without_limits_asks_for_them_in_the_file(write):
     with pytest.raises(RobotFileError, match=r"'elbow' has no limits in the model; give them as "
                        r"limits_deg.elbow = \[lower, upper\]"):  # fmt: skip
         make_embodiment(str(write(toml)))
-    toml = toml.replace('servo = {', 'limits_deg = { elbow = [-90, 90] }\nservo = {')
+    toml = toml.replace("servo = {", "limits_deg = { elbow = [-90, 90] }\nservo = {")
     arm = make_embodiment(str(write(toml))).spec.effectors[0].arm
     part = mujoco.MjModel.from_xml_path(arm.mjcf)
     np.testing.assert_allclose(part.jnt_range[1], np.radians([-90, 90]), atol=1e-5)  # MJCF text

@@ -10,6 +10,7 @@ the file cannot be loaded at all.
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -96,7 +97,7 @@ def check_robot(path: str | Path, task: str | None = None) -> RobotReport:
                 warnings.simplefilter("ignore")  # check_env's advice on Box bounds
                 check_env(env.unwrapped, skip_render_check=True)
             result = "passed"
-        except Exception as e:  # noqa: BLE001 - reported, not raised: the check's finding
+        except Exception as e:
             result = f"failed: {type(e).__name__}: {e}"
             missing.append(f"check_env on {chosen}: {e}")
         finally:
@@ -125,7 +126,7 @@ def _effector_facts(embodiment: Embodiment, index: int) -> EffectorFacts:
     n_arm = len(e_spec.arm.joints)
     arm_ids = [model.joint(j).id for j in effector.arm_joints]
     anchors = [data.xanchor[j] for j in arm_ids] + [data.site(effector.ee_site).xpos]
-    reach = float(sum(np.linalg.norm(b - a) for a, b in zip(anchors, anchors[1:], strict=False)))
+    reach = float(sum(np.linalg.norm(b - a) for a, b in itertools.pairwise(anchors)))
     touching = []
     mujoco.mj_forward(model, data)
     for c in data.contact[: data.ncon]:

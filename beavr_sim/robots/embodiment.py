@@ -17,7 +17,6 @@ import numpy as np
 
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
-from beavr_sim.robots.robot_file import is_robot_file
 from beavr_sim.robots.parts import (
     LEAP_HAND,
     LEAP_ON_RX1,
@@ -31,6 +30,7 @@ from beavr_sim.robots.parts import (
     HandModel,
     HandMount,
 )
+from beavr_sim.robots.robot_file import is_robot_file
 from beavr_sim.robots.visuals import PART_VISUALS, add_visuals, strip_visuals
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
@@ -436,6 +436,9 @@ def embodiment_layout(spec: EmbodimentSpec | str) -> str | None:
         return spec.name
     effectors = sorted((e.name, e.side) for e in spec.effectors)
     for name, builtin in EMBODIMENTS.items():
-        if builtin.body is None and sorted((e.name, e.side) for e in builtin.effectors) == effectors:
+        if (
+            builtin.body is None
+            and sorted((e.name, e.side) for e in builtin.effectors) == effectors
+        ):
             return name
     return None

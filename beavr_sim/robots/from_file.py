@@ -38,8 +38,6 @@ from beavr_sim.robots.robot_file import ArmFile, RobotFile, RobotFileError, read
 from beavr_sim.robots.visuals import COLLISION_GROUP, VISUAL_GROUP
 from beavr_sim.workcell import TABLE_TOP_Z
 
-#: Bumped when the written arm part changes for the same inputs (invalidates the cache).
-PART_FORMAT = 1
 #: Name of the site the hand mounts on, in every written arm part.
 FLANGE_SITE = "flange"
 HANDS = {"leap": LEAP_HAND}
@@ -308,7 +306,8 @@ def _contains(body, target) -> bool:
 
 
 def _digest(robot: RobotFile, arm: ArmFile) -> str:
-    h = hashlib.sha256(f"{PART_FORMAT}\n{mujoco.__version__}\n".encode())
+    h = hashlib.sha256(f"{mujoco.__version__}\n".encode())
+    h.update(Path(__file__).read_bytes())  # this writer's own code
     h.update(robot.path.read_bytes())
     for path in (arm.model, *arm.fragments):
         h.update(str(path).encode())

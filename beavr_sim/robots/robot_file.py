@@ -319,7 +319,7 @@ class _Reader:
                 )
             lo, hi = self.floats({joint: values}, joint, f"{where}.limits_deg", 2)
             if not lo < hi:
-                raise self.fail(f"{where}.limits_deg.{joint}", f"expected lower < upper")
+                raise self.fail(f"{where}.limits_deg.{joint}", "expected lower < upper")
             limits[joint] = (lo, hi)
         servo_table = self.get(table, "servo", dict, where, {})
         self.keys(servo_table, _SERVO_KEYS, f"{where}.servo")
@@ -336,7 +336,8 @@ class _Reader:
             joints=joints,
             home_deg=home,
             fragments=tuple(
-                self.file(f, f"{where}.fragments") for f in self.names(table, "fragments", where, ())
+                self.file(f, f"{where}.fragments")
+                for f in self.names(table, "fragments", where, ())
             ),
             asset_root=(
                 self.file(self.get(table, "asset_root", str, where), f"{where}.asset_root")
@@ -345,9 +346,7 @@ class _Reader:
             ),
             home_deg_by_side=by_side,
             max_velocity_deg_s=self.get(table, "max_velocity_deg_s", float, where, 120.0),
-            max_acceleration_rad_s2=self.get(
-                table, "max_acceleration_rad_s2", float, where, 150.0
-            ),
+            max_acceleration_rad_s2=self.get(table, "max_acceleration_rad_s2", float, where, 150.0),
             remove_bodies=self.names(table, "remove_bodies", where, ()),
             remove_meshes=self.names(table, "remove_meshes", where, ()),
             upper_arm_links=self.names(table, "upper_arm_links", where, None),
