@@ -102,6 +102,8 @@ def test_a_bad_robot_file_names_the_key_and_the_valid_choices(write, replace, me
          "their bodies in remove_bodies"),
         ({"flange": '{ site = "tool" }'}, "arms.xarm.flange.site: no site 'tool'; sites: ee"),
         ({"extra": 'remove_bodies = ["gripper"]'}, "arms.xarm.remove_bodies: no body 'gripper'"),
+        ({"home_deg": "[0, -25, -1, -26, 0, 50, 0]"},
+         "arms.xarm.home_deg: joint4 = -26.0 deg is outside its limits [-11.0, 225.0] deg"),
     ],
 )  # fmt: skip
 def test_a_robot_file_whose_names_miss_the_model_says_which_names_it_has(write, replace, message):

@@ -88,6 +88,7 @@ def arm_model(robot: RobotFile, arm: ArmFile) -> ArmModel:
     part = cache_dir() / f"{robot.name}-{_digest(robot, arm)}" / f"{arm.name}.xml"
     if not part.is_file():
         write_arm_part(spec, robot, arm, part)
+    _check_home(mujoco.MjModel.from_xml_path(str(part)), robot, arm, sides)
     return ArmModel(
         name=arm.name,
         mjcf=str(part),
@@ -244,6 +245,19 @@ def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Pa
     with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as f:
         f.write(spec.to_xml())
     os.replace(f.name, path)
+
+
+def _check_home(part: mujoco.MjModel, robot: RobotFile, arm: ArmFile, sides) -> None:
+    """Raise naming the joint, its limits and the key when a home pose leaves the limits."""
+    for side in sides:
+        key = "home_deg_by_side." + side if side in arm.home_deg_by_side else "home_deg"
+        for name, value in zip(arm.joints, arm.home(side), strict=True):
+            lo, hi = np.degrees(part.joint(name).range)
+            if not lo <= value <= hi:
+                raise RobotFileError(
+                    f"{robot.path}: arms.{arm.name}.{key}: {name} = {value} deg is outside its "
+                    f"limits [{lo:.1f}, {hi:.1f}] deg"
+                )
 
 
 def _is_fragment(path: Path) -> bool:
