@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from beavr_sim.robots.visuals import VISUAL_GROUP
 from beavr_sim.teleop.session import SessionOptions, build_loop
 
 PACKAGE, VERSION = "gymnasium_robotics", "1.4.2"
@@ -82,6 +83,15 @@ def short_trace(tmp_path_factory):
     return path
 
 
+def visual_panda_geoms(model) -> int:
+    return sum(
+        model.body(model.geom_bodyid[g]).name.startswith("right/panda")
+        and model.geom_group[g] == VISUAL_GROUP
+        and not (model.geom_contype[g] or model.geom_conaffinity[g])
+        for g in range(model.ngeom)
+    )
+
+
 def test_the_franka_robot_file_passes_the_check(franka, capsys):
     from beavr_sim.robots.__main__ import main
 
@@ -98,11 +108,15 @@ def test_a_bundled_trace_drives_the_franka_with_no_guard_refusal(franka, short_t
         viser=False, headless=True, progress=False, embodiment=franka,
     )  # fmt: skip
     loop = build_loop(options)
+    env = loop.twin.env
     try:
         summary = loop.run()
         guard = loop.twin.guard
+        # The Panda's own meshes draw it; the physics has its collision geometry only.
+        render = env.render_model
     finally:
-        loop.twin.env.close()
+        env.close()
+    assert visual_panda_geoms(render) >= 8 and visual_panda_geoms(env.model) == 0
     assert summary.commands_applied > 150  # the arm moved: the trace reached the twin
     assert guard.checks > 150 and guard.refusals == 0, guard.refusals_by_rule
     assert "guard" not in summary.holds.get("right", {}), summary.holds
