@@ -216,3 +216,28 @@ def test_a_joint_without_limits_asks_for_them_in_the_file(write):
     arm = make_embodiment(str(write(toml))).spec.effectors[0].arm
     part = mujoco.MjModel.from_xml_path(arm.mjcf)
     np.testing.assert_allclose(part.jnt_range[1], np.radians([-90, 90]), atol=1e-5)  # MJCF text
+
+
+def test_two_arms_from_one_file_are_the_bimanual_layout(write):
+    text = xarm_toml(extra="home_deg_by_side = { left = [0, -25, 1, 26, 0, 50, 0] }")
+    text += textwrap.dedent(
+        """\
+        base_pos = [0.0, -0.3, 0.0]
+        [[effectors]]
+        name = "left"
+        side = "left"
+        arm = "xarm"
+        base_pos = [0.0, 0.3, 0.0]
+        """
+    )
+    embodiment = make_embodiment(str(write(text)))
+    builtin = make_embodiment("xarm7_leap_bimanual")
+    assert embodiment_layout(embodiment.spec) == "xarm7_leap_bimanual"
+    ours = {e.name: e for e in embodiment.spec.effectors}
+    for e in builtin.spec.effectors:
+        assert ours[e.name].base_pos == pytest.approx(e.base_pos)
+        assert ours[e.name].arm.home(e.side) == pytest.approx(e.arm.home(e.side))
+    scene = mujoco.MjSpec()
+    embodiment.attach_to(scene)
+    joints = embodiment.bind(scene.compile())
+    assert joints.size == 2 * (7 + 16)
