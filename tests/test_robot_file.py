@@ -241,3 +241,17 @@ def test_two_arms_from_one_file_are_the_bimanual_layout(write):
     embodiment.attach_to(scene)
     joints = embodiment.bind(scene.compile())
     assert joints.size == 2 * (7 + 16)
+
+
+def test_the_check_names_what_is_missing_and_prints_the_derived_facts(write, capsys):
+    from beavr_sim.robots.__main__ import main
+
+    path = write(xarm_toml().replace('name = "right"', 'name = "arm"'))
+    assert main(["check", str(path)]) == 1  # no built-in has an effector "arm": no task
+    out = capsys.readouterr().out
+    assert "check_env (no task): not run (no task)" in out
+    assert "  - layout: no built-in embodiment has these effectors" in out
+    assert "    joint4: [-11.0, 225.0]  home 26.0" in out  # limits from the model
+    assert "finger scales (human -> hand): thumb " in out
+    assert main(["check", str(path.with_name("absent.toml"))]) == 2
+    assert "does not exist" in capsys.readouterr().err
