@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 import zmq
 
+from beavr_sim.datasets.episode_end import EpisodeEnd
 from beavr_sim.datasets.features import RecordingConfig
 from beavr_sim.teleop.episodes import EpisodeControl, EpisodeRequests, episode_label
 from beavr_sim.teleop.runs import RunPlan
@@ -104,6 +105,11 @@ def test_the_episode_line_is_one_process_s_label_in_every_phase():
     assert episode_line(runs.label(syncing=True)) == "episode **1** of **2** · syncing the rig"
     runs.begin(seed=0)
     assert episode_line(runs.label(syncing=True)) == "episode **1** of **2** · **recording**"
+    runs.playing = False  # the episode ended as a discard request asked
+    runs.runs.recorded(EpisodeEnd(fault="", asked=("discard",)), written=False, duration_s=1.0)
+    idle = "episode 1/2: idle (start: Enter, Record button, long left pinch) · last: discarded"
+    assert runs.label() == idle
+    assert episode_line(runs.label()) == "episode **1** of **2** · idle · last: discarded"
     with pytest.raises(ValueError, match="Valid episode phases: idle, rec, sync"):
         episode_label("episode 1/2", "paused")
 
@@ -121,7 +127,7 @@ class _CameraServer:
         self.thread.start()
 
     def _run(self) -> None:
-        ok, buf = cv2.imencode(".jpg", np.full((24, 32, 3), 120, np.uint8))
+        _, buf = cv2.imencode(".jpg", np.full((24, 32, 3), 120, np.uint8))
         image = base64.b64encode(buf.tobytes()).decode()
         while not self.stop.wait(0.02):
             message = {"timestamps": {self.name: time.time()}, "images": {self.name: image}}

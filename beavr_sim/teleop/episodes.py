@@ -115,10 +115,12 @@ PHASES = {
 }
 
 
-def episode_label(name: str, phase: str) -> str:
-    """The session's episode line, e.g. ``"episode 2/5: REC"`` (``name``: ``SessionRuns.name()``;
-    ``phase``: one of :data:`PHASES`)."""
-    return f"{name}: {PHASES[check_name('episode phase', phase, tuple(PHASES))]}"
+def episode_label(name: str, phase: str, last: str = "") -> str:
+    """The session's episode line, e.g. ``"episode 2/5: REC · last: saved"`` (``name``:
+    ``SessionRuns.name()``; ``phase``: one of :data:`PHASES`; ``last``: what became of the
+    last episode, ``SessionRuns.last_outcome``)."""
+    line = f"{name}: {PHASES[check_name('episode phase', phase, tuple(PHASES))]}"
+    return line + (f" · last: {last}" if last else "")
 
 
 class KeyboardControl:

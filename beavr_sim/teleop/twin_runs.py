@@ -180,7 +180,7 @@ class TwinRuns:
         """The episode line of one process's session (``episodes.episode_label``): recording,
         the rig syncing (``syncing``) to the next episode's start, or idle."""
         phase = "rec" if self.playing else "sync" if syncing else "idle"
-        return episode_label(self.runs.name(), phase)
+        return episode_label(self.runs.name(), phase, self.runs.last_outcome)
 
     @property
     def requests_ignored(self) -> int:
