@@ -57,6 +57,7 @@ from beavr_sim.teleop.episodes import (
     EpisodeControl,
     EpisodeRequests,
     KeyboardControl,
+    episode_label,
 )
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
@@ -916,7 +917,7 @@ def record_episodes(
         while runs.more():
             name = runs.name()
             if not options.auto_start:
-                progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
+                progress.label = episode_label(name, "idle", runs.last_outcome)
                 while True:
                     idle = loop.run(
                         max_seconds=runs.remaining(),
@@ -931,7 +932,7 @@ def record_episodes(
                 if "quit" in requests.last or not requests.last or out_of_time():
                     break
             if runs.attempts > 0 or not options.auto_start or sync is not None:
-                progress.label = f"{name}: sync"
+                progress.label = episode_label(name, "sync", runs.last_outcome)
                 fault = fresh_episode()
                 if loop.interrupted():
                     break
@@ -942,7 +943,7 @@ def record_episodes(
                             f"\n{name}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr
                         )
                     break
-            progress.label = f"{name}: REC"
+            progress.label = episode_label(name, "rec", runs.last_outcome)
             remaining = runs.remaining()
             summary = run_recorded_episode(
                 loop,

@@ -79,6 +79,8 @@ ERRBIT_OVERCURRENT = 0x08
 ERRBIT_OVERLOAD = 0x20
 
 # Control-table addresses (STS series).
+# The emulator's own, from the protocol facts, never imported from the driver: an address the
+# driver gets wrong then fails against the emulator instead of agreeing with it.
 ADDR_FIRMWARE_MAJOR = 0
 ADDR_FIRMWARE_MINOR = 1
 ADDR_MODEL_NUMBER = 3

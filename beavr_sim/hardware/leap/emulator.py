@@ -75,6 +75,8 @@ ERR_ACCESS = 0x07
 ERR_ALERT = 0x80
 
 # Control-table addresses (X series).
+# The emulator's own, from the protocol facts, never imported from the driver: an address the
+# driver gets wrong then fails against the emulator instead of agreeing with it.
 ADDR_MODEL_NUMBER = 0
 ADDR_FIRMWARE = 6
 ADDR_ID = 7
