@@ -82,6 +82,13 @@ def write(tmp_path):
         ({"model": '"missing.xml"'}, "arms.xarm.model:"),
         ({"home_deg": "[0, 1]"}, "arms.xarm.home_deg: expected a list of 7 numbers"),
         ({"flange": '{ body = "link7", site = "ee" }'}, "give exactly one of 'body' or 'site'"),
+        (
+            {
+                "extra": "[[effectors]]\nname = 'x'\nside = 'left'\narm = 'xarm'\n"
+                "[[effectors]]\nname = 'y'\nside = 'left'\narm = 'xarm'"
+            },
+            "effectors: expected one or two [[effectors]], got 3",
+        ),
     ],
 )
 def test_a_bad_robot_file_names_the_key_and_the_valid_choices(write, replace, message):

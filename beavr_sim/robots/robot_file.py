@@ -265,13 +265,19 @@ class _Reader:
             box = self.get(data, "guard_box", list, "top level")
             if len(box) != 2:
                 raise self.fail("guard_box", "expected [[x0, y0, z0], [x1, y1, z1]]")
-            guard_box = tuple(self.floats({"c": c}, "c", "guard_box", 3) for c in box)
+            guard_box = tuple(
+                self.floats({corner: c}, corner, "guard_box", 3)
+                for corner, c in zip(("lower", "upper"), box, strict=True)
+            )
         workspace = None
         if "workspace" in data:
             ws = self.get(data, "workspace", list, "top level")
             if len(ws) != 2:
                 raise self.fail("workspace", "expected [[x0, x1], [y0, y1]]")
-            workspace = tuple(self.floats({"r": r}, "r", "workspace", 2) for r in ws)
+            workspace = tuple(
+                self.floats({axis: r}, axis, "workspace", 2)
+                for axis, r in zip("xy", ws, strict=True)
+            )
         return RobotFile(
             path=self.path,
             name=name,
