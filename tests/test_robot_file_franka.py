@@ -11,8 +11,10 @@ trace (cut short) must replay through the full teleop pipeline with no guard ref
 from __future__ import annotations
 
 import importlib.util
+import shutil
 import subprocess
 import sys
+import tempfile
 import zipfile
 from pathlib import Path
 
@@ -41,7 +43,7 @@ def unpacked_wheel() -> Path | None:
     wheel = cache / f"{PACKAGE}-{VERSION}-py3-none-any.whl"
     if not wheel.is_file():
         command = [sys.executable, "-m", "pip", "download", "--no-deps", "--quiet",
-                   f"gymnasium-robotics=={VERSION}", "-d", str(cache)]  # fmt: skip
+                   "--retries", "1", f"gymnasium-robotics=={VERSION}", "-d", str(cache)]  # fmt: skip
         try:
             done = subprocess.run(command, capture_output=True, text=True, timeout=300)
         except (OSError, subprocess.TimeoutExpired) as e:
@@ -49,10 +51,13 @@ def unpacked_wheel() -> Path | None:
         if done.returncode != 0 or not wheel.is_file():
             last = (done.stderr.strip().splitlines() or ["no output"])[-1]
             pytest.skip(f"gymnasium-robotics {VERSION} could not be downloaded: {last}")
-    partial = folder.with_name(folder.name + ".partial")
+    partial = Path(tempfile.mkdtemp(dir=cache, prefix=folder.name + "."))
     with zipfile.ZipFile(wheel) as z:
         z.extractall(partial)
-    partial.rename(folder)
+    try:
+        partial.rename(folder)
+    except OSError:  # another run unpacked it meanwhile
+        shutil.rmtree(partial)
     return folder
 
 
