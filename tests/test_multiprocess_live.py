@@ -122,6 +122,7 @@ class _CameraServer:
         self.socket = self.context.socket(zmq.PUB)
         self.port = self.socket.bind_to_random_port("tcp://127.0.0.1")
         self.name = name
+        self.sent = 0
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -132,6 +133,7 @@ class _CameraServer:
         while not self.stop.wait(0.02):
             message = {"timestamps": {self.name: time.time()}, "images": {self.name: image}}
             self.socket.send_string(json.dumps(message))
+            self.sent += 1
 
     def close(self) -> None:
         self.stop.set()
@@ -164,11 +166,13 @@ def test_a_multiprocess_quest_session_streams_its_camera_to_the_quest_app_panel(
         while received is None and time.monotonic() < deadline:
             if sub.poll(100):
                 received = sub.recv()
-        assert received is not None, "no camera panel reached the Quest app's socket"
-        assert received[:2] == b"\xff\xd8"  # a JPEG
     finally:
         session.stop()
         sub.close(linger=0)
         context.term()
         camera.close()
-    assert session.exits["twin"] == 0, session.exits
+    twin = session.results.get("twin", {})
+    why = f"exits {session.exits}, camera frames served {camera.sent}, twin's report {twin}"
+    assert received is not None, f"no camera panel reached the Quest app's socket: {why}"
+    assert received[:2] == b"\xff\xd8"  # a JPEG
+    assert session.exits["twin"] == 0, why
