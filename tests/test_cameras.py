@@ -142,6 +142,28 @@ def test_rig_table_errors_list_valid_choices():
         )
 
 
+def test_a_cameras_name_is_recorded_as_given_and_case_only_twins_are_refused():
+    """``--camera Front=...`` records ``observation.images.Front`` (never lowercased); names
+    that differ only in case would share a folder on macOS / Windows: one line naming both."""
+    from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+    from beavr_sim.robots import make_embodiment
+
+    name, _ = parse_camera_arg("Front=opencv:0@64x48")
+    assert name == "Front"
+    table = {"Front": parse_camera_table("Front", {"type": "opencv", "index_or_path": 0})}
+    assert list(merge_cameras(table, {})) == ["Front"]
+    rx1, config = make_embodiment("rx1"), RecordingConfig(cameras=("overhead",))
+    features = lerobot_features(rx1, config, real_cameras={"Front": (48, 64, 3)})
+    assert "observation.images.Front" in features and "observation.images.front" not in features
+    with pytest.raises(ValueError, match=r"'Front' and 'front' differ only in case") as info:
+        lerobot_features(
+            rx1, RecordingConfig(cameras=("front",)), real_cameras={"Front": (48, 64, 3)}
+        )
+    assert "\n" not in str(info.value)
+    with pytest.raises(CameraSpecError, match=r"'FRONT' \(--camera\) and 'Front' \(rig file\)"):
+        merge_cameras(table, dict([parse_camera_arg("FRONT=opencv:1")]))
+
+
 def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
     _, cfg = parse_camera_arg(f"front=opencv:{tmp_path / 'missing.avi'}")
     cams = RealCameras({"front": cfg}, control_period_s=0.05)
