@@ -383,7 +383,7 @@ class _QuestPublisher:
 class _RealCameras:
     """A connected ``RealCameras`` stand-in: one live ``front`` camera."""
 
-    names = ("front",)
+    cameras = ("front",)
 
     def frame_shape(self, name):
         return SHAPE
