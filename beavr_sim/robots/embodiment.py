@@ -10,6 +10,7 @@ the body's joints) onto the model's ``qpos``, ``qvel`` and actuators.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -29,7 +30,8 @@ from beavr_sim.robots.parts import (
     HandModel,
     HandMount,
 )
-from beavr_sim.robots.visuals import add_visuals
+from beavr_sim.robots.robot_file import is_robot_file
+from beavr_sim.robots.visuals import PART_VISUALS, add_visuals, strip_visuals
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
 
 
@@ -265,8 +267,11 @@ class Embodiment:
 
         def load(part: str) -> mujoco.MjSpec:
             spec = mujoco.MjSpec.from_file(str(mjcf_path(part)))
-            if visuals:
-                add_visuals(spec, part)
+            if part in PART_VISUALS:
+                if visuals:
+                    add_visuals(spec, part)
+            elif not visuals:  # a robot file's part carries its own visual geoms
+                strip_visuals(spec)
             return spec
 
         body = self.spec.body
@@ -399,6 +404,41 @@ def _compose(p1, q1, p2, q2) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(p1, float) + p, _quat_mul(np.asarray(q1, float), np.asarray(q2, float))
 
 
+def embodiment_spec(name: str) -> EmbodimentSpec:
+    """The built-in embodiment called ``name``, or the one a robot file (``*.toml``, see
+    ``docs/robots.md``) at the path ``name`` describes; raises listing the built-ins."""
+    if name in EMBODIMENTS:
+        return EMBODIMENTS[name]
+    if is_robot_file(name) and Path(name).is_file():
+        from beavr_sim.robots.from_file import load_robot_file  # it builds on this module
+
+        return load_robot_file(name)
+    if is_robot_file(name):
+        raise FileNotFoundError(
+            f"robot file {name} does not exist (built-in embodiments: {', '.join(EMBODIMENTS)})"
+        )
+    check_name("embodiment", name, EMBODIMENTS, "(or a robot file: path/to/robot.toml)")
+    raise AssertionError("unreachable")
+
+
 def make_embodiment(name: str) -> Embodiment:
-    """The embodiment called ``name``; raises with the valid names if it is unknown."""
-    return Embodiment(EMBODIMENTS[check_name("embodiment", name, EMBODIMENTS)])
+    """The embodiment ``name`` names (:func:`embodiment_spec`)."""
+    return Embodiment(embodiment_spec(name))
+
+
+def embodiment_layout(spec: EmbodimentSpec | str) -> str | None:
+    """The built-in embodiment with the same effectors (names and sides) and no body, which
+    tasks and traces written for it serve; ``None`` if there is none. A built-in is its own.
+    ``spec``: an embodiment, or a name :func:`embodiment_spec` takes."""
+    if isinstance(spec, str):
+        spec = embodiment_spec(spec)
+    if spec.name in EMBODIMENTS:
+        return spec.name
+    effectors = sorted((e.name, e.side) for e in spec.effectors)
+    for name, builtin in EMBODIMENTS.items():
+        if (
+            builtin.body is None
+            and sorted((e.name, e.side) for e in builtin.effectors) == effectors
+        ):
+            return name
+    return None

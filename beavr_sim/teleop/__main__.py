@@ -72,7 +72,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--task", required=True, help="task name, e.g. pour or PickupBox")
-    p.add_argument("--embodiment", default=None, help=f"robot (default {DEFAULT_EMBODIMENT})")
+    p.add_argument(
+        "--embodiment",
+        default=None,
+        help=f"robot: a built-in (default {DEFAULT_EMBODIMENT}) or a robot file, path/to/robot.toml "
+        "(docs/robots.md)",
+    )
     p.add_argument("--source", default="quest", choices=SOURCES, help="hand tracking source")
     p.add_argument("--trace", type=Path, default=None, help="VR trace (.mcap) for --source trace")
     p.add_argument("--seed", type=int, default=None, help="episode seed (trace: its own seed)")
