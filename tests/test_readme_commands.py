@@ -111,6 +111,8 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"teleop --task pour --source trace --mirror-hardware --hardware-config emulated",
          extra="--max-seconds 1"),
     Spec(r"--hardware-config rig\.toml", why="a real rig: its rig.toml names real devices"),
+    Spec(r"datasets generate .*--camera-poses rig\.toml",
+         why="rig.toml: a placeholder (test_twin_cameras.py generates with placed cameras)"),
     Spec(r"teleop --source webxr --camera-stream-hz 5",
          why="a live WebXR session streaming the twin's front camera; test_cameras.py's "
              "test_a_session_without_cameras_streams_the_twins_camera runs the same path"),
