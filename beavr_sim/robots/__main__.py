@@ -32,7 +32,10 @@ def main(argv: list[str] | None = None) -> int:
         for name, spec in EMBODIMENTS.items():
             print(f"{name}: {spec.description}")
         return 0
-    from beavr_sim.robots.check import check_robot, format_report  # heavy: MuJoCo, gymnasium
+    from beavr_sim.teleop.robot_check import (  # local: heavy (MuJoCo, gymnasium, the operator)
+        check_robot,
+        format_report,
+    )
 
     try:
         report = check_robot(args.robot, args.task)

@@ -32,9 +32,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.embodiment import EffectorSpec, EmbodimentSpec
 from beavr_sim.robots.parts import LEAP_HAND, ArmModel, ArmServo, HandMount
 from beavr_sim.robots.robot_file import ArmFile, RobotFile, RobotFileError, read_robot_file
+from beavr_sim.robots.specs import EffectorSpec, EmbodimentSpec
 from beavr_sim.robots.visuals import COLLISION_GROUP, VISUAL_GROUP
 from beavr_sim.workcell import TABLE_TOP_Z
 
