@@ -122,6 +122,12 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"beavr_sim\.cameras (board|calibrate) --board board\.toml",
          why="a printed board and a real camera's images (placeholders board.toml, front_*.png); "
              "test_camera_calibration.py runs both commands on a board the twin renders"),
+    Spec(r"beavr_sim\.robots check path/to/robot\.toml",
+         why="path/to/robot.toml: a placeholder; test_robot_file.py runs the check on a robot file "
+             "and test_robot_file_franka.py on the Franka example"),
+    Spec(r"--embodiment path/to/robot\.toml",
+         why="path/to/robot.toml: a placeholder; test_robot_file_franka.py replays the bundled "
+             "PickupBox trace through teleop with the Franka example"),
     Spec(r"traces info assets/traces/pour\.mcap"),
     Spec(r"traces record --out my\.mcap", extra="--seconds 0.5", check="my.mcap"),
     Spec(r"traces synth --task pour --seed 0 --out pour\.mcap", extra="--no-verify",
