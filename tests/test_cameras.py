@@ -886,3 +886,17 @@ def test_depth_camera_config_errors_are_one_line():
         RealCameras(
             {"wrist": _realsense(), "wrist_depth": _realsense(depth=False)}, control_period_s=0.1
         )
+
+
+def test_the_robot_declares_a_depth_cameras_depth_as_its_own_feature():
+    """``--robot.cameras`` with a RealSense's ``use_depth``: the robot's observation features
+    name ``NAME_depth`` (H, W, 1) beside the colour image, as LeRobot's robots do, so
+    ``lerobot-record`` keeps the depth its observation carries."""
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    robot = BeavrSimRobot(_robot_config({"wrist": _realsense()}, twin=("front",)))
+    features = robot.observation_features
+    assert features["wrist"] == (48, 64, 3) and features["wrist_depth"] == (48, 64, 1)
+    assert "front_depth" not in features  # a twin camera's depth is asked for by name
+    plain = BeavrSimRobot(_robot_config({"wrist": _realsense(depth=False)}))
+    assert "wrist_depth" not in plain.observation_features

@@ -38,7 +38,7 @@ from lerobot.robots.robot import Robot
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
 from beavr_sim.cameras.errors import CameraStoppedError
-from beavr_sim.cameras.real import RealCameras
+from beavr_sim.cameras.real import DEPTH_SUFFIX, RealCameras
 from beavr_sim.envs.beavr_env import BeavrEnv
 from beavr_sim.integrations.config_robot import ROBOT_TYPE, BeavrSimRobotConfig
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
@@ -90,7 +90,13 @@ class BeavrSimRobot(Robot):
     @cached_property
     def observation_features(self) -> dict[str, Any]:
         cams = {c: (h, w, 3) for c, (h, w) in self.cameras.items()}
-        return {**joint_features(self.joint_names), **cams}
+        # A depth camera's depth map, its own feature (LeRobot's robots: ``NAME_depth``, HxWx1).
+        depth = {
+            name + DEPTH_SUFFIX: (int(c.height), int(c.width), 1)
+            for name, c in self.real_camera_configs.items()
+            if getattr(c, "use_depth", False)
+        }
+        return {**joint_features(self.joint_names), **cams, **depth}
 
     @cached_property
     def action_features(self) -> dict[str, type]:
