@@ -265,6 +265,9 @@ class _Twin:
     def camera_for(self, panel: str) -> str:
         return panel if panel in self.own else "front"
 
+    def panel_shape(self, panel: str):
+        return SHAPE
+
     def close(self) -> None:
         self.closed_on = threading.current_thread().name
 
@@ -362,3 +365,77 @@ def test_the_twin_process_streams_its_renders_to_the_view_from_its_steps():
         env.close()
     assert view.panel.stream is not None and list(view.shapes) == [view.panel.frames[0].name]
     assert all(f.state == LIVE and f.image.std() > 0 for f in view.panel.frames)
+
+
+class _QuestPublisher:
+    """A ``HeadsetImagePublisher`` stand-in: keeps the JPEG bytes it would send."""
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def publish(self, image) -> bool:
+        from beavr_sim.headset.quest_io import encode_jpeg
+
+        self.sent.append(encode_jpeg(image, 90))
+        return True
+
+
+class _RealCameras:
+    """A connected ``RealCameras`` stand-in: one live ``front`` camera."""
+
+    cameras = ("front",)
+
+    def frame_shape(self, name):
+        return SHAPE
+
+    def peek(self):
+        return _live(200)
+
+
+@pytest.mark.parametrize(
+    ("view", "shape", "left", "right"),
+    [("real", SHAPE, 200, 200), ("twin", SHAPE, 60, 60), ("both", (48, 128, 3), 200, 60),
+     ("overlay", SHAPE, 165, 165)],
+)  # fmt: skip
+def test_the_quest_panel_shows_the_view_the_user_chose(view, shape, left, right):
+    """The Quest app's camera panel is the stream's composed panel (one compositor): its JPEG
+    decodes to the view's image, the twin's render beside or over the real frame."""
+    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
+
+    quest = _QuestPublisher()
+    config = StreamConfig(rate_hz=50.0, view=view, blend=0.25)
+    stream = start_camera_stream(_RealCameras(), config, CameraViewers(quest=quest, twin=_Twin()))
+    try:
+        deadline = time.monotonic() + WAIT_S
+        while not quest.sent:
+            assert time.monotonic() < deadline, "no panel reached the Quest publisher"
+            time.sleep(0.01)
+    finally:
+        stream.close()
+    image = np.asarray(Image.open(io.BytesIO(quest.sent[0])))
+    assert image.shape == shape
+    half = shape[1] // 2
+    assert abs(float(image[:, :half].mean()) - left) < 4
+    assert abs(float(image[:, half:].mean()) - right) < 4
+
+
+def test_the_twin_process_quest_panel_never_doubles_the_headset_images(monkeypatch):
+    """--multiprocess without a real camera: the Quest socket keeps the twin's headset images
+    alone (the twin process renders them there); the stream sends it nothing of its own."""
+    import beavr_sim.teleop.twin_camera_stream as twin_camera_stream
+
+    monkeypatch.setattr(twin_camera_stream, "twin_feed", lambda *a: (_Twin(), ("front",)))
+    quest, view = _QuestPublisher(), _View()
+
+    class _Stage:
+        after_step: list = []
+
+    config = twin_camera_stream.TwinCameraStream(50.0, quest=True)
+    close = twin_camera_stream.attach_camera_stream(
+        config, None, _Stage(), None, view=view, quest=quest
+    )
+    try:
+        view.panel.wait(2)  # the stream runs (its twin-only panel reaches the browser view)
+    finally:
+        close()
+    assert quest.sent == []

@@ -142,6 +142,28 @@ def test_rig_table_errors_list_valid_choices():
         )
 
 
+def test_a_cameras_name_is_recorded_as_given_and_case_only_twins_are_refused():
+    """``--camera Front=...`` records ``observation.images.Front`` (never lowercased); names
+    that differ only in case would share a folder on macOS / Windows: one line naming both."""
+    from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+    from beavr_sim.robots import make_embodiment
+
+    name, _ = parse_camera_arg("Front=opencv:0@64x48")
+    assert name == "Front"
+    table = {"Front": parse_camera_table("Front", {"type": "opencv", "index_or_path": 0})}
+    assert list(merge_cameras(table, {})) == ["Front"]
+    rx1, config = make_embodiment("rx1"), RecordingConfig(cameras=("overhead",))
+    features = lerobot_features(rx1, config, real_cameras={"Front": (48, 64, 3)})
+    assert "observation.images.Front" in features and "observation.images.front" not in features
+    with pytest.raises(ValueError, match=r"'Front' and 'front' differ only in case") as info:
+        lerobot_features(
+            rx1, RecordingConfig(cameras=("front",)), real_cameras={"Front": (48, 64, 3)}
+        )
+    assert "\n" not in str(info.value)
+    with pytest.raises(CameraSpecError, match=r"'FRONT' \(--camera\) and 'Front' \(rig file\)"):
+        merge_cameras(table, dict([parse_camera_arg("FRONT=opencv:1")]))
+
+
 def test_unreachable_camera_fails_at_start_with_what_to_check(tmp_path):
     _, cfg = parse_camera_arg(f"front=opencv:{tmp_path / 'missing.avi'}")
     cams = RealCameras({"front": cfg}, control_period_s=0.05)
@@ -739,3 +761,142 @@ def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypa
     assert ds.features["observation.images.wrist"]["shape"] == (24, 32, 3)
     levels = {round(float(ds[i]["observation.images.wrist"].mean()), 3) for i in range(len(ds))}
     assert len(levels) > len(ds) / 2  # the server's frames move on: not a frozen image
+
+
+# --- depth (a RealSense's use_depth; no RealSense here: a stand-in of LeRobot's camera) --------
+
+
+class _StandInRealSense:
+    """What RealCameras reads of LeRobot's ``RealSenseCamera`` (its attribute names: a colour
+    and a depth buffer of one capture, written under ``frame_lock`` by a read thread): capture
+    ``i`` is colour ``i % 250`` and depth ``1000 + i`` mm."""
+
+    def __init__(self, config) -> None:
+        self.width, self.height, self.use_depth = config.width, config.height, config.use_depth
+        self.frame_lock = threading.Lock()
+        self.latest_color_frame = self.latest_depth_frame = self.latest_timestamp = None
+        self.thread: threading.Thread | None = None
+        self.stop = threading.Event()
+
+    @property
+    def is_connected(self) -> bool:
+        return self.thread is not None
+
+    def connect(self, warmup: bool = True) -> None:
+        self.thread = threading.Thread(target=self._read_loop, daemon=True)
+        self.thread.start()
+
+    def _read_loop(self) -> None:
+        i = 0
+        while not self.stop.is_set():
+            color = np.full((self.height, self.width, 3), i % 250, np.uint8)
+            depth = np.full((self.height, self.width, 1), 1000 + i, np.uint16)
+            with self.frame_lock:
+                self.latest_color_frame, self.latest_depth_frame = color, depth
+                self.latest_timestamp = time.perf_counter()
+            i += 1
+            self.stop.wait(0.01)
+
+    def disconnect(self) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
+def _stand_in(configs):
+    return {name: _StandInRealSense(config) for name, config in configs.items()}
+
+
+def _realsense(depth: bool = True, **kw):
+    from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraConfig
+
+    return RealSenseCameraConfig("123456789", fps=30, width=64, height=48, use_depth=depth, **kw)
+
+
+def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins():
+    """A RealSense with ``use_depth`` (rig ``use_depth = true``) records
+    ``observation.images.NAME_depth``: (H, W, 1) uint16 mm of the colour frame's capture,
+    flagged ``is_depth_map`` (LeRobot's convention), next to the twin's ``front_depth``."""
+    import gymnasium as gym
+    from lerobot.datasets.feature_utils import validate_frame
+
+    import beavr_sim  # noqa: F401  (registers the envs)
+    from beavr_sim.datasets.features import RecordingConfig, lerobot_features
+    from beavr_sim.datasets.recorder import EpisodeRecorder
+    from beavr_sim.wire.records import Tick
+
+    table = {"type": "intelrealsense", "serial_number_or_name": "123456789", "use_depth": True}
+    assert parse_camera_table("wrist", {**table, "width": 64, "height": 48}).use_depth
+    real = RealCameras({"wrist": _realsense()}, control_period_s=1 / 30, make_cameras=_stand_in)
+    real.connect()
+    env = gym.make("beavr_sim/Playground-v0").unwrapped
+    try:
+        assert real.names == ("wrist", "wrist_depth")
+        shapes = {n: real.frame_shape(n) for n in real.names}  # as the sessions declare them
+        assert shapes == {"wrist": (48, 64, 3), "wrist_depth": (48, 64, 1)}
+        config = RecordingConfig(
+            cameras=(), depth_cameras=("front",), image_height=48, image_width=64,
+            hand_keypoints=False,
+        )  # fmt: skip
+        features = lerobot_features(env.embodiment, config, real_cameras=shapes)
+        assert features["observation.images.wrist_depth"]["info"] == {"is_depth_map": True}
+        assert "info" not in features["observation.images.wrist"]
+        env.reset(seed=0)
+        sink = _FrameSink()
+        recorder = EpisodeRecorder(sink, env, config, real_cameras=real)  # type: ignore[arg-type]
+        recorder.begin()
+
+        class _State:
+            action = env.joints.home.copy()
+
+        for _ in range(2):
+            recorder(Tick(t=0.0, frames=(), commands={}, state=_State()))  # type: ignore[arg-type]
+        recorder.close()
+    finally:
+        real.close()
+        env.close()
+    for frame in sink.frames:
+        validate_frame(frame, features)  # LeRobot's own check of each feature's dtype, shape
+        color, depth = frame["observation.images.wrist"], frame["observation.images.wrist_depth"]
+        assert depth.dtype == np.uint16 and depth.shape == (48, 64, 1)
+        assert (int(depth[0, 0, 0]) - 1000) % 250 == int(color[0, 0, 0])  # one capture
+        assert frame["observation.images.front_depth"].dtype == np.float32  # the twin's
+    assert real.summary()["wrist"]["frames"] == 3  # at begin, then after each frame
+
+
+class _FrameSink:
+    """The writer's interface, keeping the frames."""
+
+    root = "unused"
+    num_episodes = 0
+
+    def __init__(self):
+        self.frames: list[dict] = []
+
+    def add_frame(self, row: dict, task: str) -> None:
+        self.frames.append({**row, "task": task})
+
+    def discard_episode(self) -> None:
+        pass
+
+
+def test_depth_camera_config_errors_are_one_line():
+    with pytest.raises(CameraSpecError, match=r"'wrist': use_rgb = false is not supported"):
+        RealCameras({"wrist": _realsense(use_rgb=False)}, control_period_s=1 / 30)
+    with pytest.raises(CameraSpecError, match=r"'wrist_depth' is also camera 'wrist'"):
+        RealCameras(
+            {"wrist": _realsense(), "wrist_depth": _realsense(depth=False)}, control_period_s=0.1
+        )
+
+
+def test_the_robot_declares_a_depth_cameras_depth_as_its_own_feature():
+    """``--robot.cameras`` with a RealSense's ``use_depth``: the robot's observation features
+    name ``NAME_depth`` (H, W, 1) beside the colour image, as LeRobot's robots do, so
+    ``lerobot-record`` keeps the depth its observation carries."""
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    robot = BeavrSimRobot(_robot_config({"wrist": _realsense()}, twin=("front",)))
+    features = robot.observation_features
+    assert features["wrist"] == (48, 64, 3) and features["wrist_depth"] == (48, 64, 1)
+    assert "front_depth" not in features  # a twin camera's depth is asked for by name
+    plain = BeavrSimRobot(_robot_config({"wrist": _realsense(depth=False)}))
+    assert "wrist_depth" not in plain.observation_features

@@ -608,7 +608,7 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
     from types import SimpleNamespace
 
     from beavr_sim.teleop.episodes import KeyboardControl
-    from beavr_sim.teleop.mirroring import BrowserEstop, MirrorListener
+    from beavr_sim.teleop.mirroring import BrowserEstop, HeadsetEstop, MirrorFollower
 
     class FakeMirror:
         estopped = False
@@ -638,10 +638,13 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
             self.paused = paused
 
     mirror, operator = FakeMirror(), FakeOperator()
-    loop = SimpleNamespace(operator=operator, twin=SimpleNamespace(action=np.zeros(23)))
-    listener = MirrorListener(mirror, loop)
+    stage = SimpleNamespace(action=np.zeros(23), after_command=[], after_step=[], after_reset=[])
+    MirrorFollower(stage, mirror)
+    listener = HeadsetEstop(mirror, operator)
     state = SimpleNamespace(action=None, positions=None, guard_blocked_effectors=())
     tick = SimpleNamespace(state=state)
+    (heartbeat,) = stage.after_step
+    heartbeat(state)  # a step without a command: the mirror's heartbeat
     listener(tick)  # the headset gesture
     assert mirror.estopped and "headset" in mirror.reason and operator.paused
     view = SimpleNamespace(estop_requested=False)
@@ -651,6 +654,7 @@ def test_estop_from_keyboard_browser_and_headset_gesture():
     assert view.estop_requested  # the button shows the latched e-stop
     view.estop_requested = False  # clicked: release
     browser(tick)
+    heartbeat(state)
     listener(tick)
     assert not mirror.estopped and not operator.paused
     view.estop_requested = True  # clicked: latch

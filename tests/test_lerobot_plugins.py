@@ -297,6 +297,33 @@ def test_emulated_rig_runs_the_real_driver_paths(tmp_path):
     assert robot.mirror is None
 
 
+def test_reset_scene_gives_the_mirrors_guard_the_new_fixtures(tmp_path):
+    """hardware=emulated: at connect and after every reset_scene the mirror's own guard (the
+    one that checks the devices' catch-up path) holds this layout's fixtures, not the
+    model's defaults or the previous layout's."""
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    robot = BeavrSimRobot(
+        BeavrSimRobotConfig(
+            task="Pour", hardware="emulated", camera_names=[], seed=0, calibration_dir=tmp_path
+        )
+    )
+    robot.connect()
+    try:
+        guard, twin = robot.mirror.guard.data, robot.twin.env.data
+        layouts = []
+        for seed in (1, 2, None):
+            np.testing.assert_array_equal(guard.mocap_pos, twin.mocap_pos)
+            np.testing.assert_array_equal(guard.mocap_quat, twin.mocap_quat)
+            layouts.append(twin.mocap_pos.copy())
+            if seed is not None:
+                robot.reset_scene(seed)
+        assert not np.array_equal(layouts[0], layouts[1])  # (the cup moved)
+        assert not np.array_equal(layouts[1], layouts[2])
+    finally:
+        robot.disconnect()
+
+
 # ---------------------------------------------------------------------- the teleoperator
 def test_teleoperator_plays_a_bundled_trace_on_the_tick_clock(tmp_path):
     from beavr_sim.integrations.teleoperator import BeavrQuestTeleop

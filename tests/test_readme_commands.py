@@ -111,6 +111,8 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"teleop --task pour --source trace --mirror-hardware --hardware-config emulated",
          extra="--max-seconds 1"),
     Spec(r"--hardware-config rig\.toml", why="a real rig: its rig.toml names real devices"),
+    Spec(r"datasets generate .*--camera-poses rig\.toml",
+         why="rig.toml: a placeholder (test_twin_cameras.py generates with placed cameras)"),
     Spec(r"teleop --source webxr --camera-stream-hz 5",
          why="a live WebXR session streaming the twin's front camera; test_cameras.py's "
              "test_a_session_without_cameras_streams_the_twins_camera runs the same path"),
@@ -120,6 +122,12 @@ SPECS: tuple[Spec, ...] = (
     Spec(r"beavr_sim\.cameras (board|calibrate) --board board\.toml",
          why="a printed board and a real camera's images (placeholders board.toml, front_*.png); "
              "test_camera_calibration.py runs both commands on a board the twin renders"),
+    Spec(r"beavr_sim\.robots check path/to/robot\.toml",
+         why="path/to/robot.toml: a placeholder; test_robot_file.py runs the check on a robot file "
+             "and test_robot_file_franka.py on the Franka example"),
+    Spec(r"--embodiment path/to/robot\.toml",
+         why="path/to/robot.toml: a placeholder; test_robot_file_franka.py replays the bundled "
+             "PickupBox trace through teleop with the Franka example"),
     Spec(r"traces info assets/traces/pour\.mcap"),
     Spec(r"traces record --out my\.mcap", extra="--seconds 0.5", check="my.mcap"),
     Spec(r"traces synth --task pour --seed 0 --out pour\.mcap", extra="--no-verify",

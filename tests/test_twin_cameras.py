@@ -342,3 +342,40 @@ def test_twin_camera_feed_copies_the_pose_on_the_tick_and_renders_it_later(tmp_p
     assert not np.array_equal(moved, expected["wrist"])  # (the move shows in a live render)
     assert images["big"].shape == (480, 640, 3)  # scaled into the offscreen buffer
     assert age_s == pytest.approx(0.05)
+
+
+def test_datasets_generate_places_the_twin_cameras_of_camera_poses(tmp_path, monkeypatch):
+    """``datasets generate --camera-poses F`` (teleop's option and loader): the twin camera F
+    places, ``Side`` (its name kept as given, in the table and in ``--cameras``), is recorded
+    with its depth. Cheap: the bundled trace stands in for the synthesized one, 0.2 s kept."""
+    import json
+
+    import pyarrow.parquet as pq
+
+    import beavr_sim.synthetic.trace as synthetic_trace
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.datasets.__main__ import main
+
+    class _Synth:
+        class summary:
+            success = True
+
+    monkeypatch.setattr(synthetic_trace, "synthesize", lambda *a, **k: _Synth())
+    monkeypatch.setattr(synthetic_trace, "write_trace", lambda *a: bundled_trace("PickupBox"))
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG.replace("[cameras.side]", "[cameras.Side]"))
+    out = tmp_path / "d"
+    common = ["generate", "--task", "PickupBox", "--episodes", "1", "--out", str(out)]
+    common += ["--image-size", "24x32", "--episode-seconds", "0.2", "--keep-failed"]
+    common += ["--workers", "1", "--quiet", "--no-videos", "--no-keypoints"]
+    assert main([*common, "--cameras", "Side"]) == 2  # not placed: refused (one line)
+    assert main([*common, "--cameras", "Side,Side:depth", "--camera-poses", str(rig)]) == 0
+    features = json.loads((out / "meta" / "info.json").read_text())["features"]
+    assert features["observation.images.Side"]["shape"] == [24, 32, 3]
+    assert features["observation.images.Side_depth"]["info"]["is_depth_map"] is True
+    table = pq.read_table(out / "data" / "chunk-000" / "file-000.parquet")
+    assert table.num_rows >= 6  # 0.2 s at 30 fps, each drawn from the placed camera
+    assert {"observation.images.Side", "observation.images.Side_depth"} <= set(table.column_names)
+    bare = tmp_path / "bare.toml"
+    bare.write_text('[cameras.front]\ntype = "opencv"\nindex_or_path = 0\n')
+    assert main([*common, "--camera-poses", str(bare), "--overwrite"]) == 2

@@ -70,3 +70,14 @@ def rig_placed_cameras(path: str | Path) -> tuple[PlacedCamera, ...]:
     """The twin cameras a rig file's `[cameras.NAME]` tables place (those with a pose)."""
     placed = (placed_camera(name, table) for name, table in rig_tables(path).items())
     return tuple(p for p in placed if p is not None)
+
+
+def load_camera_poses(path: str | Path) -> tuple[PlacedCamera, ...]:
+    """``--camera-poses F.toml`` (teleop and ``datasets generate``): the twin cameras F
+    places; a file that places none is an error (it was given to place some)."""
+    placed = rig_placed_cameras(path)
+    if not placed:
+        raise CameraSpecError(
+            f"--camera-poses {path}: no [cameras.NAME] table has a T_world_camera (docs/cameras.md)"
+        )
+    return placed

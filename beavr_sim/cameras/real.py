@@ -11,6 +11,12 @@ camera stream): it counts nothing.
 `connect()` fails with a one-line `CameraError` naming the camera and what to check; a config
 that states `width` and `height` must get frames of that size (a video file is not set to them:
 OpenCV cannot resize or re-time a file, so they are checked against its frames instead).
+
+Depth: a camera configured with depth (LeRobot's RealSense `use_depth`) gives, with each colour
+frame, the depth map of the same capture (LeRobot's `latest_depth_frame`: HxWx1 uint16
+millimetres) as its own image feature `NAME_depth`, LeRobot's name for it; `names` lists the
+features a grab returns (each camera's, then the depth ones), `frame_shape` their shapes.
+A camera is recorded with its colour image: `use_rgb = false` is refused at construction.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import dataclasses
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,12 +37,14 @@ from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraCon
 from lerobot.cameras.utils import make_cameras_from_configs
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
-from beavr_sim.cameras.errors import CameraError
+from beavr_sim.cameras.errors import CameraError, CameraSpecError
 
 log = logging.getLogger(__name__)
 
 DEAD_AFTER_S = 1.0
 FIRST_FRAME_TIMEOUT_S = 5.0
+#: LeRobot's suffix of a camera's depth feature (``NAME_depth``, as its robots name it).
+DEPTH_SUFFIX = "_depth"
 
 
 @dataclass
@@ -60,7 +69,9 @@ class CameraStats:
 
 @dataclass(frozen=True)
 class Grab:
-    """One grab across all cameras: frames (live cameras only) and the names of dead ones."""
+    """One grab across all cameras: frames by feature name (live cameras only: a depth
+    camera's colour frame and its ``NAME_depth`` map of the same capture) and the names of
+    dead cameras."""
 
     frames: dict[str, np.ndarray]
     ages_s: dict[str, float]
@@ -97,10 +108,18 @@ class RealCameras:
         configs: dict[str, CameraConfig],
         control_period_s: float,
         dead_after_s: float = DEAD_AFTER_S,
+        *,
+        make_cameras: Callable[[dict[str, CameraConfig]], dict[str, Camera]] = (
+            make_cameras_from_configs
+        ),
     ) -> None:
         if control_period_s <= 0:
             raise ValueError(f"control_period_s must be > 0, got {control_period_s}")
         self.configs = dict(configs)
+        #: The cameras whose depth is recorded too (LeRobot's ``use_depth``).
+        self.depth_cameras = tuple(n for n, c in self.configs.items() if _uses_depth(c))
+        _check_depth_configs(self.configs, self.depth_cameras)
+        self._make = make_cameras
         self.stale_after_s = 1.5 * control_period_s
         self.dead_after_s = dead_after_s
         self._cameras: dict[str, Camera] = {}
@@ -108,15 +127,22 @@ class RealCameras:
         self.stats: dict[str, CameraStats] = {}
 
     @property
-    def names(self) -> tuple[str, ...]:
+    def cameras(self) -> tuple[str, ...]:
+        """The cameras' names."""
         return tuple(self.configs)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The image features a grab returns: each camera's, then ``NAME_depth`` of each
+        depth camera."""
+        return self.cameras + tuple(n + DEPTH_SUFFIX for n in self.depth_cameras)
 
     def connect(self) -> None:
         """Open every camera and wait for its first frame; one-line `CameraError` otherwise."""
         _camera_thread_errors_in_one_line()
         for name, config in self.configs.items():
             try:
-                camera = make_cameras_from_configs({name: _source_config(config)})[name]
+                camera = self._make({name: _source_config(config)})[name]
                 # LeRobot's ZMQ warm-up checks for a frame the instant its read thread starts
                 # (with warmup_s = 0: a race); the image server is warm, and the first frame
                 # is waited for below.
@@ -135,17 +161,23 @@ class RealCameras:
     @staticmethod
     def _wait_first_frame(camera: Camera, config: CameraConfig) -> None:
         deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+        depth = _uses_depth(config)
         while time.monotonic() < deadline:
-            with camera.frame_lock:
-                frame = camera.latest_frame
-            if frame is not None:
+            frame, depth_map, _ = _newest_of(camera, depth)
+            if frame is not None and (depth_map is not None or not depth):
                 _check_frame_size(frame, config)
+                if depth_map is not None:
+                    _check_frame_size(depth_map, config, "depth maps")
                 return
             time.sleep(0.01)
         raise TimeoutError(f"no frame within {FIRST_FRAME_TIMEOUT_S:.0f} s")
 
     def frame_shape(self, name: str) -> tuple[int, int, int]:
-        """(height, width, 3) of a connected camera's frames."""
+        """(height, width, 3) of a connected camera's frames; (height, width, 1) of a depth
+        feature (``NAME_depth``)."""
+        if name not in self.configs and name.endswith(DEPTH_SUFFIX):
+            camera = self._cameras[name.removesuffix(DEPTH_SUFFIX)]
+            return (int(camera.height), int(camera.width), 1)
         camera = self._cameras[name]
         return (int(camera.height), int(camera.width), 3)
 
@@ -160,7 +192,7 @@ class RealCameras:
         dead: list[str] = []
         now = time.perf_counter()
         for name, camera in self._cameras.items():
-            frame, stamp = self._newest(camera)
+            frame, depth, stamp = self._newest(name, camera)
             if frame is None or stamp is None or now - stamp > self.dead_after_s:
                 dead.append(name)
                 continue
@@ -174,6 +206,8 @@ class RealCameras:
                 stats.repeats += 1
             self._last_stamp[name] = stamp
             frames[name] = frame
+            if depth is not None:
+                frames[name + DEPTH_SUFFIX] = depth
             ages[name] = age
         return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
 
@@ -185,7 +219,7 @@ class RealCameras:
         now = time.perf_counter()
         for name, camera in list(self._cameras.items()):
             try:
-                frame, stamp = self._newest(camera)
+                frame, _, stamp = self._newest(name, camera)
             except Exception:
                 frame, stamp = None, None
             if frame is None or stamp is None or now - stamp > self.dead_after_s:
@@ -194,13 +228,20 @@ class RealCameras:
             frames[name], ages[name] = frame, max(0.0, now - stamp)
         return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
 
-    @staticmethod
-    def _newest(camera: Camera) -> tuple[np.ndarray | None, float | None]:
+    def _newest(
+        self, name: str, camera: Camera
+    ) -> tuple[np.ndarray | None, np.ndarray | None, float | None]:
+        """The newest colour frame, depth map (a depth camera's; None for the others: a
+        depth camera without one yields no frame) and capture time; all None once the
+        camera's read thread stopped."""
         thread = getattr(camera, "thread", None)
         if thread is None or not thread.is_alive():
-            return None, None
-        with camera.frame_lock:
-            return camera.latest_frame, camera.latest_timestamp
+            return None, None, None
+        depth = name in self.depth_cameras
+        frame, depth_map, stamp = _newest_of(camera, depth)
+        if depth and depth_map is None:
+            return None, None, stamp
+        return frame, depth_map, stamp
 
     def failed_for_good(self) -> list[str]:
         """Cameras whose LeRobot read thread has stopped (they will not come back)."""
@@ -223,17 +264,50 @@ class RealCameras:
         self._cameras.clear()
 
 
+def _uses_depth(config: CameraConfig) -> bool:
+    return bool(getattr(config, "use_depth", False))
+
+
+def _check_depth_configs(configs: dict[str, CameraConfig], depth: tuple[str, ...]) -> None:
+    for name, config in configs.items():
+        if not getattr(config, "use_rgb", True):
+            raise CameraSpecError(
+                f"camera {name!r}: use_rgb = false is not supported (a real camera records its "
+                "colour image; use_depth = true adds its depth as "
+                f"{name}{DEPTH_SUFFIX})"
+            )
+    for name in depth:
+        if name + DEPTH_SUFFIX in configs:
+            raise CameraSpecError(
+                f"camera {name + DEPTH_SUFFIX!r} is also camera {name!r}'s depth feature; rename it"
+            )
+
+
+def _newest_of(
+    camera: Camera, depth: bool
+) -> tuple[np.ndarray | None, np.ndarray | None, float | None]:
+    """A LeRobot camera's newest buffered colour frame (RealSense's ``latest_color_frame``,
+    the others' ``latest_frame``), depth map (``depth``: RealSense's ``latest_depth_frame``)
+    and capture time, read together under its frame lock (one capture)."""
+    with camera.frame_lock:
+        frame = getattr(camera, "latest_color_frame", None)
+        if frame is None:
+            frame = getattr(camera, "latest_frame", None)
+        depth_map = getattr(camera, "latest_depth_frame", None) if depth else None
+        return frame, depth_map, camera.latest_timestamp
+
+
 class _WrongFrameSize(ValueError):
     """A camera's frames are not the size its config states."""
 
 
-def _check_frame_size(frame: np.ndarray, config: CameraConfig) -> None:
+def _check_frame_size(frame: np.ndarray, config: CameraConfig, what: str = "frames") -> None:
     if config.width is None or config.height is None:
         return
     height, width = frame.shape[:2]
     if (height, width) != (config.height, config.width):
         raise _WrongFrameSize(
-            f"its frames are width={width} x height={height}, not the configured "
+            f"its {what} are width={width} x height={height}, not the configured "
             f"width={config.width} x height={config.height}; set width and height to the camera's"
         )
 

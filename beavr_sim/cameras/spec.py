@@ -11,6 +11,9 @@ A rig table may also carry where the camera stands, for the twin camera of its n
 x right, y down, z forward, in the world frame) and `fx`, `fy`, `cx`, `cy` (pixels at `width` x
 `height`) or `fovy_deg`; `beavr_sim.cameras.poses` reads them, `parse_camera_table` leaves them
 out.
+A camera's name is kept as given, case too (`--camera Front=...` records
+`observation.images.Front`): letters, digits or _ (LeRobot's only rule for a feature name is
+no `/`; ours keeps names usable as folder names and in `--camera-poses` tables).
 Every error is a `CameraSpecError` with one line naming the camera and listing the valid choices.
 """
 
@@ -133,6 +136,14 @@ def merge_cameras(
         raise CameraSpecError(
             f"camera {both[0]!r} is named both in the rig file and by {cli_source}"
         )
+    folded = {name.casefold(): name for name in rig}
+    for name in cli:
+        if name.casefold() in folded:
+            raise CameraSpecError(
+                f"camera {name!r} ({cli_source}) and {folded[name.casefold()]!r} (rig file) "
+                "differ only in case (their dataset folders collide on case-insensitive file "
+                "systems); rename one"
+            )
     return {**rig, **cli}
 
 

@@ -21,8 +21,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
+from beavr_sim.cameras.poses import load_camera_poses
 from beavr_sim.datasets.augment.source import open_source
-from beavr_sim.datasets.cli import add_recording_args, parse_cameras, recording_config
+from beavr_sim.datasets.cli import (
+    add_camera_poses_arg,
+    add_recording_args,
+    parse_cameras,
+    recording_config,
+)
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.scaling.cli import add_scale_args, scale_config
 from beavr_sim.scaling.executors import LOG_FORMAT, JobFailed
@@ -45,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     add_recording_args(g)
+    add_camera_poses_arg(g)
     add_scale_args(g)
     a = sub.add_parser("augment", help="new demonstrations from recorded ones (MimicGen-style)")
     a.add_argument("--source", type=Path, required=True, help="a beavr_sim LeRobot dataset")
@@ -66,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "augment":
         return _augment(args, generate)
     try:
+        placed = load_camera_poses(args.camera_poses) if args.camera_poses else ()
         summary = generate(
             args.task,
             args.episodes,
@@ -73,11 +81,12 @@ def main(argv: list[str] | None = None) -> int:
             args.out,
             repo_id=args.repo_id,
             embodiment=args.embodiment,
-            config=recording_config(args),
+            config=recording_config(args, tuple(c.name for c in placed)),
             keep_failed=args.keep_failed,
             overwrite=args.overwrite,
             progress=not args.quiet,
             scale=scale_config(args),
+            camera_poses=args.camera_poses,
         )
     except (UnknownNameError, ValueError, FileExistsError, ImportError, JobFailed) as exc:
         print(f"error: {exc}", file=sys.stderr)

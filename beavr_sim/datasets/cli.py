@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from beavr_sim.datasets.features import RecordingConfig
 
@@ -12,14 +13,14 @@ from beavr_sim.datasets.features import RecordingConfig
 def parse_cameras(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """``--cameras``: ``front,overhead`` (RGB) with ``NAME:depth`` for a camera's depth ->
     (RGB cameras, depth cameras); ``none`` -> nothing."""
-    text = text.strip().lower()
-    if text in ("", "none", "off"):
+    text = text.strip()
+    if text.lower() in ("", "none", "off"):
         return (), ()
     rgb: list[str] = []
     depth: list[str] = []
     for item in (c.strip() for c in text.split(",")):
-        name, _, kind = item.partition(":")
-        if kind not in ("", "depth"):
+        name, _, kind = item.partition(":")  # the name as given: a placed camera's may be Side
+        if kind.lower() not in ("", "depth"):
             raise ValueError(f"--cameras {item!r}: a camera is NAME or NAME:depth")
         (depth if kind else rgb).append(name)
     return tuple(rgb), tuple(depth)
@@ -53,6 +54,20 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--episode-seconds", type=float, default=None, help="episode time limit (default: env's)"
+    )
+
+
+def add_camera_poses_arg(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--camera-poses F.toml``, shared with ``python -m beavr_sim.teleop`` (read with
+    :func:`beavr_sim.cameras.poses.load_camera_poses`)."""
+    p.add_argument(
+        "--camera-poses",
+        type=Path,
+        default=None,
+        metavar="F.toml",
+        help="place the twin's cameras at real cameras' poses: the T_world_camera and "
+        "intrinsics of F's [cameras.NAME] tables (a rig file; python -m beavr_sim.cameras "
+        "calibrate writes them; docs/cameras.md); --cameras may name them",
     )
 
 

@@ -9,7 +9,11 @@ Features (``docs/formats.md`` lists them with shapes):
   task's object and target poses, privileged state for state-based policies; off by default
   because ``lerobot-train`` feeds every ``observation.*`` feature to the policy;
 - ``observation.images.<camera>``: the twin's cameras (``front``, ``overhead``, a robot's own,
-  or one ``--camera-poses`` places: ``RecordingConfig.placed_cameras``), HxWx3 video;
+  or one ``--camera-poses`` places: ``RecordingConfig.placed_cameras``), HxWx3 video; and the
+  real cameras (``real_cameras``), their names kept as given (case too; two names differing
+  only in case are refused: their folders would collide on a case-insensitive file system);
+  a real camera's depth (``<camera>_depth``, HxWx1 uint16 millimetres) is flagged
+  ``info.is_depth_map`` as LeRobot does for one-channel camera features;
 - ``observation.images.<camera>_depth`` (only for ``RecordingConfig.depth_cameras``): the twin
   camera's depth, HxWx1 float32 metres, flagged ``info.is_depth_map`` as LeRobot's RealSense
   depth features (``<camera>_depth``, ``(H, W, 1)``), so sim and RGB-D rig datasets match;
@@ -87,6 +91,19 @@ class RecordingConfig:
             raise ValueError(f"tail_seconds must be >= 0, got {self.tail_seconds!r}")
 
 
+def _check_case_distinct(camera: str, features: Mapping[str, dict]) -> None:
+    """A camera's name is recorded as given (``observation.images.Front``), but two image
+    features whose names differ only in case would share a folder on a case-insensitive file
+    system (macOS, Windows): refused, naming both."""
+    for key in features:
+        if key.startswith(IMAGE_PREFIX) and key.casefold() == (IMAGE_PREFIX + camera).casefold():
+            other = key.removeprefix(IMAGE_PREFIX)
+            raise ValueError(
+                f"camera {camera!r} and {other!r} differ only in case (their dataset folders "
+                "collide on case-insensitive file systems); rename one"
+            )
+
+
 def hand_sides(embodiment: Embodiment) -> tuple[str, ...]:
     """The hand sides an embodiment's operator tracks, in effector order."""
     return tuple(dict.fromkeys(e.side for e in embodiment.effectors))
@@ -128,15 +145,19 @@ def lerobot_features(
             "info": {"is_depth_map": True},
         }
     for camera, shape in (real_cameras or {}).items():
-        if IMAGE_PREFIX + camera in features:
+        key = IMAGE_PREFIX + camera
+        if key in features:
             raise ValueError(
                 f"camera {camera!r} is both a twin camera or depth (--cameras) and a real one"
             )
-        features[IMAGE_PREFIX + camera] = {
+        _check_case_distinct(camera, features)
+        features[key] = {
             "dtype": "video" if config.use_videos else "image",
             "shape": tuple(shape),
             "names": ["height", "width", "channels"],
         }
+        if len(shape) == 3 and shape[2] == 1:  # LeRobot's rule: one channel is a depth map
+            features[key]["info"] = {"is_depth_map": True}
     if config.hand_keypoints:
         sides = hand_sides(embodiment)
         features[KEYPOINTS] = {

@@ -31,7 +31,7 @@ from beavr_sim.envs.scene import (
 )
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment, make_embodiment
-from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT, embodiment_layout
 from beavr_sim.tasks.base import Task, TaskStatus
 from beavr_sim.tasks.registry import task_class
 
@@ -90,7 +90,9 @@ class BeavrEnv(gym.Env):
 
         self.task: Task = task_class(task)(self.embodiment)
         if self.task.embodiments is not None:
-            check_name("embodiment", embodiment, self.task.embodiments, f"for task {task}")
+            # A robot file's robot runs the tasks of the built-in with its effectors.
+            layout = embodiment_layout(self.embodiment.spec) or embodiment
+            check_name("embodiment", layout, self.task.embodiments, f"for task {task}")
         self.max_episode_seconds = float(
             self.task.max_episode_seconds if max_episode_seconds is None else max_episode_seconds
         )

@@ -81,9 +81,10 @@ def _step_many(position, goal, dt, max_speed, velocity, max_accel) -> tuple[np.n
             wanted = np.where(finite, v + np.clip(wanted - v, -accel * dt, accel * dt), wanted)
     step = wanted * dt
     # Reached: the step goes at least as far as the goal, in the goal's direction (or no error).
-    arrived = np.where(err > 0, step >= err, step <= err) | (err == 0)
+    arrived = np.where(err > 0, step >= err, step <= err)
+    arrived |= err == 0
     new_p = np.where(arrived, g, p + step)
-    new_v = np.where(arrived, err / dt, step / dt)
+    new_v = np.where(arrived, err, step) / dt
     if new_p.ndim == 0:
         return float(new_p), float(new_v)
     return new_p, new_v

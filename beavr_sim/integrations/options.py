@@ -9,6 +9,8 @@ from collections.abc import Iterable
 from beavr_sim.envs.scene import camera_names
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment, make_embodiment
+from beavr_sim.robots.embodiment import embodiment_layout
+from beavr_sim.robots.robot_file import is_robot_file
 from beavr_sim.tasks.registry import canonical_task_name, task_class
 
 #: The embodiment every plugin config defaults to.
@@ -23,8 +25,9 @@ def check_task(task: object, embodiment: str | None = None) -> str:
     name = canonical_task_name(task)
     if embodiment is not None:
         supported = task_class(name).embodiments
-        if supported is not None:
-            check_name("embodiment", embodiment, supported, f"for task {name}")
+        if supported is not None:  # a robot file runs the tasks of its layout
+            layout = embodiment_layout(embodiment) if is_robot_file(embodiment) else embodiment
+            check_name("embodiment", layout or embodiment, supported, f"for task {name}")
     return name
 
 

@@ -1,15 +1,21 @@
 """``--robot.type=beavr_sim``: the xArm7 + LEAP rig or the RX-1 as a LeRobot ``Robot``.
 
-The twin (:class:`beavr_sim.twin.twin.TwinInterface` over a ``BeavrEnv``) is always there:
-every action passes its guard (joint limits, speed and acceleration, workspace, contacts
-along the path) and its step limit, and :meth:`BeavrSimRobot.send_action` returns the
-targets that were actually sent: an effector whose command the guard refused keeps its last
-safe target, so what comes back differs from what went in. Each ``send_action`` then steps the
-twin one control period (1/fps). With hardware (``emulated`` or a rig file) the same guarded
-targets go to the devices through :class:`beavr_sim.hardware.mirror.HardwareMirror` (as
-``teleop --mirror-hardware`` does) and the observation is the devices' measured joints; in
-``sim`` it is the twin's. Camera images are the twin's renders (``camera_names``) and the real
-cameras' newest frames (``cameras`` and a rig file's: LeRobot cameras opened at connect through
+The twin is always there, as the teleop runners' twin stage
+(:class:`beavr_sim.teleop.stages.TwinStage` over a ``BeavrEnv``): every action passes its
+guard (joint limits, speed and acceleration, workspace, contacts along the path) and its step
+limit, and :meth:`BeavrSimRobot.send_action` returns the targets that were actually sent: an
+effector whose command the guard refused keeps its last safe target, so what comes back
+differs from what went in. Each ``send_action`` is one command to the stage and one step of
+one control period (1/fps). With hardware (``emulated`` or a rig file) the
+:class:`beavr_sim.hardware.mirror.HardwareMirror` follows the stage through its hooks
+(:class:`beavr_sim.teleop.mirroring.MirrorFollower`, the runners' own wiring), so the same
+guarded targets go to the devices, and the observation is the devices' measured joints; in
+``sim`` it is the twin's. At connect and at each :meth:`BeavrSimRobot.reset_scene` the mirror
+is told the episode's start and fixtures (``begin_episode``): its own guard checks every
+catch-up against this layout's fixtures, never a previous one's.
+
+Camera images are the twin's renders (``camera_names``) and the real cameras' newest frames
+(``cameras`` and a rig file's: LeRobot cameras opened at connect through
 :class:`beavr_sim.cameras.real.RealCameras`, read on their own threads). A real camera that
 stops delivering (its newest frame older than ``camera_max_age_s``, or its read thread ended)
 makes :meth:`BeavrSimRobot.get_observation` raise one line: a frozen frame is never handed to
@@ -32,12 +38,12 @@ from lerobot.robots.robot import Robot
 from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnectedError
 
 from beavr_sim.cameras.errors import CameraStoppedError
-from beavr_sim.cameras.real import RealCameras
+from beavr_sim.cameras.real import DEPTH_SUFFIX, RealCameras
 from beavr_sim.envs.beavr_env import BeavrEnv
 from beavr_sim.integrations.config_robot import ROBOT_TYPE, BeavrSimRobotConfig
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
 from beavr_sim.integrations.options import check_embodiment
-from beavr_sim.teleop.mirroring import RigChoice, connect_mirror
+from beavr_sim.teleop.mirroring import MirrorFollower, RigChoice, connect_mirror
 from beavr_sim.wire.records import JointCommand
 
 log = logging.getLogger(__name__)
@@ -66,11 +72,12 @@ class BeavrSimRobot(Robot):
         #: The real cameras while connected (None without any).
         self.real_cameras: RealCameras | None = None
         self.twin = None
+        #: The twin stage every action goes through (None while not connected).
+        self.stage = None
         self.mirror = None
         #: The last ``send_action``'s guard outcome (accepted and refused effectors).
         self.last_outcome = None
         self._closers: list[Callable[[], None]] = []
-        self._positions: np.ndarray | None = None  # the twin's joints after its last step
         #: Actions sent since connect, and those with an effector the guard refused.
         self.actions_sent = 0
         self.actions_refused = 0
@@ -83,7 +90,13 @@ class BeavrSimRobot(Robot):
     @cached_property
     def observation_features(self) -> dict[str, Any]:
         cams = {c: (h, w, 3) for c, (h, w) in self.cameras.items()}
-        return {**joint_features(self.joint_names), **cams}
+        # A depth camera's depth map, its own feature (LeRobot's robots: ``NAME_depth``, HxWx1).
+        depth = {
+            name + DEPTH_SUFFIX: (int(c.height), int(c.width), 1)
+            for name, c in self.real_camera_configs.items()
+            if getattr(c, "use_depth", False)
+        }
+        return {**joint_features(self.joint_names), **cams, **depth}
 
     @cached_property
     def action_features(self) -> dict[str, type]:
@@ -110,7 +123,8 @@ class BeavrSimRobot(Robot):
         twin at the measured pose (nothing moves at connect)."""
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"{self} is already connected")
-        from beavr_sim.twin.twin import TwinInterface  # local: heavy (the pipeline: mink, scipy)
+        from beavr_sim.teleop.stages import TwinStage  # local: heavy (the operator: mink)
+        from beavr_sim.twin.twin import TwinInterface  # local: heavy (the guard: mink, scipy)
 
         cfg = self.config
         hand_variant = self._hand_variant()
@@ -137,20 +151,22 @@ class BeavrSimRobot(Robot):
             )
             self._closers.append(env.close)
             twin = TwinInterface(env, use_guard=cfg.use_guard)
+            stage = TwinStage(twin)
             q_measured = None
             if cfg.mirrors_hardware:
                 choice = RigChoice(cfg.hardware, cfg.dry_run)
                 self.mirror, q_measured = connect_mirror(choice, env, self._closers)
                 twin.follow_speed_caps(self.mirror.speed_caps)
-            twin.reset(cfg.seed, robot_qpos=q_measured)
+            stage.reset(cfg.seed, robot_qpos=q_measured)
             if self.mirror is not None:
                 self.mirror.start(twin.action)
+                MirrorFollower(stage, self.mirror)
+                self._begin_episode(stage)
         except BaseException:
             self._close_all()
             raise
-        self.twin = twin
+        self.twin, self.stage = twin, stage
         self.actions_sent = self.actions_refused = 0
-        self._positions = env.agent_pos.astype(np.float64)
         log.info("%s connected (%s, task %s)", self, cfg.hardware, cfg.task)
 
     def _hand_variant(self) -> str:
@@ -189,13 +205,21 @@ class BeavrSimRobot(Robot):
                 close()
             except Exception as exc:  # release everything we can
                 log.warning("closing %s: %r", self, exc)
-        self.twin = self.mirror = self.real_cameras = None
+        self.twin = self.stage = self.mirror = self.real_cameras = None
 
     # ------------------------------------------------------------------ I/O
     def _require(self):
         if self.twin is None:
             raise DeviceNotConnectedError(f"{self} is not connected: call connect() first")
         return self.twin
+
+    def _begin_episode(self, stage) -> None:
+        """Tell the mirror the episode's start (the twin's action after its reset) and its
+        fixtures: the devices catch up with the twin there, their path checked against
+        this layout."""
+        from beavr_sim.hardware.mirror import Fixtures  # local: heavy (the guard: mink, scipy)
+
+        self.mirror.begin_episode(stage.action.copy(), fixtures=Fixtures.of(stage.twin.env.data))
 
     def measured_positions(self) -> np.ndarray:
         """Measured joints in action order: the devices' with hardware, else the twin's."""
@@ -230,8 +254,9 @@ class BeavrSimRobot(Robot):
         return grab.frames
 
     def send_action(self, action: dict[str, Any]) -> dict[str, float]:
-        """Guard ``action`` (joint name -> target, rad), send it (twin, and hardware), step
-        the twin one period; returns the targets actually sent."""
+        """Guard ``action`` (joint name -> target, rad) and send it: one command to the twin
+        stage (the guarded targets go to the hardware at once, through its hooks), then one
+        step of one period; returns the targets actually sent."""
         twin = self._require()
         target = action_vector(action, self.joint_names)
         nan = math.nan
@@ -239,12 +264,9 @@ class BeavrSimRobot(Robot):
             e.name: JointCommand(e.name, target[twin.slices[e.name]].copy(), nan, nan)
             for e in self.embodiment.effectors
         }
-        outcome = twin.command(commands)
+        outcome = self.stage.command(commands, latency=False)
         sent = twin.action.copy()
-        if self.mirror is not None:
-            self.mirror.submit(sent, self._positions, outcome.blocked)
-        state = twin.step()
-        self._positions = state.positions
+        self.stage.step()
         self.last_outcome = outcome
         self.actions_sent += 1
         if outcome.blocked:
@@ -258,11 +280,13 @@ class BeavrSimRobot(Robot):
 
     # ------------------------------------------------------------------ extras
     def reset_scene(self, seed: int | None = None) -> None:
-        """A new layout of the task's objects (the robot stays where it is)."""
-        twin = self._require()
+        """A new layout of the task's objects (the robot stays where it is); with hardware,
+        the mirror is told this episode's start and fixtures."""
+        self._require()
         q = self.measured_positions()
-        twin.reset(seed, robot_qpos=q)
-        self._positions = twin.env.agent_pos.astype(np.float64)
+        self.stage.reset(seed, robot_qpos=q)
+        if self.mirror is not None:
+            self._begin_episode(self.stage)
 
     def estop(self, reason: str = "emergency stop") -> None:
         """Latch the hardware's emergency stop (every device holds until released)."""

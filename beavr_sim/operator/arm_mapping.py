@@ -26,6 +26,8 @@ import numpy as np
 
 from beavr_sim.naming import check_name
 from beavr_sim.operator import kernels
+from beavr_sim.robots.embodiment import embodiment_layout
+from beavr_sim.robots.robot_file import is_robot_file
 
 RESOLUTION_SCALE = {"high": 1.0, "low": 0.6}
 
@@ -64,7 +66,11 @@ AXIS_MAPS: dict[tuple[str, str], AxisMap] = {
 
 
 def axis_map(embodiment: str, side: str) -> AxisMap:
+    """The axis map of ``embodiment``'s ``side``; a robot file's (LEAP hands, the same hand
+    frame convention) is its layout's (:func:`~beavr_sim.robots.embodiment.embodiment_layout`)."""
     key = (embodiment, side)
+    if key not in AXIS_MAPS and is_robot_file(embodiment):
+        key = (embodiment_layout(embodiment) or embodiment, side)
     if key not in AXIS_MAPS:
         valid = [f"{e}/{s}" for e, s in AXIS_MAPS]
         check_name("embodiment/side with an arm axis map", f"{embodiment}/{side}", valid)

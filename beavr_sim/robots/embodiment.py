@@ -10,56 +10,23 @@ the body's joints) onto the model's ``qpos``, ``qvel`` and actuators.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
+from beavr_sim.robots.from_file import load_robot_file
 from beavr_sim.robots.parts import (
-    LEAP_HAND,
     LEAP_ON_RX1,
-    LEAP_ON_XARM7,
     RX1_ARM,
     RX1_BODY,
-    SIDES,
-    XARM7,
-    ArmModel,
-    BodyModel,
-    HandModel,
-    HandMount,
 )
-from beavr_sim.robots.visuals import add_visuals
+from beavr_sim.robots.robot_file import is_robot_file
+from beavr_sim.robots.specs import BODY_PREFIX, EffectorSpec, EmbodimentSpec
+from beavr_sim.robots.visuals import PART_VISUALS, add_visuals, strip_visuals
 from beavr_sim.workcell import TABLE_HALF_Y, TABLE_TOP_Z, TABLE_X
-
-
-@dataclass(frozen=True)
-class EffectorSpec:
-    """One arm with a hand, placed at ``base_pos`` (world, metres) turned ``base_yaw_deg``.
-
-    On an embodiment with a body, the arm attaches to the body's site for its side instead,
-    and ``base_pos`` states where that site is in the world at the body's home pose (tasks
-    and experts read it; a test checks it against the compiled model).
-    """
-
-    name: str
-    side: str
-    base_pos: tuple[float, float, float]
-    base_yaw_deg: float = 0.0
-    arm: ArmModel = XARM7
-    hand: HandModel = LEAP_HAND
-    mount: HandMount = LEAP_ON_XARM7
-
-    def __post_init__(self) -> None:
-        check_name("side", self.side, SIDES)
-        if not self.name or "/" in self.name:
-            raise ValueError(f"effector name must be non-empty without '/', got {self.name!r}")
-        if len(self.base_pos) != 3:
-            raise ValueError(f"base_pos must have 3 values, got {self.base_pos!r}")
-
-    @property
-    def prefix(self) -> str:
-        return f"{self.name}/"
 
 
 @dataclass(frozen=True)
@@ -91,45 +58,6 @@ class Effector:
             palm_site=p + spec.hand.palm_site,
             fingertip_sites=tuple(p + s for s in spec.hand.fingertip_sites),
         )
-
-
-#: Prefix of the body's names in the scene (``body/torso_yaw``).
-BODY_PREFIX = "body/"
-
-
-@dataclass(frozen=True)
-class EmbodimentSpec:
-    """Effectors, and optionally the body that carries them (``body`` at ``body_pos``).
-
-    ``workspace``: the table rectangle ``((x0, x1), (y0, y1))`` (world, m) where tasks lay out
-    objects, when the default in front of the arm bases does not suit (a humanoid behind the
-    table). ``camera_shift``: the scene's fixed cameras move by this (world, m) to frame it.
-    ``guard_box``: ``(lower, upper)`` corners (world, m) of the box every moving robot geom must
-    stay in (the twin guard's workspace rule), when the table's box does not hold the robot
-    (arms that start behind the table).
-    """
-
-    name: str
-    effectors: tuple[EffectorSpec, ...]
-    description: str = ""
-    body: BodyModel | None = None
-    body_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    workspace: tuple[tuple[float, float], tuple[float, float]] | None = None
-    camera_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    guard_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
-
-    def __post_init__(self) -> None:
-        names = [e.name for e in self.effectors]
-        if not names or len(set(names)) != len(names):
-            raise ValueError(
-                f"{self.name}: effector names must be unique and non-empty, got {names}"
-            )
-        if self.body is not None:
-            for e in self.effectors:
-                check_name(f"side with an arm site on {self.body.name}", e.side,
-                           self.body.arm_sites_by_side)  # fmt: skip
-            if BODY_PREFIX.rstrip("/") in names:
-                raise ValueError(f"{self.name}: effector name 'body' is reserved for the body")
 
 
 #: Height of the RX-1's shoulder sites above its base (URDF: torso 0.5825 + 0.15 + 0.08 + 0.21,
@@ -265,8 +193,11 @@ class Embodiment:
 
         def load(part: str) -> mujoco.MjSpec:
             spec = mujoco.MjSpec.from_file(str(mjcf_path(part)))
-            if visuals:
-                add_visuals(spec, part)
+            if part in PART_VISUALS:
+                if visuals:
+                    add_visuals(spec, part)
+            elif not visuals:  # a robot file's part carries its own visual geoms
+                strip_visuals(spec)
             return spec
 
         body = self.spec.body
@@ -399,6 +330,39 @@ def _compose(p1, q1, p2, q2) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(p1, float) + p, _quat_mul(np.asarray(q1, float), np.asarray(q2, float))
 
 
+def embodiment_spec(name: str) -> EmbodimentSpec:
+    """The built-in embodiment called ``name``, or the one a robot file (``*.toml``, see
+    ``docs/robots.md``) at the path ``name`` describes; raises listing the built-ins."""
+    if name in EMBODIMENTS:
+        return EMBODIMENTS[name]
+    if is_robot_file(name) and Path(name).is_file():
+        return load_robot_file(name)
+    if is_robot_file(name):
+        raise FileNotFoundError(
+            f"robot file {name} does not exist (built-in embodiments: {', '.join(EMBODIMENTS)})"
+        )
+    check_name("embodiment", name, EMBODIMENTS, "(or a robot file: path/to/robot.toml)")
+    raise AssertionError("unreachable")
+
+
 def make_embodiment(name: str) -> Embodiment:
-    """The embodiment called ``name``; raises with the valid names if it is unknown."""
-    return Embodiment(EMBODIMENTS[check_name("embodiment", name, EMBODIMENTS)])
+    """The embodiment ``name`` names (:func:`embodiment_spec`)."""
+    return Embodiment(embodiment_spec(name))
+
+
+def embodiment_layout(spec: EmbodimentSpec | str) -> str | None:
+    """The built-in embodiment with the same effectors (names and sides) and no body, which
+    tasks and traces written for it serve; ``None`` if there is none. A built-in is its own.
+    ``spec``: an embodiment, or a name :func:`embodiment_spec` takes."""
+    if isinstance(spec, str):
+        spec = embodiment_spec(spec)
+    if spec.name in EMBODIMENTS:
+        return spec.name
+    effectors = sorted((e.name, e.side) for e in spec.effectors)
+    for name, builtin in EMBODIMENTS.items():
+        if (
+            builtin.body is None
+            and sorted((e.name, e.side) for e in builtin.effectors) == effectors
+        ):
+            return name
+    return None

@@ -104,6 +104,7 @@ class EpisodeJob:
     shard: str
     features: dict
     source: str = ""  # a source dataset to augment ("": the expert's synthesized trace)
+    camera_poses: str = ""  # a --camera-poses file placing twin cameras ("": none)
 
 
 @dataclass(frozen=True)
@@ -142,11 +143,12 @@ def run_episode(
     trace_dir: Path,
     make_writer=None,
     source: str = "",
+    camera_poses: str = "",
 ) -> EpisodeOutcome:
     """One seed: synthesize its trace, and if kept replay it into ``writer`` (or into
-    ``make_writer()``, called only when there is something to write). With a ``source``:
-    the seed's episode augmented from it (:func:`beavr_sim.datasets.augment.episode.
-    augment_episode`)."""
+    ``make_writer()``, called only when there is something to write), in a twin whose cameras
+    ``camera_poses`` places (as teleop's ``--camera-poses``). With a ``source``: the seed's
+    episode augmented from it (:func:`beavr_sim.datasets.augment.episode.augment_episode`)."""
     if source:
         from beavr_sim.datasets.augment.episode import augment_episode  # local: heavy
 
@@ -166,8 +168,9 @@ def run_episode(
         return EpisodeOutcome(seed, ok, False, 0)
     trace = write_trace(trace_dir / f"{task.lower()}_seed{seed:05d}.mcap", result)
     options = SessionOptions(
-        task=task, source="trace", trace=trace, viser=False, headless=True, progress=False
-    )
+        task=task, source="trace", trace=trace, viser=False, headless=True, progress=False,
+        camera_poses=camera_poses or None,
+    )  # fmt: skip
     loop = build_loop(options)
     if writer is None:
         writer = make_writer()
@@ -237,6 +240,7 @@ def run_episode_job(job: EpisodeJob) -> EpisodeOutcome:
             shard / TRACES,
             make_writer=once,
             source=job.source,
+            camera_poses=job.camera_poses,
         )
     finally:
         for writer in holder:
@@ -317,13 +321,19 @@ def generate(
     progress: bool = True,
     scale: ScaleConfig | None = None,
     source: str | Path = "",
+    camera_poses: str | Path | None = None,
 ) -> GenerateSummary:
     """``episodes`` demonstrations into the LeRobot dataset at ``out`` (resumed if it holds
     one: seeds already there are skipped; replaced with ``overwrite``). ``scale``: None or one
     local worker writes in this process, episode by episode; otherwise see the module
-    docstring. ``source``: augment that recorded dataset instead of running the expert."""
+    docstring. ``source``: augment that recorded dataset instead of running the expert.
+    ``camera_poses``: a file placing twin cameras (``--camera-poses``; ``config.cameras`` may
+    name them); read by each worker, so on a cluster it must be at that path on every node."""
     task = canonical_task_name(task)
     source = str(Path(source).resolve()) if source else ""
+    poses = str(Path(camera_poses).resolve()) if camera_poses else ""
+    if poses and source:
+        raise ValueError("--camera-poses places the expert's twin cameras, not augment's")
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     config = config or RecordingConfig()
@@ -335,12 +345,12 @@ def generate(
     if scale is None or scale.in_process:
         summary = _generate_serial(
             task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress,
-            source,
+            source, poses,
         )  # fmt: skip
     else:
         summary = _generate_parallel(
             task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress,
-            scale, source,
+            scale, source, poses,
         )  # fmt: skip
     summary.mode = plan.mode
     summary.source = source
@@ -348,8 +358,9 @@ def generate(
 
 
 def _generate_serial(
-    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, source
-) -> GenerateSummary:
+    task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, source,
+    poses,
+) -> GenerateSummary:  # fmt: skip
     features = _features(task, embodiment, config)
     writer = EpisodeWriter(
         out,
@@ -374,7 +385,7 @@ def _generate_serial(
                 continue
             outcome = run_episode(
                 task, episode_seed, embodiment, config, keep_failed, writer, out / "beavr_traces",
-                source=source,
+                source=source, camera_poses=poses,
             )  # fmt: skip
             rules.take(outcome)
             bar.update(int(outcome.written))
@@ -425,7 +436,7 @@ def _preload_merge() -> threading.Thread:
 
 def _generate_parallel(
     task, episodes, seed, out, repo_id, embodiment, config, keep_failed, plan, progress, scale,
-    source,
+    source, poses,
 ) -> GenerateSummary:  # fmt: skip
     features = _features(task, embodiment, config)  # validates fps before any worker starts
     staging = staging_dir(out)
@@ -447,6 +458,7 @@ def _generate_parallel(
         "keep_failed": keep_failed,
         "config": asdict(config),
         "source": source,
+        **({"camera_poses": poses} if poses else {}),  # (a run without: as before)
     }
     outcomes = _resume(staging, manifest)
     staging.mkdir(parents=True, exist_ok=True)
@@ -509,7 +521,7 @@ def _generate_parallel(
                 else:
                     job = EpisodeJob(
                         task, embodiment, next_seed, config, repo_id, keep_failed,
-                        str(shard_of(next_seed)), features, source,
+                        str(shard_of(next_seed)), features, source, poses,
                     )  # fmt: skip
                     executor.submit(next_seed, job)
                     running.add(next_seed)

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.cameras.errors import CameraError
-from beavr_sim.datasets.cli import add_recording_args
+from beavr_sim.datasets.cli import add_camera_poses_arg, add_recording_args
 from beavr_sim.hardware.device import MirrorError
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
@@ -72,7 +72,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--task", required=True, help="task name, e.g. pour or PickupBox")
-    p.add_argument("--embodiment", default=None, help=f"robot (default {DEFAULT_EMBODIMENT})")
+    p.add_argument(
+        "--embodiment",
+        default=None,
+        help=f"robot: a built-in (default {DEFAULT_EMBODIMENT}) or a robot file, path/to/robot.toml "
+        "(docs/robots.md)",
+    )
     p.add_argument("--source", default="quest", choices=SOURCES, help="hand tracking source")
     p.add_argument("--trace", type=Path, default=None, help="VR trace (.mcap) for --source trace")
     p.add_argument("--seed", type=int, default=None, help="episode seed (trace: its own seed)")
@@ -214,15 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
         "cameras; SPEC opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally "
         "@WIDTHxHEIGHT (docs/cameras.md)",
     )
-    rec.add_argument(
-        "--camera-poses",
-        type=Path,
-        default=None,
-        metavar="F.toml",
-        help="place the twin's cameras at real cameras' poses: the T_world_camera and "
-        "intrinsics of F's [cameras.NAME] tables (a rig file; python -m beavr_sim.cameras "
-        "calibrate writes them; docs/cameras.md)",
-    )
+    add_camera_poses_arg(rec)
     rec.add_argument(
         "--camera-stream-hz",
         type=float,

@@ -47,7 +47,7 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     )
     from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
 
-    names = tuple(real.names) if real is not None else ()
+    names = tuple(real.cameras) if real is not None else ()
     shapes = {name: real.frame_shape(name) for name in names}
     if not names and twin is not None:
         shapes = {name: twin.panel_shape(name) for name in viewers.twin_panels}

@@ -14,6 +14,15 @@ requests once per control tick through :class:`EpisodeRequests`, so all of them 
 boundaries, in one thread. Under ``--multiprocess`` the keyboard is the supervisor's and its
 requests reach the twin as session commands (:func:`session_command`, :func:`request_of`); the
 headset gesture is recognised by the operator process and forwarded as an operator event.
+
+A request is never lost silently: one that arrives while the rig syncs to the episode's start
+stays queued and is taken at the episode's first tick (a stop there ends the episode at once);
+one that does not apply when it is taken (a stop while idle, a start while recording) is
+refused with a one-line log and counted (:attr:`EpisodeRequests.ignored`).
+
+:func:`episode_label` is the session's one line of where its episodes are (idle / sync /
+REC), shown on the progress line and, through ``teleop.view.episode_line``, in the browser
+view's recording panel, in both layouts.
 """
 
 from __future__ import annotations
@@ -71,6 +80,8 @@ class EpisodeRequests:
         self.control = control
         self.gestures = gestures
         self.last: list[str] = []
+        #: Requests refused because they did not apply when taken (each logged once).
+        self.ignored = 0
 
     def taker(self, *accepted: str) -> Callable[[], bool]:
         for what in accepted:
@@ -79,7 +90,14 @@ class EpisodeRequests:
         def stop_when() -> bool:
             for _ in range(self.gestures()):
                 self.control.request("toggle", "headset gesture")
-            self.last = [r for r in self.control.take() if r in accepted]
+            taken = self.control.take()
+            self.last = [r for r in taken if r in accepted]
+            for what in taken:
+                if what not in accepted:
+                    self.ignored += 1
+                    log.warning(
+                        "episode request %s ignored: only %s apply now", what, ", ".join(accepted)
+                    )
             return bool(self.last)
 
         return stop_when
@@ -88,6 +106,21 @@ class EpisodeRequests:
 #: What an idle session waits for, and what ends a recorded episode.
 STARTS = ("toggle", "start", "quit")
 STOPS = ("toggle", "stop", "discard", "quit")
+
+#: Where a session's episode is: waiting for a start, the rig syncing to its start, recording.
+PHASES = {
+    "idle": "idle (start: Enter, Record button, long left pinch)",
+    "sync": "sync",
+    "rec": "REC",
+}
+
+
+def episode_label(name: str, phase: str, last: str = "") -> str:
+    """The session's episode line, e.g. ``"episode 2/5: REC · last: saved"`` (``name``:
+    ``SessionRuns.name()``; ``phase``: one of :data:`PHASES`; ``last``: what became of the
+    last episode, ``SessionRuns.last_outcome``)."""
+    line = f"{name}: {PHASES[check_name('episode phase', phase, tuple(PHASES))]}"
+    return line + (f" · last: {last}" if last else "")
 
 
 class KeyboardControl:

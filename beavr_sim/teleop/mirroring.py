@@ -1,6 +1,8 @@
-"""Glue between the runners and the hardware mirror: connecting a rig for a session, handing
-each tick's guarded action to the mirror, and the e-stop inputs (browser button, headset
-gesture) that latch it. Used by the single-process session and the multiprocess twin.
+"""Glue between the runners and the hardware mirror: connecting a rig for a session, the one
+follower that hands the twin's guarded actions to the mirror (:class:`MirrorFollower`, on a
+twin stage's hooks), the sync of a rig to an episode's start (:class:`RigSync`), and the
+e-stop inputs (browser button, headset gesture) that latch it. Used by the single-process
+session, the multiprocess twin and the LeRobot robot plugin.
 """
 
 from __future__ import annotations
@@ -9,12 +11,17 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from beavr_sim.datasets.recorder import FollowLimits
 from beavr_sim.hardware.faults import parse_fault_specs
-from beavr_sim.wire.records import Tick
+from beavr_sim.wire.records import Tick, TwinState
+
+if TYPE_CHECKING:  # typing only: the stages import the operator (mink), heavy for the plugins
+    from beavr_sim.teleop.stages import TwinStage
+    from beavr_sim.twin.twin import CommandOutcome
 
 #: Python's thread switch interval (s) in a process that mirrors: the mirror's writer threads
 #: take the interpreter from the physics within this much, not the default 5 ms (a write
@@ -117,34 +124,77 @@ def hardware_summary(mirror) -> dict:
     return out
 
 
-class MirrorListener:
-    """Hands the twin's guarded action to the hardware mirror: at each command the twin
-    applies (:meth:`on_command`, a command hook of the real-time loop: a command per hand
-    frame), and once per tick when no command came in it (first listener of the loop; on the
-    virtual or paced clock, one command per tick). While the emergency stop is latched the
-    operator is paused (nothing jumps at release)."""
+class MirrorFollower:
+    """The hardware mirror follows a :class:`~beavr_sim.teleop.stages.TwinStage` through its
+    hooks, the one wiring of every runner (the single-process loop, the multiprocess twin, the
+    LeRobot robot plugin): each command the twin writes (``after_command``: the guarded
+    action, at once; real time: one per hand frame), after a physics step without one
+    (``after_step``) the same targets again (the mirror's heartbeat), each with the twin's
+    joints after its last step; a new episode (``after_reset``, or :meth:`reset` for a runner
+    that resets the twin itself) starts those joints over. Telling the mirror the episode's
+    start and fixtures (``begin_episode``) is the runner's: a sync
+    (:class:`RigSync`) or the robot plugin's reset.
 
-    def __init__(self, mirror, loop):
-        self.mirror, self.loop = mirror, loop
-        self._estopped = False
-        self._positions = loop.twin.action.copy()  # the twin's joints after its last step
-        self._submitted = False  # since the last tick
+    ``positions``: the twin's joints now (default: its action, as after a reset). Its hooks
+    come first on the stage (the devices get each target before anything else runs) and are
+    named ``mirror`` in the stage's hook errors."""
 
-    def on_command(self, outcome, commands=None) -> None:
-        self.mirror.submit(self.loop.twin.action.copy(), self._positions, outcome.blocked)
+    def __init__(self, stage: TwinStage, mirror, positions: np.ndarray | None = None):
+        self.stage, self.mirror = stage, mirror
+        self._positions = np.array(
+            stage.action if positions is None else positions, dtype=np.float64
+        )
+        self._submitted = False  # since the last step
+
+        def mirror_command(outcome: CommandOutcome, commands) -> None:
+            self.on_command(outcome)
+
+        def mirror_step(state: TwinState) -> None:
+            self.on_step(state)
+
+        def mirror_reset(q: np.ndarray) -> None:
+            self.reset(q)
+
+        for hook in (mirror_command, mirror_step, mirror_reset):
+            hook.__name__ = "mirror"
+        stage.after_command.insert(0, mirror_command)
+        stage.after_step.insert(0, mirror_step)
+        stage.after_reset.insert(0, mirror_reset)
+
+    def on_command(self, outcome: CommandOutcome) -> None:
+        """The twin wrote a command: its guarded action goes to the mirror now."""
+        self.mirror.submit(self.stage.action.copy(), self._positions, outcome.blocked)
         self._submitted = True
 
-    def __call__(self, tick: Tick) -> None:
-        state = tick.state
-        self._positions = state.positions
+    def on_step(self, state: TwinState) -> None:
+        """The physics stepped: without a command since the last step, the same targets
+        (the heartbeat); the twin's joints are the step's from now on."""
         if not self._submitted:
             self.mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
         self._submitted = False
-        if self.loop.operator.take_gestures("estop"):
+        self._positions = state.positions
+
+    def reset(self, q: np.ndarray) -> None:
+        """A new episode: the twin's joints are ``q`` (action order)."""
+        self._positions = np.array(q, dtype=np.float64)
+
+
+class HeadsetEstop:
+    """The single-process loop's tick listener for the headset's e-stop gesture (both hands
+    pinch): it latches the mirror's e-stop, and while the e-stop is latched (from any input)
+    the operator is paused, so nothing jumps at release. (The multiprocess twin gets the
+    gesture as an operator event and pauses its commands itself.)"""
+
+    def __init__(self, mirror, operator):
+        self.mirror, self.operator = mirror, operator
+        self._estopped = False
+
+    def __call__(self, tick: Tick) -> None:
+        if self.operator.take_gestures("estop"):
             self.mirror.estop("headset gesture: both hands pinch")
         if self.mirror.estopped != self._estopped:
             self._estopped = self.mirror.estopped
-            self.loop.operator.set_paused(self._estopped)
+            self.operator.set_paused(self._estopped)
 
 
 def episode_fault(mirror) -> str:

@@ -583,7 +583,7 @@ class TeleopLoop:
         seed = concrete_seed(seed)
         self.seed = seed
         self.resets += 1
-        q = self.twin.reset(seed, robot_qpos)
+        q = self.twin_stage.reset(seed, robot_qpos)
         self.operator.reset(q, self.twin.slices)
         env = self.twin.env
         self.operator.set_obstacles(fixture_obstacles(env.model, env.data))

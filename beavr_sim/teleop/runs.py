@@ -93,6 +93,8 @@ class SessionRuns:
         self.played = 0.0
         #: Why the session ended before its runs were all played ("" when it did not).
         self.stopped = ""
+        #: Recording: what became of the last episode (``EpisodeEnd.outcome``; "" before one).
+        self.last_outcome = ""
 
     # ------------------------------------------------------------------ time
     def remaining(self) -> float | None:
@@ -159,6 +161,7 @@ class SessionRuns:
         self.saved += int(end.counts_as_saved(written))
         self.faulty += int(bool(fault))
         self.in_a_row = self.in_a_row + 1 if fault else 0
+        self.last_outcome = end.outcome(written)
         record = RunRecord(
             self.attempts, bool(end.task_success), duration_s, fault, written, sync_s=sync_s
         )

@@ -45,7 +45,7 @@ from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.headset.webxr_server import WebXRConfig
 from beavr_sim.naming import check_name
 from beavr_sim.operator.operator import Operator
-from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT, embodiment_layout
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.announce import announce_view, announce_webxr
@@ -57,13 +57,15 @@ from beavr_sim.teleop.episodes import (
     EpisodeControl,
     EpisodeRequests,
     KeyboardControl,
+    episode_label,
 )
 from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.interrupt import never
 from beavr_sim.teleop.mirroring import (
     MIRROR_SWITCH_INTERVAL_S,
     BrowserEstop,
-    MirrorListener,
+    HeadsetEstop,
+    MirrorFollower,
     RigChoice,
     RigSync,
     connect_mirror,
@@ -571,7 +573,11 @@ def build_loop(options: SessionOptions, context=None):
                 f"trace {options.trace} was recorded for task {meta['task']}, not {options.task}"
             )
         trace_embodiment = meta.get("embodiment")
-        if embodiment is not None and trace_embodiment and embodiment != trace_embodiment:
+        if (
+            embodiment is not None
+            and trace_embodiment
+            and embodiment_layout(embodiment) != embodiment_layout(trace_embodiment)
+        ):
             raise ValueError(f"trace {options.trace} drives {trace_embodiment}, not {embodiment}")
         embodiment = embodiment or trace_embodiment
         seed = meta.get("seed") if seed is None else seed
@@ -912,7 +918,7 @@ def record_episodes(
         while runs.more():
             name = runs.name()
             if not options.auto_start:
-                progress.label = f"{name}: idle (start: Enter, Record button, long left pinch)"
+                progress.label = episode_label(name, "idle", runs.last_outcome)
                 while True:
                     idle = loop.run(
                         max_seconds=runs.remaining(),
@@ -927,7 +933,7 @@ def record_episodes(
                 if "quit" in requests.last or not requests.last or out_of_time():
                     break
             if runs.attempts > 0 or not options.auto_start or sync is not None:
-                progress.label = f"{name}: sync"
+                progress.label = episode_label(name, "sync", runs.last_outcome)
                 fault = fresh_episode()
                 if loop.interrupted():
                     break
@@ -938,7 +944,7 @@ def record_episodes(
                             f"\n{name}: HARDWARE FAULT: {fault}; the session ends", file=sys.stderr
                         )
                     break
-            progress.label = f"{name}: REC"
+            progress.label = episode_label(name, "rec", runs.last_outcome)
             remaining = runs.remaining()
             summary = run_recorded_episode(
                 loop,
@@ -1025,8 +1031,9 @@ def headset_listener(
 
 def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     """Connect the rig, reset the twin to the measured hardware pose (no motion at start) and
-    add the mirror as the loop's first listener and command hook: it gets every guarded
-    command the moment the twin applies it."""
+    let the mirror follow the loop's twin stage (:class:`MirrorFollower`: it gets every
+    guarded command the moment the twin applies it); the headset's e-stop gesture is the
+    loop's first listener."""
 
     mirror, q_measured = connect_mirror(RigChoice.of(options), loop.twin.env, closers)
     loop.twin.follow_speed_caps(mirror.speed_caps)
@@ -1035,7 +1042,6 @@ def start_mirror(options: SessionOptions, loop: TeleopLoop, closers: list):
     previous = sys.getswitchinterval()
     sys.setswitchinterval(MIRROR_SWITCH_INTERVAL_S)
     closers.append(lambda: sys.setswitchinterval(previous))
-    listener = MirrorListener(mirror, loop)
-    loop.listeners.insert(0, listener)
-    loop.command_hooks.append(listener.on_command)
+    MirrorFollower(loop.twin_stage, mirror)
+    loop.listeners.insert(0, HeadsetEstop(mirror, loop.operator))
     return mirror

@@ -16,7 +16,9 @@ on either side of the ``wire/`` transport):
   :class:`~beavr_sim.wire.records.TwinState`. What watches or follows the twin attaches to its
   named hooks, dm_control-composer style: ``after_command(outcome, commands)`` after every
   command written between steps (the hardware mirror, a latency timer), ``after_step(state)``
-  after every physics step (the mirror's heartbeat, the views, a state publisher). Latency is
+  after every physics step (the mirror's heartbeat, the views, a state publisher),
+  ``after_reset(q)`` after :meth:`TwinStage.reset` started a new episode at joints ``q`` (the
+  mirror's follower, :class:`~beavr_sim.teleop.mirroring.MirrorFollower`). Latency is
   counted once per accepted command.
 
 Neither stage raises on the per-tick path: an exception from the operator is a counted hold,
@@ -48,6 +50,8 @@ MIN_COMMAND_DT_S = 0.002
 CommandHook = Callable[[CommandOutcome, Mapping[str, JointCommand]], None]
 #: ``after_step`` hooks: called with the state after the step.
 StepHook = Callable[[TwinState], None]
+#: ``after_reset`` hooks: called with the twin's joints (action order) at the episode's start.
+ResetHook = Callable[[np.ndarray], None]
 
 
 class LatencySink(Protocol):
@@ -270,6 +274,8 @@ class TwinStage:
         self.after_command: list[CommandHook] = []
         #: ``after_step(state)``: after each physics step.
         self.after_step: list[StepHook] = []
+        #: ``after_reset(q)``: after each :meth:`reset` (``q``: the twin's joints there).
+        self.after_reset: list[ResetHook] = []
         #: Where the latencies go (given: e.g. the runners' bounded ``LatencyLog``).
         self.latencies_ms: LatencySink = [] if latencies is None else latencies
         #: Exceptions raised by hooks, per hook name (the stage went on; given: counted there).
@@ -278,6 +284,14 @@ class TwinStage:
     @property
     def action(self) -> np.ndarray:
         return self.twin.action
+
+    def reset(self, seed: int | None = None, robot_qpos: np.ndarray | None = None) -> np.ndarray:
+        """A new episode: the twin reset (:meth:`TwinInterface.reset`: the robot at
+        ``robot_qpos`` or home); then the ``after_reset`` hooks. Returns the twin's joints."""
+        q = self.twin.reset(seed, robot_qpos)
+        for hook in self.after_reset:
+            self._call_hook(hook, np.array(q, dtype=np.float64))
+        return q
 
     def command(
         self, commands: Mapping[str, JointCommand], *, latency: bool = True

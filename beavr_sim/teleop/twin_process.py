@@ -17,7 +17,6 @@ import time
 from collections.abc import Callable
 
 import gymnasium as gym
-import numpy as np
 import zmq
 
 import beavr_sim  # noqa: F401  (registers the envs the twin process makes)
@@ -33,6 +32,7 @@ from beavr_sim.teleop.images import HeadsetRenderer, ScenePose, headset_camera
 from beavr_sim.teleop.mirroring import (
     MIRROR_SWITCH_INTERVAL_S,
     BrowserEstop,
+    MirrorFollower,
     RigChoice,
     RigSync,
     connect_mirror,
@@ -70,7 +70,8 @@ from beavr_sim.teleop.twin_page_stream import (
 )
 from beavr_sim.teleop.twin_rerun import attach_rerun
 from beavr_sim.teleop.twin_runs import TwinRuns, connect_real_cameras
-from beavr_sim.twin.twin import CommandOutcome, TwinInterface
+from beavr_sim.teleop.view import episode_line
+from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.viz.twin_view import TwinView, subtree_bodies
 from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
@@ -110,33 +111,6 @@ class TwinProcess:
         self.received: dict[str, tuple[float, float]] = {}
         self.tick_commands: dict[str, JointCommand] = {}
         self.frames: list = []
-
-
-def follow_with_mirror(stage: TwinStage, mirror, positions: np.ndarray) -> Callable[[], None]:
-    """The hardware mirror follows the twin through its hooks: every command written (the
-    guarded action, at once) and, after a step without one, the same targets (its heartbeat).
-    ``positions``: the twin's joints at the start. Returns ``reset(positions)`` for a new
-    episode."""
-    twin = stage.twin
-    last = {"positions": positions.copy(), "submitted": False}
-
-    def after_command(outcome: CommandOutcome, commands) -> None:
-        mirror.submit(twin.action.copy(), last["positions"], outcome.blocked)
-        last["submitted"] = True
-
-    def after_step(state: TwinState) -> None:
-        if not last["submitted"]:  # no command this period: the same targets (heartbeat)
-            mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
-        last["submitted"] = False
-        last["positions"] = state.positions
-
-    def reset(q: np.ndarray) -> None:
-        last["positions"] = np.asarray(q, dtype=np.float64).copy()
-
-    after_command.__name__, after_step.__name__ = "mirror", "mirror"
-    stage.after_command.insert(0, after_command)
-    stage.after_step.insert(0, after_step)
-    return reset
 
 
 def make_twin_env(config: TwinProcessConfig):
@@ -183,7 +157,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         # are taken (as one process's HardwareSync).
         sync = RigSync(mirror, config.sync_timeout_s or mirror.rig.mirror.sync_timeout_s)
         positions = twin.reset(episode_seed)
-        mirror_reset = follow_with_mirror(stage, mirror, positions)
+        mirror_reset = MirrorFollower(stage, mirror, positions).reset
     try:  # the session's runs; recording: the dataset opened (a bad folder fails here)
         runs = TwinRuns(
             config.plan,
@@ -526,6 +500,41 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
     def sync_s() -> float | None:
         return sync.last_sync_s if sync is not None else None
 
+    def update_view(st: TwinState) -> None:
+        """The browser view, at its rate: the scene, the guard's blocks, the status and
+        (recording) the episode line one process shows."""
+        nonlocal blocked
+        if view is None:
+            return
+        if st.guard_blocked:  # shown at the next update even if it cleared since
+            blocked |= set(st.guard_blocked_effectors or view.guard.geoms)
+        if not view.due():
+            return
+        syncing = sync is not None and sync.syncing
+        view.update(
+            env.data,
+            status=f"t = {st.t:5.1f} s · {'success' if success else 'running'}",
+            guard_blocked=blocked,
+            success=success,
+            episode=episode_line(runs.label(syncing)) if config.recording is not None else None,
+        )
+        blocked = set()
+
+    def reset_scene(min_epoch: int = 0) -> None:
+        """The episode's seeded start again (a browser or supervisor Reset; a scene that
+        failed while idle): a new epoch (the operator re-homes); mirrored, the devices catch
+        up with the twin's start, guarded."""
+        nonlocal positions, epoch, fixtures
+        positions = twin.reset(episode_seed)
+        epoch = max(epoch + 1, min_epoch)
+        fixtures = fixtures_to_wire(env)
+        if sync is not None:
+            sync.begin(twin.action.copy(), Fixtures.of(env.data))
+        if mirror_reset is not None:
+            mirror_reset(positions)
+        if config.lockstep and sync is None:
+            start_episode()
+
     held_for_sync: dict[str, int] = {}
     sync_fault = ""
     #: A live recording waits for a start request (the twin follows, nothing recorded).
@@ -552,16 +561,11 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             if msg is not None and msg.command == "stop":
                 break
             reset = msg is not None and msg.command == "reset"
-            if reset or (view is not None and view.take_reset()):  # supervisor or browser
-                positions = twin.reset(episode_seed)
-                epoch = max(epoch + 1, msg.epoch if reset else 0)
-                fixtures = fixtures_to_wire(env)
-                if sync is not None:  # the devices catch up with the twin's start, guarded
-                    sync.begin(twin.action.copy(), Fixtures.of(env.data))
-                if mirror_reset is not None:
-                    mirror_reset(positions)
-                if config.lockstep and sync is None:
-                    start_episode()
+            browser_reset = not reset and view is not None and view.take_reset()
+            if browser_reset and runs.playing and config.recording is not None:
+                runs.request("discard", "browser reset")  # as one process's view drops it
+            if reset or browser_reset:  # supervisor or browser
+                reset_scene(msg.epoch if reset else 0)
             if msg is not None and mirror is not None and msg.command == "estop":
                 mirror.estop("keyboard")
             if msg is not None and mirror is not None and msg.command == "release":
@@ -587,8 +591,14 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 positions = st.positions
                 if browser_estop is not None:
                     browser_estop(None)
+                update_view(st)
                 result = sync.poll()
-                if result:
+                if result and idle:  # a Reset's sync while idle: the next start syncs again
+                    log.warning("the rig did not sync to the reset scene: %s", result)
+                    if config.progress:
+                        print(f"\nHARDWARE FAULT: {result}", file=sys.stderr)
+                    publish(state_message(st))
+                elif result:
                     sync_fault = result
                     runs.sync_failed(result, sync.last_sync_s)
                     publish(state_message(st, done=True))
@@ -628,10 +638,13 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 ended = runs.stepped(st, source_finished_rt) if runs.playing else False
                 done = ended and config.ends_runs
                 if idle:  # a live recording between episodes
-                    what = runs.idle_step()
+                    what = runs.idle_step(st)
                     if what == "start":
                         idle = False
                         next_run()
+                        continue
+                    if what == "reset":  # the scene failed or timed out while idle
+                        reset_scene()
                         continue
                     done = what == "end"
             positions = st.positions
@@ -651,17 +664,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                 publish(state_message(st, tick=tick, done=done))
             else:
                 publish(state_message(st, done=done))
-            if view is not None:
-                if st.guard_blocked:  # shown at the next update even if it cleared since
-                    blocked |= set(st.guard_blocked_effectors or view.guard.geoms)
-                if view.due():
-                    view.update(
-                        env.data,
-                        status=f"t = {st.t:5.1f} s · {'success' if success else 'running'}",
-                        guard_blocked=blocked,
-                        success=success,
-                    )
-                    blocked = set()
+            update_view(st)
     finally:
         env.between_substeps = None
         if runs.playing:  # stopped by the supervisor: a run it ended, or one cut short

@@ -22,9 +22,13 @@ its states with the run; the operator process restarts a trace on a new run.
   (:meth:`TwinRuns.request`: the supervisor's keyboard, the browser view's buttons, the
   operator's record gesture) taken once per step through the single-process session's
   :class:`~beavr_sim.teleop.episodes.EpisodeRequests`: until a start the twin follows the
-  hands and nothing is recorded (:meth:`TwinRuns.idle_step`); a stop saves the episode, a
-  discard drops it, a quit saves it and ends the session; idle time counts towards
-  ``max_seconds`` as in one process;
+  hands and nothing is recorded (:meth:`TwinRuns.idle_step`: a scene that fails or times out
+  meanwhile is reset, as one process resets it); a stop saves the episode, a discard drops
+  it, a quit saves it and ends the session; idle time counts towards ``max_seconds`` as in
+  one process; a request that comes while the rig syncs to the episode's start is taken at
+  its first step (never dropped), one that does not apply is logged and counted;
+- :meth:`TwinRuns.label` is the episode line one process shows (idle / sync / REC: the
+  browser view's recording panel);
 - :meth:`TwinRuns.end` ends it through :func:`~beavr_sim.datasets.episode_end.end_recorded_episode`
   (a faulty episode discarded, or kept marked ``hardware_fault``; an interrupted one never
   saved) and says whether another run follows.
@@ -40,7 +44,13 @@ from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch
 from beavr_sim.datasets.writer import EpisodeWriter
-from beavr_sim.teleop.episodes import STARTS, STOPS, EpisodeControl, EpisodeRequests
+from beavr_sim.teleop.episodes import (
+    STARTS,
+    STOPS,
+    EpisodeControl,
+    EpisodeRequests,
+    episode_label,
+)
 from beavr_sim.teleop.mirroring import episode_fault, failed_for_good, follow_limits
 from beavr_sim.teleop.runs import RunPlan, SessionRuns, episode_seeds
 from beavr_sim.wire.hand import HandFrame
@@ -150,21 +160,32 @@ class TwinRuns:
         episodes seed, seed + 1, ... as in one process."""
         return self._seed_of(self.runs.attempts)
 
-    def idle_step(self) -> str:
-        """A step while waiting for a start (the twin follows the hands, nothing recorded):
-        ``"start"`` (a start request came: reset and begin the next episode), ``"end"`` (a
-        quit, or the session's time is up) or ``""``."""
+    def idle_step(self, state: TwinState) -> str:
+        """A step (its ``state``) while waiting for a start (the twin follows the hands,
+        nothing recorded): ``"start"`` (a start request came: reset, sync and begin the next
+        episode), ``"end"`` (a quit, or the session's time is up), ``"reset"`` (the scene
+        failed or timed out meanwhile: reset it and go on waiting, as one process) or ``""``."""
         if self.progress and not self._said_idle:
             self._said_idle = True
-            print(
-                f"\n{self.runs.name()}: idle (start: Enter, Record button, long left pinch)",
-                file=sys.stderr,
-            )
+            print("\n" + episode_label(self.runs.name(), "idle"), file=sys.stderr)
         self.runs.played += self.dt
         took = self._requests.taker(*STARTS)()
         if "quit" in self._requests.last or self.runs.time_up():
             return "end"
-        return "start" if took else ""
+        if took:
+            return "start"
+        return "reset" if state.failure or state.truncated else ""
+
+    def label(self, syncing: bool = False) -> str:
+        """The episode line of one process's session (``episodes.episode_label``): recording,
+        the rig syncing (``syncing``) to the next episode's start, or idle."""
+        phase = "rec" if self.playing else "sync" if syncing else "idle"
+        return episode_label(self.runs.name(), phase, self.runs.last_outcome)
+
+    @property
+    def requests_ignored(self) -> int:
+        """Episode requests refused because they did not apply when taken (each logged)."""
+        return self._requests.ignored
 
     def _open_recorder(self, recording: TwinRecording, stage) -> None:
         config = recording.config
@@ -234,13 +255,14 @@ class TwinRuns:
         self._run_ticks = 0
         self.asked = ()
         self._said_idle = False
-        self.control.take()  # requests from before the start are not this episode's
+        # (Requests that came while the rig synced stay queued: the first step takes them,
+        # as one process's first recorded tick does.)
         limit = self.recording.config.episode_seconds if self.recording is not None else None
         self._limit = self.runs.episode_limit(limit)
         if self.recorder is not None:
             self.recorder.begin()
             if self.progress:
-                print(f"\n{self.runs.name()}: REC", file=sys.stderr)
+                print("\n" + episode_label(self.runs.name(), "rec"), file=sys.stderr)
 
     def stepped(self, state: TwinState, source_finished: bool) -> bool:
         """One step of the episode happened: whether the episode ended (the single-process
@@ -342,4 +364,8 @@ class TwinRuns:
 
     def report(self) -> dict:
         """The runs for the session's summary (:meth:`TeleopSummary.take_runs`)."""
-        return {**self.runs.tally.report(), "stopped_early": self.runs.stopped}
+        return {
+            **self.runs.tally.report(),
+            "stopped_early": self.runs.stopped,
+            "requests_ignored": self.requests_ignored,
+        }

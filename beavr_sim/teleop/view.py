@@ -21,17 +21,21 @@ from beavr_sim.viz.view_access import ViewAccess
 from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.records import Tick
 
-_EPISODE = re.compile(r"episode (\d+)/(\d+): (REC|idle)")
+_EPISODE = re.compile(r"episode (\d+)/(\d+): (REC|idle|sync)(?:.*? · last: (.+)$)?")
+#: The panel's word for each phase of ``teleop.episodes.episode_label``.
+_PHASE_WORDS = {"REC": "**recording**", "idle": "idle", "sync": "syncing the rig"}
 
 
 def episode_line(label: str) -> str:
-    """The recording panel's line from the session's progress label
-    (``"episode 2/5: REC"`` -> ``"episode **2** of **5** · recording"``)."""
+    """The recording panel's line from the session's episode label
+    (:func:`~beavr_sim.teleop.episodes.episode_label`, both layouts):
+    ``"episode 2/5: REC · last: saved"`` -> ``"episode **2** of **5** · **recording** · last:
+    saved"``."""
     m = _EPISODE.match(label or "")
     if m is None:
         return label or "idle"
-    state = "**recording**" if m.group(3) == "REC" else "idle"
-    return f"episode **{m.group(1)}** of **{m.group(2)}** · {state}"
+    last = f" · last: {m.group(4)}" if m.group(4) else ""
+    return f"episode **{m.group(1)}** of **{m.group(2)}** · {_PHASE_WORDS[m.group(3)]}{last}"
 
 
 class ViewListener:

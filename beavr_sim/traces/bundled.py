@@ -14,6 +14,8 @@ from pathlib import Path
 from beavr_sim.assets import DEFAULT_TRACE_EMBODIMENT, bundled_trace
 from beavr_sim.naming import check_name
 from beavr_sim.robots import EMBODIMENTS
+from beavr_sim.robots.embodiment import embodiment_layout
+from beavr_sim.robots.robot_file import is_robot_file
 from beavr_sim.tasks.registry import canonical_task_name, task_class
 
 
@@ -26,6 +28,8 @@ def check_task_embodiment(task: str, embodiment: str | None = None) -> tuple[str
     embodiment (with the valid names), or a task that does not run on the embodiment."""
     name = canonical_task_name(task)
     embodiment = DEFAULT_TRACE_EMBODIMENT if embodiment is None else embodiment
+    if is_robot_file(embodiment):  # a robot file runs the tasks and traces of its layout
+        embodiment = embodiment_layout(embodiment) or embodiment
     check_name("embodiment", embodiment, EMBODIMENTS)
     supported = task_class(name).embodiments
     if supported is not None and embodiment not in supported:

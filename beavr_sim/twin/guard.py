@@ -151,9 +151,14 @@ def hand_joints(embodiment: Embodiment, joints: JointIndex) -> np.ndarray:
 def max_velocity(embodiment: Embodiment, joints: JointIndex, config: GuardConfig) -> np.ndarray:
     """Per action index: the joint's speed cap (rad/s), the hand's or the arm's: the
     :class:`~beavr_sim.twin.rate_limit.JointRateLimit` of the guard's velocity rule and of the
-    twin's per-tick step limit (with the guard off as well)."""
+    twin's per-tick step limit (with the guard off as well). An arm whose servo has a lower
+    speed cap than ``config.arm_max_velocity`` (:class:`~beavr_sim.robots.parts.ArmServo`, a
+    robot file's ``max_velocity_deg_s``) keeps its own."""
     hand = hand_joints(embodiment, joints)
-    return np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
+    caps = np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
+    index, v_max, _ = embodiment.servo_joints()
+    caps[index] = np.minimum(caps[index], v_max)
+    return caps
 
 
 @dataclass(frozen=True)

