@@ -15,6 +15,7 @@ from beavr_sim.hardware.rig import EmulatedRig, RigConfig, joint_names_of
 from beavr_sim.robots import RX1_ARM, make_embodiment
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
+from waiting import wait_until
 
 #: Half a servo count of a direct (gear 1) joint, in joint radians: the most a joint read back
 #: differs from its target by rounding (a geared joint's count is three times finer).
@@ -88,7 +89,13 @@ def test_rx1_mirrors_to_emulated_feetech_and_leap_through_the_guard():
                 target[left] = state.action[left]  # the operator resyncs to the held pose
             mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
             time.sleep(1 / env.control_hz)
-        time.sleep(0.3)
+
+        def settled() -> bool:  # the hardware reached the last guarded action
+            arm = mirror.latest_measured()[left][:7]
+            sent = [d["commands_sent"] for d in mirror.summary().values()]
+            return np.allclose(arm, twin.action[left][:7], atol=0.02) and min(sent) >= 10
+
+        wait_until(settled, "the rig followed the twin")
         measured = mirror.latest_measured()
         mirror.close()
         summary = mirror.summary()
