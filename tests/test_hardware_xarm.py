@@ -83,6 +83,19 @@ def _ramp(arm: XArm7, goal: np.ndarray) -> np.ndarray:
     return sent
 
 
+class SteppingClock:
+    """Monotonic seconds that advance ``step`` per read: a deadline passes after a fixed number
+    of reads, however loaded the machine."""
+
+    def __init__(self, step: float = 0.01) -> None:
+        self.step = step
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
 def _wait_until(predicate, timeout: float = HANG_GUARD_S) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -230,6 +243,7 @@ def test_injected_error_reaches_the_driver_and_warnings_do_not_stop_it(emu, arm)
 def test_kill_mid_run_raises_device_error_without_hanging(emu, arm):
     goal = np.full(7, 0.1)
     _ramp(arm, goal)
+    assert arm.api._arm._cmd_timeout == arm.config.command_timeout_s  # the SDK's reply wait
     emu.kill()
     t0, retries = time.monotonic(), arm.retries
     # Bounded by command_timeout_s: at most `retries` repeats of a request that timed out,
@@ -268,17 +282,21 @@ def test_silent_peer_and_unroutable_host_time_out_within_connect_timeout():
         silent.bind(("127.0.0.1", 0))
         silent.listen(4)
         silent_host, silent_port = silent.getsockname()[:2]
-        # The silent peer is given up on at connect_timeout_s (the error names it); an
-        # unroutable host times out the same way, or is refused at once where no route exists.
+        # The silent peer is given up on at connect_timeout_s on the driver's clock (the
+        # error names it); an unroutable host times out the same way, or is refused at once
+        # where no route exists.
         for host, port, said in (
             (silent_host, silent_port, r"no answer within 0\.5 s"),
             ("192.0.2.1", None, r"no answer within 0\.5 s|cannot connect"),  # TEST-NET-1
         ):
-            device = XArm7(XArmConfig(host=host, port=port, connect_timeout_s=0.5))
+            clock = SteppingClock()
+            config = XArmConfig(host=host, port=port, connect_timeout_s=0.5)
+            device = XArm7(config, clock=clock)
             t0 = time.monotonic()
             with pytest.raises(DeviceError, match=host.replace(".", r"\.")) as info:
                 device.connect()
             assert re.search(said, str(info.value)), info.value
+            assert clock.now <= 0.5 + 3 * clock.step, f"gave up {clock.now:.2f} s after the start"
             assert time.monotonic() - t0 < HANG_GUARD_S  # a hang guard, not a timing bound
 
 
