@@ -235,7 +235,8 @@ class XArm7(Device):
                     time.sleep(0.001)
             finally:
                 XCONF.SocketConf.TCP_CONTROL_PORT = saved
-        done.wait(max(0.0, deadline - clock()))
+        while not done.is_set() and clock() <= deadline:
+            done.wait(0.01)
         if not done.is_set():
             _quiet_disconnect(api)  # the SDK's version check then gives up on its own
             raise self._error(f"no answer within {timeout_s:g} s; {_WHAT_TO_CHECK}")
