@@ -409,10 +409,12 @@ def test_a_reset_in_multiprocess_rehomes_the_operator_to_the_new_pose(quest_push
     still = format_keypoints(frames[-1]).encode()
     arm = slice(0, 7)
 
-    def latest_over(seconds: float, moving: list | None = None):
-        """Send the hand (moving, then still) for ``seconds``; the states received."""
-        states, end, i = [], time.monotonic() + seconds, 0
-        while time.monotonic() < end:
+    def stream_until(done, moving: list | None = None):
+        """Send the hand at 60 Hz (moving, then still) until ``done(frames sent, states
+        received)``; the states received."""
+        states, i, hang_guard = [], 0, time.monotonic() + HANG_GUARD_S
+        while not done(i, states):
+            assert time.monotonic() < hang_guard, f"{i} frames sent, {len(states)} states"
             push.send(format_keypoints(moving[i]).encode() if moving and i < len(moving) else still)
             i += 1
             time.sleep(1 / 60)
@@ -420,11 +422,17 @@ def test_a_reset_in_multiprocess_rehomes_the_operator_to_the_new_pose(quest_push
                 states.append(st)
         return states
 
+    def after_reset(states):  # the twin's time starts over at the reset
+        return [s for s in states if s.t < before.t - 0.5]
+
     try:
-        latest_over(len(frames) / 60 + 1.0, frames)  # the arm follows, then stands
-        before = latest_over(0.3)[-1]
+        stream_until(lambda i, _: i >= len(frames) + 60, frames)  # the arm follows, then stands
+        before = stream_until(lambda i, states: i >= 18 and states)[-1]
         session.send("reset")
-        after = [s for s in latest_over(1.5) if s.t < before.t - 0.5]
+        # A second of the twin's time after the reset, however long the reset took.
+        after = after_reset(
+            stream_until(lambda _, states: (a := after_reset(states)) and a[-1].t - a[0].t >= 1.0)
+        )
         assert session.dead() == []
     finally:
         push.close()
