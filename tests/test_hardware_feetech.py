@@ -28,6 +28,7 @@ from scservo_sdk import (
     GroupSyncWrite,
     PacketHandler,
 )
+from waiting import HANG_GUARD_S
 
 from beavr_sim.hardware.device import DeviceError
 from beavr_sim.hardware.feetech.config import (
@@ -59,7 +60,6 @@ from beavr_sim.hardware.feetech.emulator import (
     encode,
 )
 from beavr_sim.hardware.servo_model import step_towards
-from waiting import HANG_GUARD_S
 
 TOL = 1e-9
 # The SDK busy-polls for about 34 ms per reply; on a loaded machine the emulator thread can miss

@@ -18,6 +18,7 @@ from dynamixel_sdk import GroupSyncRead, PacketHandler, PortHandler
 from dynamixel_sdk.robotis_def import COMM_SUCCESS
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from waiting import HANG_GUARD_S
 
 from beavr_sim.hardware.device import DeviceError
 from beavr_sim.hardware.leap.config import (
@@ -37,7 +38,6 @@ from beavr_sim.hardware.leap.emulator import (
     stuff,
     unstuff,
 )
-from waiting import HANG_GUARD_S
 
 TOL = 1e-9
 # The SDK busy-polls the port for about 34 ms per reply; on a loaded CI machine the emulator

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from waiting import HANG_GUARD_S
 
 from beavr_sim.hardware.device import DeviceError
 from beavr_sim.hardware.xarm.config import XArmConfig
@@ -26,7 +27,6 @@ from beavr_sim.hardware.xarm.driver import (
     controller_code_name,
 )
 from beavr_sim.hardware.xarm.emulator import XArmEmulator
-from waiting import HANG_GUARD_S
 
 RANGES = ((-3.0, 3.0), (-2.0, 2.0), (-3.0, 3.0), (0.0, 3.5), (-3.0, 3.0), (-1.5, 3.0), (-3.0, 3.0))
 BOUNDARY = (700.0, -700.0, 600.0, -600.0, 900.0, -100.0)

@@ -14,6 +14,7 @@ import msgspec
 import numpy as np
 import pytest
 import zmq
+from waiting import HANG_GUARD_S, wait_until
 
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.wire.hand import N_JOINTS, HandFrame
@@ -28,7 +29,6 @@ from beavr_sim.wire.messages import (
 )
 from beavr_sim.wire.ports import PortConfig, TransportConfig, free_tcp_ports
 from beavr_sim.wire.transport import Heartbeat, Liveness, Publisher, Subscriber
-from waiting import HANG_GUARD_S, wait_until
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import zmq
 from PIL import Image
+from waiting import HANG_GUARD_S
 
 from beavr_sim.headset.address_gate import AddressGate, parse_allow_list
 from beavr_sim.headset.quest_io import HeadsetImagePublisher, QuestReceiver, encode_jpeg
@@ -17,7 +18,6 @@ from beavr_sim.headset.quest_protocol import format_keypoints
 from beavr_sim.headset.validation import StreamValidator
 from beavr_sim.wire.hand import N_JOINTS, HandFrame
 from beavr_sim.wire.ports import PortConfig, TransportConfig
-from waiting import HANG_GUARD_S
 
 
 @pytest.fixture
@@ -155,7 +155,7 @@ def test_a_backlog_yields_only_the_newest_frame(context, config):
         headset = FakeHeadset(context, config)
         # A backlog: the five queued before a poll. Nothing shows the queue without taking
         # it, so send the five again until they arrived together (the first time, mostly).
-        for attempt in range(BACKLOG_ATTEMPTS):
+        for _ in range(BACKLOG_ATTEMPTS):
             received, superseded = receiver.received["right"], receiver.superseded["right"]
             for frame in sent:
                 headset.send("right", format_keypoints(frame))
@@ -167,7 +167,7 @@ def test_a_backlog_yields_only_the_newest_frame(context, config):
             if len(frames) == 1:
                 break
         (frame,) = frames[0]
-        assert (receiver.superseded["right"] - superseded, len(frames)) == (4, 1), attempt
+        assert (receiver.superseded["right"] - superseded, len(frames)) == (4, 1)
         assert np.abs(frame.joints[frame.tracked] - sent[-1].joints[frame.tracked]).max() < 1e-5
         for socket in headset.sockets.values():
             socket.close(linger=0)

@@ -13,12 +13,12 @@ import time
 import numpy as np
 import pytest
 import zmq
+from waiting import HANG_GUARD_S, wait_until
 
 from beavr_sim.assets import bundled_trace
 from beavr_sim.teleop.session import SessionOptions, build_loop
 from beavr_sim.traces.format import TraceReader
 from beavr_sim.wire.ports import PortConfig, TransportConfig
-from waiting import HANG_GUARD_S, wait_until
 
 #: LEAP hand motors of the index finger (after the arm's 7 joints on the xArm7).
 INDEX = slice(7, 11)

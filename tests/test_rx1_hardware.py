@@ -7,6 +7,7 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
+from waiting import wait_until
 
 import beavr_sim.envs  # noqa: F401  (registers the envs)
 from beavr_sim.hardware.feetech.config import GROUPS
@@ -15,7 +16,6 @@ from beavr_sim.hardware.rig import EmulatedRig, RigConfig, joint_names_of
 from beavr_sim.robots import RX1_ARM, make_embodiment
 from beavr_sim.twin.twin import TwinInterface
 from beavr_sim.wire.records import JointCommand
-from waiting import wait_until
 
 #: Half a servo count of a direct (gear 1) joint, in joint radians: the most a joint read back
 #: differs from its target by rounding (a geared joint's count is three times finer).

@@ -15,13 +15,13 @@ import zmq
 from mcap.decoder import DecoderFactory
 from mcap.reader import make_reader
 from mcap.writer import Writer
+from waiting import HANG_GUARD_S
 
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.traces import TraceError, TraceMetadata, TraceReader, TraceWriter
 from beavr_sim.traces.__main__ import main, record_trace
 from beavr_sim.wire.hand import N_JOINTS, HandFrame
 from beavr_sim.wire.ports import PortConfig, TransportConfig
-from waiting import HANG_GUARD_S
 
 RATE_HZ = 90.0
 N_FRAMES = 60

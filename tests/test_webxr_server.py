@@ -16,6 +16,7 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 import pytest
+from waiting import HANG_GUARD_S, wait_until
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
@@ -29,7 +30,6 @@ from beavr_sim.naming import UnknownNameError
 from beavr_sim.wire.access import SessionToken
 from beavr_sim.wire.hand import N_JOINTS
 from beavr_sim.wire.ports import PortConfig
-from waiting import HANG_GUARD_S, wait_until
 
 T_MS = 1.7e12
 

@@ -14,7 +14,10 @@ HANG_GUARD_S = 30.0
 
 
 def wait_until(
-    condition: Callable[[], object], what: str, timeout_s: float = HANG_GUARD_S, poll_s: float = 0.005
+    condition: Callable[[], object],
+    what: str,
+    timeout_s: float = HANG_GUARD_S,
+    poll_s: float = 0.005,
 ) -> None:
     """Return once ``condition()`` is true; AssertionError naming ``what`` after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
