@@ -28,6 +28,7 @@ from scservo_sdk import (
     GroupSyncWrite,
     PacketHandler,
 )
+from waiting import HANG_GUARD_S
 
 from beavr_sim.hardware.device import DeviceError
 from beavr_sim.hardware.feetech.config import (
@@ -106,7 +107,7 @@ def _open_sdk_port(path: str) -> _Port:
     return port
 
 
-def _wait_until(cond, timeout: float = 2.0) -> bool:
+def _wait_until(cond, timeout: float = HANG_GUARD_S) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if cond():
@@ -118,7 +119,7 @@ def _wait_until(cond, timeout: float = 2.0) -> bool:
 def _new_goals(emu: FeetechEmulator, since: int, n: int) -> list[int]:
     """The next ``n`` goal counts the emulator logs after index ``since`` (a sync write has no
     reply: the emulator may still be handling it when the call returns)."""
-    assert _wait_until(lambda: len(emu.goal_log) >= since + n, 1.0), emu.goal_log[since:]
+    assert _wait_until(lambda: len(emu.goal_log) >= since + n), emu.goal_log[since:]
     return [c for _, _, c in emu.goal_log[since : since + n]]
 
 
@@ -396,7 +397,7 @@ def test_sdk_ping_read_write_sync_write_sync_read():
             for i, c in ((1, 300), (2, 3900)):
                 assert writer.addParam(i, list(c.to_bytes(2, "little")))
             assert writer.txPacket() == COMM_SUCCESS
-            assert _wait_until(lambda: e.servos[2].goal_position == 3900, 1.0)
+            assert _wait_until(lambda: e.servos[2].goal_position == 3900)
             assert e.servos[1].goal_position == 300
             reader = GroupSyncRead(port, ph, 56, 2)
             for i in start:
@@ -427,7 +428,7 @@ def test_multi_turn_servo_takes_and_reports_signed_positions_past_one_turn():
             assert e.servos[3].goal_position == 0  # one turn: clamped
             assert e.servos[1].table()[42:44] == (0x8000 | 4300).to_bytes(2, "little")
             ph.write1ByteTxRx(port, 1, 40, 1)
-            assert _wait_until(lambda: e.servos[1].present_position == -4300, 3.0)
+            assert _wait_until(lambda: e.servos[1].present_position == -4300)
             assert from_sign_magnitude(ph.read2ByteTxRx(port, 1, 56)[0]) == -4300
             # Without full-angle feedback (Phase bit 4) it reports the angle within one turn.
             e.servos[1].phase = 0
@@ -457,11 +458,11 @@ def test_emulated_servo_moves_with_torque_at_its_goal_speed():
         try:
             ph.write2ByteTxRx(port, 1, 46, 2000)  # 2000 steps/s
             ph.write2ByteTxRx(port, 1, 42, 2648)
-            time.sleep(0.05)
+            e.advance(time.monotonic() + 0.05)  # the servo model runs 50 ms, however loaded
             assert e.servos[1].position == 2048.0  # torque off: goal taken, no motion
             ph.write1ByteTxRx(port, 1, 40, 1)
             t0 = time.monotonic()
-            assert _wait_until(lambda: e.servos[1].present_position == 2648, 2.0)
+            assert _wait_until(lambda: e.servos[1].present_position == 2648)
             assert time.monotonic() - t0 > 0.25  # 600 counts at 2000 steps/s
             assert ph.read2ByteTxRx(port, 1, 56)[0] == 2648
         finally:
@@ -483,7 +484,7 @@ def test_bad_checksum_gets_no_reply_and_garbage_does_not_crash(emu):
         partial = b"\xff\xff\x0b\x20\x03\x2a"  # promises 32 bytes, stops
         os.write(fd, noise + impossible + too_long + b"\xff\xff\xff" + noise[:50] + partial)
         # The emulator took it all in and gave up on the partial packet at the end.
-        assert _wait_until(lambda: emu.parser.dropped > 0 and not emu.parser.buffer, 10.0)
+        assert _wait_until(lambda: emu.parser.dropped > 0 and not emu.parser.buffer)
         while select.select([fd], [], [], 0)[0]:  # whatever the noise happened to ask
             os.read(fd, 4096)
     finally:
@@ -515,7 +516,7 @@ def test_connect_enables_torque_at_the_present_pose():
                 assert s.acceleration == cfg.acceleration_registers()[k]
                 addrs = [a for a, _, _ in s.writes]
                 assert addrs[-1] == 40  # torque last
-            time.sleep(0.05)
+            e.advance(time.monotonic() + 0.05)  # the servo model runs 50 ms, however loaded
             assert all(s.present_position == start[i] for i, s in e.servos.items())
             servos = GROUPS["right_arm"]
             expected = [counts_to_angle(start[s.id], s.direction, s.gear) for s in servos]
@@ -539,7 +540,7 @@ def test_send_converges_and_goals_are_the_formula():
                 round(q / math.pi * 2048 * s.direction * s.gear + 2048)
                 for q, s in zip(target, servos, strict=True)
             ]
-            assert _wait_until(lambda: np.allclose(bus.read_positions(), sent, atol=1e-12), 2.0)
+            assert _wait_until(lambda: np.allclose(bus.read_positions(), sent, atol=1e-12))
             assert bus.commands_sent == 1 and bus.errors == 0
 
 
@@ -604,7 +605,7 @@ def test_rx1_arm_extremes_round_trip_through_multi_turn_servos(group):
                     sent, counts_to_angle(goals, [s.direction for s in servos], cfg.gears)
                 )
                 assert _wait_until(
-                    lambda sent=sent: np.all(np.abs(bus.read_positions() - sent) <= 1e-12), 3.0
+                    lambda sent=sent: np.all(np.abs(bus.read_positions() - sent) <= 1e-12)
                 )
                 raw = [e.servos[i].table()[56:58] for i in ids]
                 assert [decode(r, 15) for r in raw] == goals
@@ -621,7 +622,7 @@ def test_negative_goals_and_positions_on_the_wire(emu, arm):
     s = emu.servos[14]
     assert s.table()[42:44] == bytes([1863 & 0xFF, 0x80 | 1863 >> 8])  # bit 15: negative
     assert s.goal_position == goal
-    assert _wait_until(lambda: s.present_position == goal, 3.0)
+    assert _wait_until(lambda: s.present_position == goal)
     assert s.table()[56:58] == s.table()[42:44]
     assert arm.read_positions()[3] == pytest.approx(counts_to_angle(goal, 1, 3))
     assert arm.read_positions()[3] == pytest.approx(-2.0, abs=math.pi / 6144)

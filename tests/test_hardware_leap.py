@@ -18,6 +18,7 @@ from dynamixel_sdk import GroupSyncRead, PacketHandler, PortHandler
 from dynamixel_sdk.robotis_def import COMM_SUCCESS
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from waiting import HANG_GUARD_S
 
 from beavr_sim.hardware.device import DeviceError
 from beavr_sim.hardware.leap.config import (
@@ -71,11 +72,11 @@ def hand(emu):
 def _new_goals(emu: DynamixelEmulator, since: int, n: int = 16) -> list[int]:
     """The next ``n`` goal counts the emulator logs after index ``since`` (a sync write has no
     reply: the emulator may still be handling it when the call returns)."""
-    assert _wait_until(lambda: len(emu.goal_log) >= since + n, 1.0), emu.goal_log[since:]
+    assert _wait_until(lambda: len(emu.goal_log) >= since + n), emu.goal_log[since:]
     return [c for _, _, c in emu.goal_log[since : since + n]]
 
 
-def _wait_until(cond, timeout: float = 2.0) -> bool:
+def _wait_until(cond, timeout: float = HANG_GUARD_S) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if cond():
@@ -248,7 +249,7 @@ def test_eeprom_locked_with_torque_on_ram_writable(emu):
         assert ph.write1ByteTxRx(port, 2, 64, 7) == (COMM_SUCCESS, ERR_DATA_RANGE)
         # Goal position is accepted with torque off, but the motor does not move.
         assert ph.write4ByteTxRx(port, 3, 116, 3000) == (COMM_SUCCESS, 0)
-        time.sleep(0.05)
+        emu.advance(time.monotonic() + 0.05)  # the motor model runs 50 ms, however loaded
         assert emu.motors[3].position == 2048.0 and emu.motors[3].goal_position == 3000
     finally:
         port.closePort()
@@ -265,7 +266,7 @@ def test_garbage_on_the_bus_is_dropped_and_the_bus_recovers(emu):
         partial = b"\xff\xff\xfd\x00\x07\x40\x00\x02\x84"  # promises 64 bytes, stops
         os.write(fd, noise + huge_length + bad_crc + noise[:40] + partial)
         # The emulator took it all in and gave up on the partial packet at the end.
-        assert _wait_until(lambda: emu.parser.dropped > 0 and not emu.parser.buffer, 10.0)
+        assert _wait_until(lambda: emu.parser.dropped > 0 and not emu.parser.buffer)
     finally:
         os.close(fd)
     port = _open_sdk_port(emu.port)
@@ -301,7 +302,7 @@ def test_connect_sets_mode_gains_and_current(variant, current):
                 assert addrs.index(64) < addrs.index(11) and addrs[-1] == 64
                 # Goal = present before torque on: connecting does not move the hand.
                 assert m.goal_position == start[i]
-            time.sleep(0.05)
+            e.advance(time.monotonic() + 0.05)  # the motor model runs 50 ms, however loaded
             assert all(m.present_position == start[i] for i, m in e.motors.items())
             assert h.read_positions() == pytest.approx(counts_to_model(list(start.values())))
         assert not h.connected
@@ -317,10 +318,10 @@ def test_stream_targets_converge_and_big_step_diverges():
         assert abs(h.read_positions()[-1] - sent[-1]) > 0.6
         emu.advance()  # the read above was answered after the write: bring the model to now
         assert emu.motors[15].present_current == 550
-        assert _wait_until(lambda: np.allclose(h.read_positions(), sent, atol=1e-12), 3.0)
+        assert _wait_until(lambda: np.allclose(h.read_positions(), sent, atol=1e-12))
         # The present position reads whole counts: it may arrive half a count before the motor
         # stops (under load on this machine it did); the current falls to zero once it has.
-        assert _wait_until(lambda: (emu.advance(), emu.motors[15].present_current == 0)[1], 1.0)
+        assert _wait_until(lambda: (emu.advance(), emu.motors[15].present_current == 0)[1])
         assert h.commands_sent == 1 and h.errors == 0
         assert _new_goals(emu, n) == model_to_counts(sent).tolist()
 

@@ -14,6 +14,7 @@ import msgspec
 import numpy as np
 import pytest
 import zmq
+from waiting import HANG_GUARD_S, wait_until
 
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.wire.hand import N_JOINTS, HandFrame
@@ -318,13 +319,21 @@ def test_malformed_messages_are_dropped_counted_and_survived(context):
         pub._socket.send(b"state " + nan_state)  # recv_latest drops too, keeps the last good one
         pub.send(b"state", RobotStateMsg(t=8.0, positions=[1.0], velocities=[0.0]))
         pub._socket.send(b"state garbage")
-        time.sleep(0.1)
-        assert sub.recv_latest(timeout_s=1.0).t == 8.0
-        assert sub.dropped == 6
+        latest: list[float] = []
+
+        def all_three_taken() -> bool:
+            if (msg := sub.recv_latest(timeout_s=0.01)) is not None:
+                latest.append(msg.t)
+            return sub.dropped == 6
+
+        wait_until(all_three_taken, "recv_latest dropped the two bad messages")
+        assert latest == [8.0]
 
 
 def test_conflation_keeps_only_the_latest(context):
-    endpoint = tcp_endpoint()
+    # inproc: a send has reached every subscriber's queue when it returns, so the 100
+    # messages are all queued before the first recv (over TCP that needs a settle sleep).
+    endpoint = "inproc://conflation"
     with (
         Publisher(context, endpoint) as pub,
         Subscriber(context, endpoint, b"state", RobotStateMsg) as latest_only,
@@ -333,7 +342,6 @@ def test_conflation_keeps_only_the_latest(context):
         assert pub.wait_for_subscribers(2, 2.0, topic=b"state")
         for i in range(100):
             pub.send(b"state", RobotStateMsg(t=float(i), positions=[float(i)], velocities=[0.0]))
-        time.sleep(0.2)
         assert latest_only.recv_latest(timeout_s=1.0).t == 99.0
         assert latest_only.received == 1  # the socket kept one message, not 100
         assert latest_only.recv() is None
@@ -346,20 +354,28 @@ def test_conflation_keeps_only_the_latest(context):
 def test_closed_publisher_is_reported_dead_within_the_timeout(context):
     endpoint = tcp_endpoint()
     pub = Publisher(context, endpoint)
-    with Subscriber(context, endpoint, b"state", RobotStateMsg, liveness_timeout_s=0.2) as sub:
+    now = [100.0]  # the liveness clock: time passes when the test says so
+    with Subscriber(
+        context, endpoint, b"state", RobotStateMsg, liveness_timeout_s=0.2, clock=lambda: now[0]
+    ) as sub:
         assert sub.liveness.state() == "waiting"
         assert pub.wait_for_subscribers(1, 2.0)
         for i in range(20):
             pub.send(b"state", RobotStateMsg(t=float(i), positions=[], velocities=[]))
-            sub.recv(timeout_s=0.01)
+        last: list = [None]
+
+        def took_the_last() -> bool:  # a conflating socket: the newest message only
+            last[0] = sub.recv(timeout_s=0.01) or last[0]
+            return last[0] is not None and last[0].t == 19.0
+
+        wait_until(took_the_last, "the last message sent")
         assert sub.alive()
         pub.close()
-        closed_at = time.monotonic()
-        while sub.alive():
-            assert sub.recv(timeout_s=0.02) is None or time.monotonic() - closed_at < 0.1
-        dead_after = time.monotonic() - closed_at
-        assert sub.liveness.state() == "dead"
-        assert dead_after <= 0.2 + 0.1
+        assert sub.recv(timeout_s=0.05) is None  # nothing after the close
+        now[0] += 0.19  # within the timeout: still alive
+        assert sub.alive() and sub.recv() is None
+        now[0] += 0.02  # past it: dead, with nothing received meanwhile
+        assert sub.recv() is None and sub.liveness.state() == "dead"
         with pytest.raises(RuntimeError, match="closed"):
             pub.send(b"state", RobotStateMsg(t=0.0, positions=[], velocities=[]))
 
@@ -388,10 +404,12 @@ def test_killed_publisher_process_is_reported_dead_and_a_restart_recovers(contex
     def start() -> subprocess.Popen:
         return subprocess.Popen([sys.executable, "-c", _PUBLISHER_SCRIPT, endpoint])
 
-    timeout_s = 0.25
+    timeout_s, step_s = 0.25, 0.01
+    now = [100.0]  # the liveness clock: it advances step_s per receive below
     with Subscriber(
-        context, endpoint, b"state", RobotStateMsg, liveness_timeout_s=timeout_s
-    ) as sub:
+        context, endpoint, b"state", RobotStateMsg, liveness_timeout_s=timeout_s,
+        clock=lambda: now[0],
+    ) as sub:  # fmt: skip
         for round_ in range(2):  # second round: a restarted publisher is picked up again
             process = start()
             try:
@@ -401,11 +419,14 @@ def test_killed_publisher_process_is_reported_dead_and_a_restart_recovers(contex
                 assert sub.alive()
                 process.send_signal(signal.SIGKILL)
                 process.wait(timeout=5)
-                killed_at = time.monotonic()
-                while sub.alive():
-                    sub.recv_latest(timeout_s=0.02)  # never raises
-                    assert time.monotonic() - killed_at < timeout_s + 0.2
+                hang_guard = time.monotonic() + HANG_GUARD_S
+                while sub.alive():  # messages in flight at the kill may still come
+                    sub.recv_latest(timeout_s=0.002)  # never raises
+                    now[0] += step_s
+                    assert time.monotonic() < hang_guard, "never reported dead"
                 assert sub.liveness.state() == "dead"
+                # Dead on the first check past the timeout since the last message.
+                assert timeout_s < sub.liveness.age_s() <= timeout_s + step_s + 1e-9
             finally:
                 process.kill()
                 process.wait(timeout=5)

@@ -7,6 +7,7 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
+from waiting import wait_until
 
 import beavr_sim.envs  # noqa: F401  (registers the envs)
 from beavr_sim.hardware.feetech.config import GROUPS
@@ -88,7 +89,13 @@ def test_rx1_mirrors_to_emulated_feetech_and_leap_through_the_guard():
                 target[left] = state.action[left]  # the operator resyncs to the held pose
             mirror.submit(state.action, state.positions, state.guard_blocked_effectors)
             time.sleep(1 / env.control_hz)
-        time.sleep(0.3)
+
+        def settled() -> bool:  # the hardware reached the last guarded action
+            arm = mirror.latest_measured()[left][:7]
+            sent = [d["commands_sent"] for d in mirror.summary().values()]
+            return np.allclose(arm, twin.action[left][:7], atol=0.02) and min(sent) >= 10
+
+        wait_until(settled, "the rig followed the twin")
         measured = mirror.latest_measured()
         mirror.close()
         summary = mirror.summary()

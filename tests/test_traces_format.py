@@ -15,6 +15,7 @@ import zmq
 from mcap.decoder import DecoderFactory
 from mcap.reader import make_reader
 from mcap.writer import Writer
+from waiting import HANG_GUARD_S
 
 from beavr_sim.naming import UnknownNameError
 from beavr_sim.traces import TraceError, TraceMetadata, TraceReader, TraceWriter
@@ -230,9 +231,11 @@ def test_record_from_a_fake_headset(tmp_path):
 
     config = TransportConfig(ports=PortConfig.free())
     payload = format_keypoints(make_frames()[0])
-    stop = threading.Event()
+    stop, recording = threading.Event(), threading.Event()
 
     def headset() -> None:
+        if not recording.wait(HANG_GUARD_S):  # the recorder's sockets are bound
+            return
         context = zmq.Context()
         right = context.socket(zmq.PUSH)
         pause = context.socket(zmq.PUSH)
@@ -251,7 +254,12 @@ def test_record_from_a_fake_headset(tmp_path):
     thread.start()
     out = tmp_path / "rec.mcap"
     try:
-        counts = record_trace(out, config, seconds=0.8, log=lambda *a: None)
+        # Until the recorder wrote the pause press and more than 20 hand frames, however
+        # slowly the machine ran the 100 Hz headset; `seconds` is only a hang guard.
+        counts = record_trace(
+            out, config, seconds=HANG_GUARD_S, log=lambda *a: recording.set(),
+            until=lambda c: c.get("/control/pause", 0) >= 2 and c.get("/hands/right", 0) > 20,
+        )  # fmt: skip
     finally:
         stop.set()
         thread.join(timeout=5)
@@ -261,6 +269,8 @@ def test_record_from_a_fake_headset(tmp_path):
     assert reader.counts["/control/pause"] == 2  # False at the start, then True
     events = list(reader.events())
     assert events[0][0] == 0.0  # times from the first frame
-    assert 50 < reader.metadata.frame_rate_hz < 110
+    hands = [t for t, kind, _ in events if kind == "hand"]  # the rate the frames arrived at
+    measured = (len(hands) - 1) / (hands[-1] - hands[0])
+    assert reader.metadata.frame_rate_hz == pytest.approx(measured, abs=1e-3)
     pauses = [p for _, kind, p in events if kind == "pause"]
     assert pauses == [False, True]

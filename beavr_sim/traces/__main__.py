@@ -16,6 +16,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 
@@ -64,8 +65,10 @@ def record_trace(
     *,
     poll_s: float = 0.05,
     log=print,
+    until: Callable[[Mapping[str, int]], bool] | None = None,
 ) -> dict[str, int]:
-    """Record the Quest streams on ``config`` into ``out`` until ``seconds`` pass or Ctrl-C.
+    """Record the Quest streams on ``config`` into ``out`` until ``seconds`` pass, Ctrl-C, or
+    ``until(messages written so far per channel)`` is true (a test stops on what it sent).
 
     Returns the messages written per channel.
     """
@@ -100,6 +103,8 @@ def record_trace(
                                 writer.write_control(name, frame.t_source, value)
                                 controls[name] = value
                         writer.write_hand(frame)
+                    if until is not None and until(writer.counts):
+                        break
             except KeyboardInterrupt:
                 log("stopped; finishing the file")
             if receiver.rejected:

@@ -249,7 +249,7 @@ class Subscriber(_Socket):
     conflation). ``msg_type``: the message type expected (or a union). With ``conflate=True``
     the socket keeps only the newest message (one topic only). Malformed messages are
     dropped, counted in :attr:`dropped` and logged; they never raise. Every valid message is
-    a beat of :attr:`liveness`.
+    a beat of :attr:`liveness`, timed by ``clock`` (monotonic seconds; tests inject one).
     """
 
     def __init__(
@@ -263,6 +263,7 @@ class Subscriber(_Socket):
         bind: bool = False,
         liveness_timeout_s: float = 0.5,
         rcvhwm: int = 1000,
+        clock: Callable[[], float] = time.monotonic,
     ):
         topics = (topics,) if isinstance(topics, bytes) else tuple(topics)
         for topic in topics:
@@ -274,7 +275,7 @@ class Subscriber(_Socket):
             )
         self.topics = topics
         self.msg_type = msg_type
-        self.liveness = Liveness(liveness_timeout_s)
+        self.liveness = Liveness(liveness_timeout_s, clock)
         self.received = 0
         self.dropped = 0
         self.last_topic: bytes | None = None

@@ -27,6 +27,7 @@ import math
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -122,9 +123,16 @@ class XArm7(Device):
     stream_hz = 100.0
 
     def __init__(
-        self, config: XArmConfig, name: str = "right", joint_names: tuple[str, ...] | None = None
+        self,
+        config: XArmConfig,
+        name: str = "right",
+        joint_names: tuple[str, ...] | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
+        #: Monotonic seconds for the connect deadline (tests inject one).
+        self._clock = clock
         self.name = name
         self.joint_names = joint_names or tuple(f"{name}/joint{i}" for i in range(1, 8))
         if len(self.joint_names) != 7:
@@ -212,7 +220,8 @@ class XArm7(Device):
                 outcome["error"] = e
             done.set()
 
-        deadline = time.monotonic() + timeout_s
+        clock = self._clock
+        deadline = clock() + timeout_s
         worker = threading.Thread(target=work, name=f"{self.name}-connect", daemon=True)
         with _SDK_PORT_LOCK:
             saved = XCONF.SocketConf.TCP_CONTROL_PORT
@@ -222,11 +231,12 @@ class XArm7(Device):
                 worker.start()
                 # The SDK reads the port while building its control socket: hold the patch
                 # until that socket is connected, the attempt failed, or time is up.
-                while not (api.connected or done.is_set() or time.monotonic() > deadline):
+                while not (api.connected or done.is_set() or clock() > deadline):
                     time.sleep(0.001)
             finally:
                 XCONF.SocketConf.TCP_CONTROL_PORT = saved
-        done.wait(max(0.0, deadline - time.monotonic()))
+        while not done.is_set() and clock() <= deadline:
+            done.wait(0.01)
         if not done.is_set():
             _quiet_disconnect(api)  # the SDK's version check then gives up on its own
             raise self._error(f"no answer within {timeout_s:g} s; {_WHAT_TO_CHECK}")
