@@ -37,7 +37,12 @@ def step_towards(
         np.ndim(x) == 0 for x in (goal, max_speed, velocity, max_accel)
     ):
         return _step_one(
-            float(position), float(goal), float(dt), float(max_speed), float(velocity), float(max_accel)
+            float(position),
+            float(goal),
+            float(dt),
+            float(max_speed),
+            float(velocity),
+            float(max_accel),
         )
     return _step_many(position, goal, dt, max_speed, velocity, max_accel)
 
