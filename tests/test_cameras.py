@@ -3,7 +3,6 @@ camera reading a generated video file and a ZMQ camera fed by a test image serve
 
 from __future__ import annotations
 
-import base64
 import json
 import logging
 import sys
@@ -14,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import zmq
+from fixtures_shared import ImageServer
 from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
@@ -33,42 +32,9 @@ def _wait_for(predicate, what: str) -> None:
         time.sleep(0.005)
 
 
-class _ImageServer:
-    """LeRobot's ZMQ image-server protocol: JSON {timestamps, images: {name: base64 jpeg}} on PUB."""
-
-    def __init__(self, name: str = "front") -> None:
-        self.context = zmq.Context()
-        self.socket = self.context.socket(zmq.PUB)
-        self.port = self.socket.bind_to_random_port("tcp://127.0.0.1")
-        self.name = name
-        self.sent = 0
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        while not self.stop.is_set():
-            image = np.full((24, 32, 3), self.sent % 250, np.uint8)
-            ok, buf = cv2.imencode(".jpg", image)
-            assert ok
-            message = {
-                "timestamps": {self.name: time.time()},
-                "images": {self.name: base64.b64encode(buf.tobytes()).decode()},
-            }
-            self.socket.send_string(json.dumps(message))
-            self.sent += 1
-            time.sleep(0.01)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join()
-        self.socket.close(linger=0)
-        self.context.term()
-
-
 @pytest.fixture
 def server():
-    srv = _ImageServer()
+    srv = ImageServer()
     yield srv
     srv.close()
 

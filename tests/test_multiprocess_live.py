@@ -12,17 +12,14 @@ process of a ``--multiprocess`` session.
 
 from __future__ import annotations
 
-import base64
-import json
 import logging
-import threading
 import time
 from types import SimpleNamespace
 
-import cv2
 import numpy as np
 import pytest
 import zmq
+from fixtures_shared import ImageServer
 
 from beavr_sim.datasets.episode_end import EpisodeEnd
 from beavr_sim.datasets.features import RecordingConfig
@@ -114,40 +111,12 @@ def test_the_episode_line_is_one_process_s_label_in_every_phase():
         episode_label("episode 1/2", "paused")
 
 
-class _CameraServer:
-    """A LeRobot ZMQ image server (JSON of base64 JPEGs on PUB) on a free port."""
-
-    def __init__(self, name: str = "front") -> None:
-        self.context = zmq.Context()
-        self.socket = self.context.socket(zmq.PUB)
-        self.port = self.socket.bind_to_random_port("tcp://127.0.0.1")
-        self.name = name
-        self.sent = 0
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        _, buf = cv2.imencode(".jpg", np.full((24, 32, 3), 120, np.uint8))
-        image = base64.b64encode(buf.tobytes()).decode()
-        while not self.stop.wait(0.02):
-            message = {"timestamps": {self.name: time.time()}, "images": {self.name: image}}
-            self.socket.send_string(json.dumps(message))
-            self.sent += 1
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join()
-        self.socket.close(linger=0)
-        self.context.term()
-
-
 def test_a_multiprocess_quest_session_streams_its_camera_to_the_quest_app_panel(quest_options):
     """``--source quest --camera front=... --camera-stream-hz`` under ``--multiprocess``: the
     twin process reads the camera and the Quest app's camera socket gets its panels."""
     from beavr_sim.teleop.processes import MultiprocessSession
 
-    camera = _CameraServer()
+    camera = ImageServer()
     opts = quest_options(
         headless=False,  # the Quest app's image sockets
         multiprocess=True,

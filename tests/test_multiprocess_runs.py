@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fixtures_shared import cut_bundled_trace
 from websockets.sync.client import connect
 
 import beavr_sim
@@ -60,19 +61,7 @@ RECORDING = RecordingConfig(cameras=(), use_videos=False)
 @pytest.fixture(scope="module")
 def short_trace(tmp_path_factory):
     """The bundled PickupBox trace cut after :data:`CUT_S` seconds."""
-    from beavr_sim.assets import bundled_trace
-    from beavr_sim.traces.format import TraceReader, TraceWriter
-
-    reader = TraceReader(bundled_trace("PickupBox"))
-    path = tmp_path_factory.mktemp("trace") / "short.mcap"
-    with TraceWriter(path, reader.metadata) as writer:
-        t0 = None
-        for _t, kind, payload in reader.events():
-            if kind == "hand":
-                t0 = payload.t_source if t0 is None else t0
-                if payload.t_source - t0 <= CUT_S:
-                    writer.write_hand(payload)
-    return path
+    return cut_bundled_trace(tmp_path_factory.mktemp("trace") / "short.mcap", CUT_S)
 
 
 def options(trace, multiprocess: bool, **kwargs) -> SessionOptions:

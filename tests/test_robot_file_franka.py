@@ -19,6 +19,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from fixtures_shared import cut_bundled_trace
 
 from beavr_sim.robots.visuals import VISUAL_GROUP
 from beavr_sim.teleop.session import SessionOptions, build_loop
@@ -73,19 +74,8 @@ def franka():
 
 @pytest.fixture(scope="module")
 def short_trace(tmp_path_factory):
-    from beavr_sim.assets import bundled_trace
-    from beavr_sim.traces.format import TraceReader, TraceWriter
-
-    reader = TraceReader(bundled_trace("PickupBox"))
-    path = tmp_path_factory.mktemp("trace") / "short.mcap"
-    with TraceWriter(path, reader.metadata) as writer:
-        t0 = None
-        for _t, kind, payload in reader.events():
-            if kind == "hand":
-                t0 = payload.t_source if t0 is None else t0
-                if payload.t_source - t0 <= CUT_S:
-                    writer.write_hand(payload)
-    return path
+    """The bundled PickupBox trace cut after :data:`CUT_S` seconds."""
+    return cut_bundled_trace(tmp_path_factory.mktemp("trace") / "short.mcap", CUT_S)
 
 
 def visual_panda_geoms(model) -> int:
