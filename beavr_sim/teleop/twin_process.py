@@ -127,6 +127,15 @@ def make_twin_env(config: TwinProcessConfig):
     return gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
 
 
+def _fail_start(conn, env, closers: list[Callable[[], None]], exc: BaseException) -> None:
+    """The twin process could not start (the rig, the dataset or a camera): close what was
+    opened, newest first, and tell the supervisor in one line."""
+    for close in reversed(closers):
+        close()
+    conn.send_bytes(f"error: {exc}".encode())
+    env.close()
+
+
 def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> None:
     leave_ctrl_c_to_the_session()
     context = zmq.Context()
@@ -144,10 +153,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         try:
             mirror, q_measured = connect_mirror(RigChoice.of(config), env, closers)
         except (MirrorError, ValueError, FileNotFoundError) as exc:
-            for close in reversed(closers):
-                close()
-            conn.send_bytes(f"error: {exc}".encode())
-            env.close()
+            _fail_start(conn, env, closers, exc)
             return
         twin.follow_speed_caps(mirror.speed_caps)
         twin.reset(episode_seed, q_measured)  # the mirror starts where the robot is
@@ -180,10 +186,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             if real is not None:
                 closers.append(real.close)
     except (ValueError, OSError, CameraError) as exc:
-        for close in reversed(closers):
-            close()
-        conn.send_bytes(f"error: {exc}".encode())
-        env.close()
+        _fail_start(conn, env, closers, exc)
         return
     fixtures = fixtures_to_wire(env)
     subs = {
