@@ -62,3 +62,37 @@ class ImageServer:
         self.thread.join()
         self.socket.close(linger=0)
         self.context.term()
+
+
+def trace_session_options(trace=None, task: str = "PickupBox", **overrides):
+    """``SessionOptions`` of a headless session replaying ``trace`` (None: the task's bundled
+    one) on the virtual clock, no browser view and no progress line; ``overrides`` win."""
+    from beavr_sim.teleop.session import SessionOptions
+
+    kwargs = {
+        "task": task,
+        "source": "trace",
+        "trace": trace,
+        "clock": "virtual",
+        "viser": False,
+        "headless": True,
+        "progress": False,
+    }
+    return SessionOptions(**{**kwargs, **overrides})
+
+
+class FrameSink:
+    """A dataset writer's interface that keeps the frames it is given (the recorder's tests
+    judge the frames with LeRobot's own validation; its dataset I/O is tested elsewhere)."""
+
+    root = "unused"
+    num_episodes = 0
+
+    def __init__(self):
+        self.frames: list[dict] = []
+
+    def add_frame(self, row: dict, task: str) -> None:
+        self.frames.append({**row, "task": task})
+
+    def discard_episode(self) -> None:
+        pass

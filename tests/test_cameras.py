@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from fixtures_shared import ImageServer
+from fixtures_shared import FrameSink, ImageServer
 from lerobot.cameras.opencv.configuration_opencv import OpenCVCameraConfig
 from lerobot.cameras.zmq.configuration_zmq import ZMQCameraConfig
 
@@ -807,7 +807,7 @@ def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins()
         assert features["observation.images.wrist_depth"]["info"] == {"is_depth_map": True}
         assert "info" not in features["observation.images.wrist"]
         env.reset(seed=0)
-        sink = _FrameSink()
+        sink = FrameSink()
         recorder = EpisodeRecorder(sink, env, config, real_cameras=real)  # type: ignore[arg-type]
         recorder.begin()
 
@@ -827,22 +827,6 @@ def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins()
         assert (int(depth[0, 0, 0]) - 1000) % 250 == int(color[0, 0, 0])  # one capture
         assert frame["observation.images.front_depth"].dtype == np.float32  # the twin's
     assert real.summary()["wrist"]["frames"] == 3  # at begin, then after each frame
-
-
-class _FrameSink:
-    """The writer's interface, keeping the frames."""
-
-    root = "unused"
-    num_episodes = 0
-
-    def __init__(self):
-        self.frames: list[dict] = []
-
-    def add_frame(self, row: dict, task: str) -> None:
-        self.frames.append({**row, "task": task})
-
-    def discard_episode(self) -> None:
-        pass
 
 
 def test_depth_camera_config_errors_are_one_line():

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fixtures_shared import cut_bundled_trace
+from fixtures_shared import cut_bundled_trace, trace_session_options
 from websockets.sync.client import connect
 
 import beavr_sim
@@ -65,14 +65,8 @@ def short_trace(tmp_path_factory):
 
 
 def options(trace, multiprocess: bool, **kwargs) -> SessionOptions:
-    return SessionOptions(
-        task="PickupBox",
-        source="trace",
-        trace=trace,
-        clock="virtual",
-        viser=False,
-        headless=True,
-        progress=False,
+    return trace_session_options(
+        trace,
         multiprocess=multiprocess,
         transport=TransportConfig(ports=PortConfig.free()),
         **kwargs,

@@ -13,7 +13,7 @@ import logging
 
 import numpy as np
 import pytest
-from fixtures_shared import cut_bundled_trace
+from fixtures_shared import cut_bundled_trace, trace_session_options
 
 from beavr_sim.teleop.session import SessionOptions, build_loop
 from beavr_sim.wire.ports import PortConfig, TransportConfig
@@ -29,16 +29,7 @@ def short_trace(tmp_path_factory):
 
 
 def options(trace, **kwargs) -> SessionOptions:
-    return SessionOptions(
-        task="PickupBox",
-        source="trace",
-        trace=trace,
-        clock="virtual",
-        viser=False,
-        headless=True,
-        progress=False,
-        **kwargs,
-    )
+    return trace_session_options(trace, **kwargs)
 
 
 def assert_source_ended(summary) -> None:

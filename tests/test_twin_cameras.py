@@ -9,6 +9,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
+from fixtures_shared import FrameSink
 from lerobot.datasets.feature_utils import validate_frame
 
 import beavr_sim  # noqa: F401  (registers the envs)
@@ -125,23 +126,6 @@ def test_cameras_option_takes_depth():
         RecordingConfig(depth_cameras=("frnt",))
 
 
-class _FrameSink:
-    """The writer's interface, keeping the frames (LeRobot's own dataset I/O is tested in
-    test_rig_session; here LeRobot's frame validation judges the depth feature)."""
-
-    root = "unused"
-    num_episodes = 0
-
-    def __init__(self):
-        self.frames: list[dict] = []
-
-    def add_frame(self, row: dict, task: str) -> None:
-        self.frames.append({**row, "task": task})
-
-    def discard_episode(self) -> None:
-        pass
-
-
 def _ray_depths(model, data, camera: str, height: int, width: int, step: int = 6) -> tuple:
     """Depth along the camera's axis at every ``step``-th pixel centre, by casting rays
     through the visible geom groups (independent of the renderer's depth buffer)."""
@@ -176,7 +160,7 @@ def test_twin_depth_recorded_in_metres():
     depth_key = "observation.images.front_depth"
     assert features[depth_key]["shape"] == (48, 64, 1)
     assert features[depth_key]["info"] == {"is_depth_map": True}
-    sink = _FrameSink()
+    sink = FrameSink()
     recorder = EpisodeRecorder(sink, env, config)  # type: ignore[arg-type]
     recorder.begin()
 
@@ -269,7 +253,7 @@ def test_a_placed_camera_of_a_new_name_is_recorded_as_its_render(tmp_path):
     env = gym.make("beavr_sim/Playground-v0", placed_cameras=options.placed_cameras).unwrapped
     env.reset(seed=0)
     features = lerobot_features(env.embodiment, config, env.environment_state_names)
-    sink = _FrameSink()
+    sink = FrameSink()
     recorder = EpisodeRecorder(sink, env, config)  # type: ignore[arg-type]
     recorder.begin()
 
