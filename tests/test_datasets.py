@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from waiting import HANG_GUARD_S
 
 from beavr_sim.datasets.features import (
     ACTION,
@@ -341,22 +342,25 @@ def test_episodes_start_stop_and_discard_on_request(tmp_path):
     loop = build_loop(options)
     control = EpisodeControl()
     ticks = []
+
+    def _read_all(keyboard: KeyboardControl) -> None:  # its line handled before the next tick
+        assert keyboard.join(HANG_GUARD_S), "the keyboard thread did not finish its input"
+
     script = {
         3: lambda: control.request("start", "browser"),
         20: lambda: control.request("toggle", "browser"),
-        40: lambda: KeyboardControl(control, io.StringIO("\n")),  # Enter: start
+        40: lambda: _read_all(KeyboardControl(control, io.StringIO("\n"))),  # Enter: start
         50: lambda: control.request("discard", "browser"),
         60: lambda: control.request("toggle", "browser"),
         70: lambda: setattr(loop.operator, "_gestures", ["record"]),  # long left pinch
         75: lambda: control.request("start", "browser"),
-        85: lambda: KeyboardControl(control, io.StringIO("q\n")),
+        85: lambda: _read_all(KeyboardControl(control, io.StringIO("q\n"))),
     }
 
     def listener(tick):
         ticks.append(tick.state.t)
         if len(ticks) in script:
             script[len(ticks)]()
-            time.sleep(0.05)  # the keyboard thread reads its line
 
     loop.listeners.append(listener)
     record_episodes(options, loop, ProgressLine(loop, enabled=False), control)

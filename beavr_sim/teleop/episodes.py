@@ -152,6 +152,11 @@ class KeyboardControl:
         parts += [f"{k} + Enter = {text}" for k, (text, _) in self.actions.items()]
         return "; ".join(parts) if parts else ""
 
+    def join(self, timeout: float | None = None) -> bool:
+        """Waits until the stream ended and every line of it was handled; true if it did."""
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
     def _read(self) -> None:
         try:
             for line in self.stream:
