@@ -211,7 +211,7 @@ def test_panels_reach_the_quest_camera_socket():
     context = zmq.Context()
     config = TransportConfig(ports=PortConfig.free())
     publisher = HeadsetImagePublisher(context, config, rate_hz=100.0)
-    stream = _stream(QuestCameraSink(publisher, "front"), rate_hz=50.0)
+    stream = _stream(QuestCameraSink(publisher, ("front",)), rate_hz=50.0)
     sub = context.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
     sub.setsockopt(zmq.SUBSCRIBE, b"")
@@ -383,7 +383,8 @@ class _QuestPublisher:
 class _RealCameras:
     """A connected ``RealCameras`` stand-in: one live ``front`` camera."""
 
-    cameras = ("front",)
+    cameras = names = ("front",)
+    depth_cameras = ()
 
     def frame_shape(self, name):
         return SHAPE

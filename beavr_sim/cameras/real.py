@@ -212,20 +212,23 @@ class RealCameras:
         return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
 
     def peek(self) -> Grab:
-        """Newest frame of each camera for a viewer (any thread): counts nothing; never raises."""
+        """Newest frame (and depth map) of each camera for a viewer (any thread): counts
+        nothing; never raises."""
         frames: dict[str, np.ndarray] = {}
         ages: dict[str, float] = {}
         dead: list[str] = []
         now = time.perf_counter()
         for name, camera in list(self._cameras.items()):
             try:
-                frame, _, stamp = self._newest(name, camera)
+                frame, depth, stamp = self._newest(name, camera)
             except Exception:
-                frame, stamp = None, None
+                frame, depth, stamp = None, None, None
             if frame is None or stamp is None or now - stamp > self.dead_after_s:
                 dead.append(name)
                 continue
             frames[name], ages[name] = frame, max(0.0, now - stamp)
+            if depth is not None:
+                frames[name + DEPTH_SUFFIX] = depth
         return Grab(frames=frames, ages_s=ages, dead=tuple(dead))
 
     def _newest(

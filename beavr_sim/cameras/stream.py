@@ -18,6 +18,12 @@ left showing a last frame as live). A camera that is dead, or whose newest frame
 ``dead_after_s`` when shown, is drawn as "no signal" (never its last image shown as live), and
 so is a twin render older than that (the twin stopped ticking); every live frame carries its
 capture age.
+
+Depth panels (``depth``: a depth camera's ``NAME_depth`` feature, HxWx1 uint16 millimetres, or
+the twin's depth render, HxWx1 float32 metres) are drawn in one fixed colour map,
+:func:`colour_depth` (:data:`DEPTH_RANGE_M`, invalid depth black), and then composed in the
+chosen view like colour panels: ``both`` is the real depth beside the twin's depth of the
+same camera, ``overlay`` one blended over the other.
 """
 
 from __future__ import annotations
@@ -44,6 +50,12 @@ AUTO = "auto"
 DEFAULT_RATE_HZ = 5.0
 NO_SIGNAL = "no signal"
 LIVE = "live"
+#: Depth drawn in colour between these distances (m): nearer is the near colour (blue), farther
+#: the far colour (red); 0 (a depth camera's "no reading") and non-finite depth are black.
+DEPTH_RANGE_M = (0.2, 2.0)
+#: The part of OpenCV's TURBO colour map used (blue .. green .. yellow .. red): its darkest
+#: ends are left out so that no valid depth reads as black.
+_DEPTH_LUT_SPAN = (16, 240)
 
 
 @dataclass(frozen=True)
@@ -112,8 +124,9 @@ class TwinSource(Protocol):
     def render(
         self, shapes: Mapping[str, tuple[int, int, int]]
     ) -> tuple[Mapping[str, np.ndarray], float | None]:
-        """Each panel's twin render at (about) its shape, and the twin state's age in seconds
-        ({}, None before the twin's first tick)."""
+        """Each panel's twin render at (about) its shape (a one-channel shape: the depth of a
+        depth panel ``NAME_depth``'s camera, HxWx1 metres), and the twin state's age in
+        seconds ({}, None before the twin's first tick)."""
         ...
 
     def camera_for(self, panel: str) -> str:
@@ -145,6 +158,39 @@ def no_signal_image(shape: tuple[int, int, int], name: str) -> np.ndarray:
     return image
 
 
+def _depth_lut() -> np.ndarray:
+    ramp = np.linspace(*_DEPTH_LUT_SPAN, 256).round().astype(np.uint8).reshape(-1, 1)
+    return cv2.applyColorMap(ramp, cv2.COLORMAP_TURBO)[:, 0, ::-1].copy()  # BGR -> RGB
+
+
+_DEPTH_LUT = _depth_lut()
+
+
+def colour_depth(depth: np.ndarray) -> np.ndarray:
+    """An HxWx3 uint8 RGB image of a depth map: HxW or HxWx1, integer millimetres (a RealSense's
+    ``NAME_depth``) or float metres (the twin's), coloured by distance over
+    :data:`DEPTH_RANGE_M` (clamped at both ends), 0 and non-finite depth black."""
+    depth = np.asarray(depth)
+    if depth.ndim == 3:
+        depth = depth[..., 0]
+    metres = depth.astype(np.float32)
+    if np.issubdtype(depth.dtype, np.integer):
+        metres *= 1e-3
+    near, far = DEPTH_RANGE_M
+    valid = np.isfinite(metres) & (metres > 0)
+    scaled = (np.clip(np.where(valid, metres, near), near, far) - near) * (255.0 / (far - near))
+    image = _DEPTH_LUT[scaled.round().astype(np.uint8)]
+    image[~valid] = 0
+    return image
+
+
+def as_panel_image(image: np.ndarray | None) -> np.ndarray | None:
+    """A frame as a panel shows it: HxWx3 uint8 as is, a one-channel depth map coloured."""
+    if image is None or (image.ndim == 3 and image.shape[2] == 3 and image.dtype == np.uint8):
+        return image
+    return colour_depth(image)
+
+
 def compose(
     real: np.ndarray | None, twin: np.ndarray | None, view: str, blend: float
 ) -> np.ndarray | None:
@@ -167,8 +213,9 @@ class CameraStream:
     """Streams the newest grab to ``sinks`` from its own thread; :meth:`close` when done.
 
     ``shapes``: every panel's shape by name; ``real``: the panels that are real cameras
-    (default: all); ``twin``: the twin's renders (:class:`TwinSource`), closed on the worker
-    thread when the stream ends."""
+    (default: all); ``depth``: the depth panels (``NAME_depth``, shape HxWx1) by the camera
+    whose capture they are (its age and signal are theirs); ``twin``: the twin's renders
+    (:class:`TwinSource`), closed on the worker thread when the stream ends."""
 
     def __init__(
         self,
@@ -179,12 +226,14 @@ class CameraStream:
         source: Callable[[], object] | None = None,
         twin: TwinSource | None = None,
         real: Sequence[str] | None = None,
+        depth: Mapping[str, str] | None = None,
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.config = config
         self.sinks = list(sinks)
         self.shapes = dict(shapes)
         self.real = tuple(self.shapes if real is None else real)
+        self.depth = dict(depth or {})
         self.twin = twin
         self.view = config.view if config.view != AUTO else self._auto_view()
         self.blend = config.blend
@@ -299,7 +348,11 @@ class CameraStream:
 
     def _render_twin(self) -> tuple[Mapping[str, np.ndarray], float | None]:
         """The twin source's renders of the panels whose view shows the twin (worker)."""
-        wanted = {n: s for n, s in self.shapes.items() if self._view_of(n) != "real"}
+        wanted = {
+            n: (int(s[0]), int(s[1]), 1 if n in self.depth else 3)
+            for n, s in self.shapes.items()
+            if self._view_of(n) != "real"
+        }
         if self.twin is None or not wanted:
             return {}, None
         try:
@@ -312,7 +365,7 @@ class CameraStream:
                 )
             return {}, None
         self.twin_renders += len(images)
-        return images, age_s
+        return {n: as_panel_image(image) for n, image in images.items()}, age_s
 
     def panels(
         self, grab, twin, offered_at: float, twin_age_s: float | None = None
@@ -331,20 +384,22 @@ class CameraStream:
         out = []
         for name, shape in self.shapes.items():
             self._seq += 1
+            camera = self.depth.get(name, name)  # a depth panel's capture is its camera's
             real = grab.frames.get(name) if name in self.real else None
-            age = grab.ages_s.get(name)
+            age = grab.ages_s.get(camera)
             real_live = (
                 real is not None
-                and name not in grab.dead
+                and camera not in grab.dead
                 and age is not None
                 and age + waited <= self.config.dead_after_s
             )
             has_twin = self.twin is not None or name in twin
-            rendered = twin.get(name) if twin_live else None
+            rendered = as_panel_image(twin.get(name)) if twin_live else None
             view = self._view_of(name)
             if view != "real" and not has_twin:
                 view = "real"  # no twin camera for this panel: the real frame
-            frame = self._panel(name, shape, view, real if real_live else None, rendered)
+            real = as_panel_image(real) if real_live else None
+            frame = self._panel(name, shape, view, real, rendered)
             if frame.state != LIVE:
                 self.no_signal += 1
             age_s = (age + waited) if view != "twin" and real_live else twin_age_s
@@ -358,11 +413,14 @@ class CameraStream:
         return out
 
     def _note(self, name: str, view: str, rendered: np.ndarray | None) -> str:
+        depth = f"depth {DEPTH_RANGE_M[0]:g}-{DEPTH_RANGE_M[1]:g} m" if name in self.depth else ""
         if view == "real":
-            return ""
-        camera = self.twin.camera_for(name) if self.twin is not None else name
-        what = "twin" if camera == name else f"twin {camera}"
-        return what if rendered is not None or view == "twin" else f"{what} NO SIGNAL"
+            return depth
+        own = self.depth.get(name, name)
+        camera = self.twin.camera_for(own) if self.twin is not None else own
+        what = "twin" if camera == own else f"twin {camera}"
+        what = what if rendered is not None or view == "twin" else f"{what} NO SIGNAL"
+        return f"{depth}, {what}" if depth else what
 
     def _panel(
         self,

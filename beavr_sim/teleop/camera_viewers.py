@@ -5,7 +5,8 @@ session's :class:`~beavr_sim.cameras.real.RealCameras` (if any), the twin's rend
 (a :class:`~beavr_sim.teleop.twin_camera_feed.TwinCameraFeed`, if given: the panels' ``twin``,
 ``both`` and ``overlay`` views, and twin-only panels in a session without real cameras) and
 the viewers it has: the browser view's camera panel, the WebXR page, the Quest app's camera
-panel (the first panel: a real camera's, in place of the twin's images). The stream reads the cameras'
+panel (every panel in one image, in place of the twin's images). A depth camera's depth map is
+a panel of its own (``NAME_depth``, coloured). The stream reads the cameras'
 newest frames itself (``RealCameras.peek``, counting nothing) and renders, composes and sends
 on its own thread at the rate asked, dropping what its viewers cannot take; the control thread
 only copies the twin's pose for it. Nothing is started when the rate is 0 (off).
@@ -45,10 +46,13 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
         QuestCameraSink,
         WebXRCameraSink,
     )
+    from beavr_sim.cameras.real import DEPTH_SUFFIX  # local: heavy (LeRobot)
     from beavr_sim.cameras.stream import CameraStream  # local: heavy (OpenCV, ~170 ms)
 
-    names = tuple(real.cameras) if real is not None else ()
+    # every image a grab returns: each camera's, then each depth camera's NAME_depth
+    names = tuple(real.names) if real is not None else ()
     shapes = {name: real.frame_shape(name) for name in names}
+    depth = {n + DEPTH_SUFFIX: n for n in real.depth_cameras} if real is not None else {}
     if not names and twin is not None:
         shapes = {name: twin.panel_shape(name) for name in viewers.twin_panels}
     sinks = []
@@ -58,12 +62,14 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
         sinks.append(panel)
     if viewers.webxr is not None:
         sinks.append(WebXRCameraSink(viewers.webxr))
-    if viewers.quest is not None and shapes:  # the first real camera, else the twin's panel
-        sinks.append(QuestCameraSink(viewers.quest, next(iter(shapes))))
+    if viewers.quest is not None and shapes:  # every panel, in one image
+        sinks.append(QuestCameraSink(viewers.quest, tuple(shapes)))
     if not sinks or not shapes:
         return None
     source = real.peek if real is not None else None  # twin-only: the stream's own clock
-    stream = CameraStream(config, sinks, shapes, source=source, twin=twin, real=names)
+    stream = CameraStream(
+        config, sinks, shapes, source=source, twin=twin, real=names, depth=depth
+    )
     if panel is not None:
         panel.attach(stream)
     return stream

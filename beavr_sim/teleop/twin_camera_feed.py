@@ -12,7 +12,9 @@ panels instead of a frozen render shown as live.
 A panel's twin camera is the scene camera of the panel's name (a real camera's twin, placed at
 its pose by ``--camera-poses``, or the scene's ``front`` / ``overhead``), else ``fallback``
 (the headset's camera). Renders are at the panel's size, scaled down to fit the scene's
-offscreen buffer (the stream scales them up to the real frame).
+offscreen buffer (the stream scales them up to the real frame). A one-channel shape asks for
+the twin's depth (HxWx1 float32 metres, MuJoCo's depth buffer) of a depth panel ``NAME_depth``:
+camera ``NAME``'s twin camera, drawn from the same pose copy.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ from beavr_sim.teleop.images import ScenePose, headset_camera
 
 #: A twin-only panel's size (HxW) when its camera gives none (a placed camera's intrinsics do).
 TWIN_PANEL_SIZE = (480, 640)
+#: A depth panel's suffix after its camera's name (LeRobot's depth feature name, ``NAME_depth``).
+DEPTH_SUFFIX = "_depth"
 
 
 class TwinCameraFeed:
@@ -94,8 +98,8 @@ class TwinCameraFeed:
     def render(
         self, shapes: Mapping[str, tuple[int, int, int]]
     ) -> tuple[dict[str, np.ndarray], float | None]:
-        """Each panel's twin render from the newest pose copy, and that copy's age (s); ({},
-        None) before the first tick. Stream thread only."""
+        """Each panel's twin render from the newest pose copy (its depth for a one-channel
+        shape), and that copy's age (s); ({}, None) before the first tick. Stream thread only."""
         with self._lock:
             slot = self._pose
         if slot is None:
@@ -115,7 +119,11 @@ class TwinCameraFeed:
             cameras = self._renderers.get(size)
             if cameras is None:
                 cameras = self._renderers[size] = OffscreenCameras(self.model, *size)
-            images[panel] = cameras.render(self._data, self.camera_for(panel))
+            if len(shape) == 3 and int(shape[2]) == 1:  # a depth panel: its camera's depth
+                camera = self.camera_for(panel.removesuffix(DEPTH_SUFFIX))
+                images[panel] = cameras.render_depth(self._data, camera)
+            else:
+                images[panel] = cameras.render(self._data, self.camera_for(panel))
             self.rendered += 1
         return images, max(0.0, self._clock() - slot[1])
 
