@@ -1,6 +1,6 @@
 // The streamed camera panels inside the scene: each camera's newest image as a textured quad
 // standing where its `camera` message says (docs/formats.md: `panel`, world frame, Z up),
-// facing the operator. Fed by the same `camera` messages as the page's overlay panel; a
+// moved by the page's offset (panel_offset.js: the user's), facing the operator. Fed by the same `camera` messages as the page's overlay panel; a
 // NO SIGNAL panel is the server's own image, and the quads are cleared when the connection
 // drops, so a last image never stays up as if live.
 
@@ -34,9 +34,22 @@ function bytesOf(base64) {
   return bytes;
 }
 
+// The quad's four corners (XR position, then image uv) for a panel centred at `center` (world
+// frame) moved by `offset`, `width` x `height` metres: facing the operator (world -x), the
+// image's right along world -y.
+export function quadVertices(center, width, height, offset) {
+  const [x, y, z] = center.map((v, i) => v + offset[i]);
+  const corner = (dy, dz, u, v) => [...worldToXr([x, y + dy, z + dz]), u, v];
+  return new Float32Array([
+    ...corner(width / 2, -height / 2, 0, 1), ...corner(-width / 2, -height / 2, 1, 1),
+    ...corner(width / 2, height / 2, 0, 0), ...corner(-width / 2, height / 2, 1, 0),
+  ]);
+}
+
 export class CameraQuads {
-  // gl: the page's WebGL2 context (the twin's).
-  constructor(gl) {
+  // gl: the page's WebGL2 context (the twin's); offset: a PanelOffset (the user's move).
+  constructor(gl, offset) {
+    this.offset = offset;
     this.gl = gl;
     const program = linkProgram(gl, VERTEX_SHADER, FRAGMENT_SHADER, "camera quad");
     this.program = program;
@@ -100,33 +113,40 @@ export class CameraQuads {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-    return { vao, buffer, texture, ready: false, decoding: false, pending: null, key: "" };
+    return { vao, buffer, texture, ready: false, decoding: false, pending: null, key: "",
+      place: null };
   }
 
-  // The image into the quad's texture, and the quad's corners where the message places it:
-  // facing the operator (world -x), the image's right along world -y, its height from the
-  // image's aspect.
+  // The image into the quad's texture, and the quad where the message places it (its height
+  // from the image's aspect).
   upload(quad, msg, bitmap) {
     const gl = this.gl;
     gl.bindTexture(gl.TEXTURE_2D, quad.texture);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, bitmap);
-    const [x, y, z] = msg.panel.center;
     const w = Number(msg.panel.width_m) || 0.5;
-    const h = w * bitmap.height / Math.max(bitmap.width, 1);
-    const key = `${x},${y},${z},${w},${h}`;
-    if (key !== quad.key) {
-      const corner = (dy, dz, u, v) => [...worldToXr([x, y + dy, z + dz]), u, v];
-      const vertices = new Float32Array([
-        ...corner(w / 2, -h / 2, 0, 1), ...corner(-w / 2, -h / 2, 1, 1),
-        ...corner(w / 2, h / 2, 0, 0), ...corner(-w / 2, h / 2, 1, 0),
-      ]);
-      gl.bindBuffer(gl.ARRAY_BUFFER, quad.buffer);
-      gl.bufferSubData(gl.ARRAY_BUFFER, 0, vertices);
-      quad.key = key;
-    }
+    quad.place = { center: msg.panel.center.map(Number), w,
+      h: w * bitmap.height / Math.max(bitmap.width, 1) };
+    this.layout(quad);
     quad.ready = true;
     this.shown++;
     if (this.onShown) this.onShown();
+  }
+
+  // The quad's corners from its place and the offset (only when either changed).
+  layout(quad) {
+    const { center, w, h } = quad.place;
+    const offset = this.offset ? this.offset.value : [0, 0, 0];
+    const key = `${center},${w},${h},${offset}`;
+    if (key === quad.key) return;
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, quad.buffer);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, quadVertices(center, w, h, offset));
+    quad.key = key;
+  }
+
+  // Every quad moved to the offset's new value (the user stepped it).
+  relayout() {
+    for (const quad of this.quads.values()) if (quad.place) this.layout(quad);
   }
 
   // Every quad gone (the connection dropped: nothing is streamed any more).

@@ -3,6 +3,7 @@
 // drawn in the session. Protocol version 1: docs/formats.md ("WebXR page messages").
 
 import { CameraQuads } from "./camera_quad.js";
+import { PanelOffset } from "./panel_offset.js";
 import { TwinRenderer, lookAt, perspective } from "./twin_gl.js";
 
 const PROTOCOL_VERSION = 1;
@@ -37,8 +38,18 @@ const state = {
 
 const gl = ui.canvas.getContext("webgl2", { xrCompatible: true, antialias: false });
 const renderer = gl ? new TwinRenderer(gl) : null;
-// The streamed cameras as quads in the scene (the overlay's panels are their page twins).
-const quads = gl ? new CameraQuads(gl) : null;
+// The streamed cameras as quads in the scene (the overlay's panels are their page twins), moved
+// by the user's offset (the page's buttons and keys; kept in localStorage).
+const panelOffset = new PanelOffset(pageStorage());
+const quads = gl ? new CameraQuads(gl, panelOffset) : null;
+
+function pageStorage() {
+  try {
+    return window.localStorage;
+  } catch {
+    return null; // storage refused (a private window's policy): the offset lasts this page
+  }
+}
 
 function round(x) {
   return Math.round(x * DECIMALS) / DECIMALS;
@@ -118,6 +129,20 @@ function clearCameras() {
   if (root) root.replaceChildren();
   if (quads) quads.clear();
   byId("camera-status").textContent = "";
+  byId("panel-move").hidden = true;
+  requestPreview();
+}
+
+// The in-scene panels stepped by the user (a button's data-move, or a key), kept for next time.
+const PANEL_KEYS = { ArrowLeft: "left", ArrowRight: "right", ArrowUp: "up", ArrowDown: "down",
+  PageUp: "farther", PageDown: "nearer", Home: "reset" };
+
+function movePanels(direction) {
+  if (direction === "reset") panelOffset.reset();
+  else panelOffset.step(direction);
+  if (quads) quads.relayout();
+  const [x, y, z] = panelOffset.value.map((v) => v.toFixed(1));
+  byId("panel-offset").textContent = `moved (m): nearer ${-x}, right ${-y}, up ${z}`;
   requestPreview();
 }
 
@@ -323,9 +348,19 @@ if (quads) {
     const names = [...quads.quads.keys()].join(", ");
     byId("camera-status").textContent = names
       ? `in the scene: ${names} (${quads.shown} images shown)` : "";
+    byId("panel-move").hidden = !names;
     requestPreview();
   };
 }
+for (const button of document.querySelectorAll("#panel-move button[data-move]")) {
+  button.addEventListener("click", () => movePanels(button.dataset.move));
+}
+window.addEventListener("keydown", (event) => {
+  const direction = PANEL_KEYS[event.key];
+  if (!direction || byId("panel-move").hidden) return;
+  event.preventDefault();
+  movePanels(direction);
+});
 ui.start.addEventListener("click", start);
 ui.pause.addEventListener("click", togglePause);
 window.addEventListener("resize", requestPreview);
