@@ -296,6 +296,7 @@ def test_twin_camera_feed_copies_the_pose_on_the_tick_and_renders_it_later(tmp_p
     now = [100.0]
     feed = TwinCameraFeed(env.render_model, env.data, "front", rate_hz=10.0, clock=lambda: now[0])
     shapes = {"side": (48, 64, 3), "wrist": (48, 64, 3), "big": (960, 1280, 3)}
+    shapes["side_depth"] = (48, 64, 1)  # one channel: camera side's depth (a depth panel)
     assert feed.render(shapes) == ({}, None)  # no tick yet: nothing to draw
     assert feed.camera_for("side") == "side" and feed.camera_for("wrist") == "front"
     assert feed.panel_shape("front") == (480, 640, 3)  # its intrinsics' size
@@ -315,6 +316,9 @@ def test_twin_camera_feed_copies_the_pose_on_the_tick_and_renders_it_later(tmp_p
         return direct.render().copy()
 
     expected = {"side": render("side"), "wrist": render("front")}
+    direct.enable_depth_rendering()
+    expected["side_depth"] = render("side")[..., None]
+    direct.disable_depth_rendering()
     env.data.qpos[env.joints.qpos_adr[0]] += 0.5  # the twin moves on; no tick copies it
     images, age_s = feed.render(shapes)
     moved = render("front")
@@ -323,6 +327,8 @@ def test_twin_camera_feed_copies_the_pose_on_the_tick_and_renders_it_later(tmp_p
     env.close()
     np.testing.assert_array_equal(images["side"], expected["side"])
     np.testing.assert_array_equal(images["wrist"], expected["wrist"])  # the pose copied
+    assert images["side_depth"].dtype == np.float32 and images["side_depth"].shape == (48, 64, 1)
+    np.testing.assert_allclose(images["side_depth"], expected["side_depth"], rtol=1e-6)
     assert not np.array_equal(moved, expected["wrist"])  # (the move shows in a live render)
     assert images["big"].shape == (480, 640, 3)  # scaled into the offscreen buffer
     assert age_s == pytest.approx(0.05)
