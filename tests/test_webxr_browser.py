@@ -13,6 +13,7 @@ installs once into ``~/.cache/beavr_sim/iwer``, ``BEAVR_IWER_DIR`` to move it).
 
 from __future__ import annotations
 
+import json
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -255,11 +256,22 @@ def test_page_shows_the_streamed_camera_as_a_quad_in_the_scene():
             page.wait_for_timeout(300)
             shot = ARTIFACTS / "2_camera_quad.png"
             page.screenshot(path=shot)
+            for _ in range(3):  # the user moves the panel up 0.3 m with the page's buttons
+                page.evaluate("document.querySelector('#panel-move [data-move=up]').click()")
+            page.evaluate("new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+            moved = ARTIFACTS / "3_camera_quad_moved.png"
+            page.screenshot(path=moved)
+            stored = page.evaluate("localStorage.getItem('beavr_sim.cameraPanelOffset')")
             assert not errors, errors
     finally:
         server.close()
     from PIL import Image
 
-    pixels = np.asarray(Image.open(shot).convert("RGB")).astype(int)
-    is_magenta = (pixels[..., 0] > 200) & (pixels[..., 2] > 200) & (pixels[..., 1] < 80)
-    assert is_magenta.sum() > 200, "no magenta quad in the page's view"
+    rows = []
+    for path in (shot, moved):
+        pixels = np.asarray(Image.open(path).convert("RGB")).astype(int)
+        is_magenta = (pixels[..., 0] > 200) & (pixels[..., 2] > 200) & (pixels[..., 1] < 80)
+        assert is_magenta.sum() > 200, f"no magenta quad in the page's view ({path.name})"
+        rows.append(np.nonzero(is_magenta)[0].mean())
+    assert rows[1] < rows[0] - 10, rows  # drawn higher in the view
+    assert json.loads(stored) == [0, 0, 0.3]  # kept in the page's localStorage
