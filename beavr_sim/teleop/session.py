@@ -704,7 +704,7 @@ def run_session(
             options.real_cameras or options.mirror_hardware
         )
         if not options.headless and options.source == "quest" and streams_cameras:
-            viewers["quest"] = publisher  # the panel shows the first real camera, not the twin
+            viewers["quest"] = publisher  # the panel shows every real camera, not the twin
         elif not options.headless and options.source == "quest":
             images = headset_listener(
                 publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz

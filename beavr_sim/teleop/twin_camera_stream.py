@@ -35,8 +35,9 @@ class TwinCameraStream:
     """The twin process's camera stream: ``rate_hz`` panels per second, the ``view`` asked
     (``auto`` or one of ``beavr_sim.cameras.stream.VIEWS``), the twin-only panels' names (the
     cameras ``--camera-poses`` places; none: the headset's camera), and whether the Quest
-    app's camera panel shows the first real camera's panel, composed in the view chosen (in
-    place of the twin's headset images, which stay when there is no real camera)."""
+    app's camera panel shows every real camera's panel (one image, a grid), composed in the
+    view chosen (in place of the twin's headset images, which stay when there is no real
+    camera)."""
 
     rate_hz: float
     view: str = "auto"
@@ -91,8 +92,8 @@ def attach_camera_stream(
     viewers = CameraViewers(
         view=view,
         webxr=page,
-        # the Quest app's panel shows the first real camera's panel (in the view chosen) in
-        # place of the twin's headset images; without a real camera those images stay alone
+        # the Quest app's panel shows every real camera's panel (in the view chosen) in place
+        # of the twin's headset images; without a real camera those images stay alone
         quest=quest if config.quest and real is not None else None,
         twin=feed,
         twin_panels=panels,

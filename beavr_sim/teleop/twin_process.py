@@ -253,7 +253,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         browser_estop = BrowserEstop(view, mirror)
     publisher = None
     page_panels: PagePanels | None = None
-    # the Quest app's camera panel shows the first real camera in place of the twin's images
+    # the Quest app's camera panel shows every real camera in place of the twin's images
     quest_panel = streaming is not None and streaming.quest and real is not None
     if config.headset_images is not None:
         images = config.headset_images
