@@ -258,7 +258,9 @@ def test_page_shows_the_streamed_camera_as_a_quad_in_the_scene():
             page.screenshot(path=shot)
             for _ in range(3):  # the user moves the panel up 0.3 m with the page's buttons
                 page.evaluate("document.querySelector('#panel-move [data-move=up]').click()")
-            page.evaluate("new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+            page.evaluate(
+                "new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))"
+            )
             moved = ARTIFACTS / "3_camera_quad_moved.png"
             page.screenshot(path=moved)
             stored = page.evaluate("localStorage.getItem('beavr_sim.cameraPanelOffset')")

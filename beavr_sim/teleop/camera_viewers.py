@@ -67,9 +67,7 @@ def start_camera_stream(real, config: StreamConfig, viewers: CameraViewers) -> C
     if not sinks or not shapes:
         return None
     source = real.peek if real is not None else None  # twin-only: the stream's own clock
-    stream = CameraStream(
-        config, sinks, shapes, source=source, twin=twin, real=names, depth=depth
-    )
+    stream = CameraStream(config, sinks, shapes, source=source, twin=twin, real=names, depth=depth)
     if panel is not None:
         panel.attach(stream)
     return stream
