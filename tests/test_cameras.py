@@ -70,10 +70,30 @@ def test_cli_specs_become_lerobot_configs():
     assert (cfg.index_or_path, cfg.width, cfg.height, cfg.fps) == (0, 640, 480, 30)
     _, cfg = parse_camera_arg("top=opencv:/tmp/x.avi")
     assert cfg.index_or_path == Path("/tmp/x.avi") and cfg.width is None
+    assert cfg.fps is None  # a video file plays at its own rate
     _, cfg = parse_camera_arg("top=zmq:10.0.0.2:5555")
     assert isinstance(cfg, ZMQCameraConfig) and (cfg.server_address, cfg.port) == ("10.0.0.2", 5555)
+    assert (cfg.camera_name, cfg.warmup_s, cfg.timeout_ms) == ("top", 0, 1000)
     _, cfg = parse_camera_arg("d=realsense:1234@640x480")
-    assert cfg.serial_number_or_name == "1234"
+    assert cfg.serial_number_or_name == "1234" and not cfg.use_depth
+
+
+def test_depth_on_the_command_line_is_the_rig_tables_use_depth():
+    """``realsense:SERIAL@WxH+depth`` is the very config of a rig table's ``use_depth = true``;
+    depth on a type without it is one line naming the camera and the types with depth."""
+    name, cli = parse_camera_arg("wrist=realsense:123456789@640x480+depth", fps=15)
+    table = {"type": "intelrealsense", "serial_number_or_name": "123456789", "use_depth": True}
+    rig = parse_camera_table("wrist", {**table, "width": 640, "height": 480, "fps": 15})
+    assert name == "wrist" and cli == rig and cli.use_depth
+    no_depth = r"camera 'w': type '{}' has no depth .*types with depth: intelrealsense, realsense$"
+    for arg, kind in (("w=opencv:0@64x48+depth", "opencv"), ("w=zmq:h:5555+depth", "zmq")):
+        with pytest.raises(CameraSpecError, match=no_depth.format(kind)) as info:
+            parse_camera_arg(arg)
+        assert "\n" not in str(info.value)
+    with pytest.raises(CameraSpecError, match=no_depth.format("opencv")):
+        parse_camera_table("w", {"type": "opencv", "index_or_path": 0, "use_depth": True})
+    with pytest.raises(CameraSpecError, match=r"'w': \+depth goes last"):
+        parse_camera_arg("w=realsense:1+depth@64x48")
 
 
 @pytest.mark.parametrize(
