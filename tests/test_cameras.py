@@ -674,13 +674,20 @@ def test_robot_camera_that_does_not_open_or_ends_fails_in_one_line(tmp_path):
 
 
 def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
+    """A twin camera with a real one's name is observed as NAME_twin (the real keeps NAME:
+    what a policy trained on real data reads); a NAME_twin taken by another camera is refused."""
     from beavr_sim.integrations.robot import BeavrSimRobot
 
     real = OpenCVCameraConfig(index_or_path=0, width=32, height=24, fps=30)
+    both = BeavrSimRobot(_robot_config({"front": real}, twin=("front",), image_height=48))
+    assert both.observation_features["front"] == (24, 32, 3)
+    assert both.observation_features["front_twin"] == (48, 640, 3)
     with pytest.raises(CameraSpecError) as info:
-        _robot_config({"front": real}, twin=("front",))
+        _robot_config({"front": real, "front_twin": real}, twin=("front",))
     message = str(info.value)
-    assert "camera 'front' is both a twin camera (camera_names) and a real one (cameras" in message
+    assert "twin camera 'front' is recorded as 'front_twin' (a real camera is 'front'), but " in (
+        message
+    )
     assert "\n" not in message
     with pytest.raises(CameraSpecError, match=r"camera 'wrist': give width, height"):
         _robot_config({"wrist": OpenCVCameraConfig(index_or_path=0)})
@@ -697,8 +704,58 @@ def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
         CameraSpecError, match=r"'overhead' is named both in the rig file and by cameras"
     ):
         _robot_config({"overhead": real}, hardware=str(rig))
-    with pytest.raises(CameraSpecError, match=r"'overhead' is both a twin camera"):
-        _robot_config({}, twin=("overhead",), hardware=str(rig))
+    twin = BeavrSimRobot(_robot_config({}, twin=("overhead",), hardware=str(rig)))
+    assert {"overhead", "overhead_twin"} <= set(twin.observation_features)
+
+
+def test_robot_stands_its_twin_camera_at_a_rig_files_pose_beside_the_real_one(server, tmp_path):
+    """``camera_poses`` (a rig file, teleop's loader) moves the twin's ``front`` to the real
+    ``front``'s ``T_world_camera``; the observation has the real frame as ``front`` and the
+    twin's render from that pose as ``front_twin``."""
+    import mujoco
+
+    from beavr_sim.envs.camera_pose import PlacedCamera
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    # 1.45 m in front of the base, 1.35 m up, looking back at the robot and 30 deg down.
+    T = [[0.0, 0.5, -0.866025, 1.45], [1.0, 0.0, 0.0, 0.0], [0.0, -0.866025, -0.5, 1.35]]
+    rig = tmp_path / "rig.toml"
+    rig.write_text(
+        '[cameras.front]\ntype = "zmq"\nserver_address = "127.0.0.1"\n'
+        f"port = {server.port}\nwidth = 32\nheight = 24\nfovy_deg = 50.0\n"
+        f"T_world_camera = {[*T, [0, 0, 0, 1]]}\n"
+    )
+    placed = PlacedCamera("front", (*map(tuple, T), (0, 0, 0, 1)), fovy_deg=50.0)
+    robot = BeavrSimRobot(
+        _robot_config(
+            {"front": _zmq_robot_camera(server.port)},
+            twin=("front",),
+            camera_poses=str(rig),
+            camera_max_age_s=1.0,  # a busy machine's scheduling never reads as a dead camera
+            calibration_dir=tmp_path,
+            image_height=24,
+            image_width=32,
+        )
+    )
+    assert robot.observation_features["front"] == robot.observation_features["front_twin"]
+    robot.connect()
+    try:
+        obs = robot.get_observation()
+        env = robot.twin.env
+        data = env.render_data()
+        cam = mujoco.mj_name2id(env.render_model, mujoco.mjtObj.mjOBJ_CAMERA, "front")
+        np.testing.assert_allclose(data.cam_xpos[cam], placed.position, atol=1e-9)
+        np.testing.assert_allclose(
+            data.cam_xmat[cam].reshape(3, 3), placed.R_world_mujoco, atol=1e-6
+        )
+        assert env.render_model.cam_fovy[cam] == pytest.approx(50.0)
+        real, twin = obs["front"], obs["front_twin"]
+        assert real.shape == twin.shape == (24, 32, 3)
+        assert np.ptp(real.astype(int)) < 40 < np.ptp(twin.astype(int))  # grey frame vs render
+    finally:
+        robot.disconnect()
+    with pytest.raises(FileNotFoundError, match=r"camera_poses .*no such file"):
+        _robot_config({}, camera_poses=str(tmp_path / "missing.toml"))
 
 
 def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypatch):
