@@ -855,10 +855,13 @@ def _realsense(depth: bool = True, **kw):
     return RealSenseCameraConfig("123456789", fps=30, width=64, height=48, use_depth=depth, **kw)
 
 
-def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins():
+@pytest.mark.parametrize("name, twin", [("wrist", "front"), ("front", "front_twin")])
+def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins(name, twin):
     """A RealSense with ``use_depth`` (rig ``use_depth = true``) records
     ``observation.images.NAME_depth``: (H, W, 1) uint16 mm of the colour frame's capture,
-    flagged ``is_depth_map`` (LeRobot's convention), next to the twin's ``front_depth``."""
+    flagged ``is_depth_map`` (LeRobot's convention), next to the twin's ``front`` and
+    ``front_depth``; a real ``front`` keeps its name and the twin's are ``front_twin``,
+    ``front_twin_depth`` (``beavr_sim.cameras.names``)."""
     import gymnasium as gym
     from lerobot.datasets.feature_utils import validate_frame
 
@@ -869,20 +872,21 @@ def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins()
 
     table = {"type": "intelrealsense", "serial_number_or_name": "123456789", "use_depth": True}
     assert parse_camera_table("wrist", {**table, "width": 64, "height": 48}).use_depth
-    real = RealCameras({"wrist": _realsense()}, control_period_s=1 / 30, make_cameras=_stand_in)
+    real = RealCameras({name: _realsense()}, control_period_s=1 / 30, make_cameras=_stand_in)
     real.connect()
     env = gym.make("beavr_sim/Playground-v0").unwrapped
     try:
-        assert real.names == ("wrist", "wrist_depth")
+        assert real.names == (name, name + "_depth")
         shapes = {n: real.frame_shape(n) for n in real.names}  # as the sessions declare them
-        assert shapes == {"wrist": (48, 64, 3), "wrist_depth": (48, 64, 1)}
+        assert shapes == {name: (48, 64, 3), name + "_depth": (48, 64, 1)}
         config = RecordingConfig(
-            cameras=(), depth_cameras=("front",), image_height=48, image_width=64,
+            cameras=("front",), depth_cameras=("front",), image_height=48, image_width=64,
             hand_keypoints=False,
         )  # fmt: skip
         features = lerobot_features(env.embodiment, config, real_cameras=shapes)
-        assert features["observation.images.wrist_depth"]["info"] == {"is_depth_map": True}
-        assert "info" not in features["observation.images.wrist"]
+        assert features[f"observation.images.{name}_depth"]["info"] == {"is_depth_map": True}
+        assert "info" not in features[f"observation.images.{name}"]
+        assert f"observation.images.{twin}_depth" in features
         env.reset(seed=0)
         sink = FrameSink()
         recorder = EpisodeRecorder(sink, env, config, real_cameras=real)  # type: ignore[arg-type]
@@ -899,11 +903,15 @@ def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins()
         env.close()
     for frame in sink.frames:
         validate_frame(frame, features)  # LeRobot's own check of each feature's dtype, shape
-        color, depth = frame["observation.images.wrist"], frame["observation.images.wrist_depth"]
+        color, depth = (
+            frame[f"observation.images.{name}"],
+            frame[f"observation.images.{name}_depth"],
+        )
         assert depth.dtype == np.uint16 and depth.shape == (48, 64, 1)
         assert (int(depth[0, 0, 0]) - 1000) % 250 == int(color[0, 0, 0])  # one capture
-        assert frame["observation.images.front_depth"].dtype == np.float32  # the twin's
-    assert real.summary()["wrist"]["frames"] == 3  # at begin, then after each frame
+        assert frame[f"observation.images.{twin}_depth"].dtype == np.float32  # the twin's
+        assert np.ptp(frame[f"observation.images.{twin}"].astype(int)) > 40  # a render
+    assert real.summary()[name]["frames"] == 3  # at begin, then after each frame
 
 
 def test_depth_camera_config_errors_are_one_line():
