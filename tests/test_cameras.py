@@ -92,6 +92,8 @@ def test_depth_on_the_command_line_is_the_rig_tables_use_depth():
         assert "\n" not in str(info.value)
     with pytest.raises(CameraSpecError, match=no_depth.format("opencv")):
         parse_camera_table("w", {"type": "opencv", "index_or_path": 0, "use_depth": True})
+    with pytest.raises(CameraSpecError, match=r"'w': a realsense spec needs its size: .*@WIDTH"):
+        parse_camera_arg("w=realsense:1+depth")
     with pytest.raises(CameraSpecError, match=r"'w': \+depth goes last"):
         parse_camera_arg("w=realsense:1+depth@64x48")
 

@@ -99,6 +99,11 @@ def spec_table(name: str, spec: str, fps: int = DEFAULT_FPS) -> dict[str, Any]:
         # A video file plays at its own rate; OpenCV cannot set a file's fps.
         return {**table, "index_or_path": target, "fps": None}
     if kind == "realsense":
+        if not at:  # LeRobot's RealSense takes fps, width and height together (fps is given)
+            raise CameraSpecError(
+                f"camera {name!r}: a realsense spec needs its size: "
+                f"realsense:{target}@WIDTHxHEIGHT (e.g. @640x480)"
+            )
         return {**table, "serial_number_or_name": target}
     host, _, port = target.rpartition(":")
     if not host or not port.isdigit():
