@@ -70,10 +70,32 @@ def test_cli_specs_become_lerobot_configs():
     assert (cfg.index_or_path, cfg.width, cfg.height, cfg.fps) == (0, 640, 480, 30)
     _, cfg = parse_camera_arg("top=opencv:/tmp/x.avi")
     assert cfg.index_or_path == Path("/tmp/x.avi") and cfg.width is None
+    assert cfg.fps is None  # a video file plays at its own rate
     _, cfg = parse_camera_arg("top=zmq:10.0.0.2:5555")
     assert isinstance(cfg, ZMQCameraConfig) and (cfg.server_address, cfg.port) == ("10.0.0.2", 5555)
+    assert (cfg.camera_name, cfg.warmup_s, cfg.timeout_ms) == ("top", 0, 1000)
     _, cfg = parse_camera_arg("d=realsense:1234@640x480")
-    assert cfg.serial_number_or_name == "1234"
+    assert cfg.serial_number_or_name == "1234" and not cfg.use_depth
+
+
+def test_depth_on_the_command_line_is_the_rig_tables_use_depth():
+    """``realsense:SERIAL@WxH+depth`` is the very config of a rig table's ``use_depth = true``;
+    depth on a type without it is one line naming the camera and the types with depth."""
+    name, cli = parse_camera_arg("wrist=realsense:123456789@640x480+depth", fps=15)
+    table = {"type": "intelrealsense", "serial_number_or_name": "123456789", "use_depth": True}
+    rig = parse_camera_table("wrist", {**table, "width": 640, "height": 480, "fps": 15})
+    assert name == "wrist" and cli == rig and cli.use_depth
+    no_depth = r"camera 'w': type '{}' has no depth .*types with depth: intelrealsense, realsense$"
+    for arg, kind in (("w=opencv:0@64x48+depth", "opencv"), ("w=zmq:h:5555+depth", "zmq")):
+        with pytest.raises(CameraSpecError, match=no_depth.format(kind)) as info:
+            parse_camera_arg(arg)
+        assert "\n" not in str(info.value)
+    with pytest.raises(CameraSpecError, match=no_depth.format("opencv")):
+        parse_camera_table("w", {"type": "opencv", "index_or_path": 0, "use_depth": True})
+    with pytest.raises(CameraSpecError, match=r"'w': a realsense spec needs its size: .*@WIDTH"):
+        parse_camera_arg("w=realsense:1+depth")
+    with pytest.raises(CameraSpecError, match=r"'w': \+depth goes last"):
+        parse_camera_arg("w=realsense:1+depth@64x48")
 
 
 @pytest.mark.parametrize(
@@ -654,13 +676,20 @@ def test_robot_camera_that_does_not_open_or_ends_fails_in_one_line(tmp_path):
 
 
 def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
+    """A twin camera with a real one's name is observed as NAME_twin (the real keeps NAME:
+    what a policy trained on real data reads); a NAME_twin taken by another camera is refused."""
     from beavr_sim.integrations.robot import BeavrSimRobot
 
     real = OpenCVCameraConfig(index_or_path=0, width=32, height=24, fps=30)
+    both = BeavrSimRobot(_robot_config({"front": real}, twin=("front",), image_height=48))
+    assert both.observation_features["front"] == (24, 32, 3)
+    assert both.observation_features["front_twin"] == (48, 640, 3)
     with pytest.raises(CameraSpecError) as info:
-        _robot_config({"front": real}, twin=("front",))
+        _robot_config({"front": real, "front_twin": real}, twin=("front",))
     message = str(info.value)
-    assert "camera 'front' is both a twin camera (camera_names) and a real one (cameras" in message
+    assert "twin camera 'front' is recorded as 'front_twin' (a real camera is 'front'), but " in (
+        message
+    )
     assert "\n" not in message
     with pytest.raises(CameraSpecError, match=r"camera 'wrist': give width, height"):
         _robot_config({"wrist": OpenCVCameraConfig(index_or_path=0)})
@@ -677,8 +706,58 @@ def test_robot_real_and_twin_camera_names_cannot_collide(tmp_path):
         CameraSpecError, match=r"'overhead' is named both in the rig file and by cameras"
     ):
         _robot_config({"overhead": real}, hardware=str(rig))
-    with pytest.raises(CameraSpecError, match=r"'overhead' is both a twin camera"):
-        _robot_config({}, twin=("overhead",), hardware=str(rig))
+    twin = BeavrSimRobot(_robot_config({}, twin=("overhead",), hardware=str(rig)))
+    assert {"overhead", "overhead_twin"} <= set(twin.observation_features)
+
+
+def test_robot_stands_its_twin_camera_at_a_rig_files_pose_beside_the_real_one(server, tmp_path):
+    """``camera_poses`` (a rig file, teleop's loader) moves the twin's ``front`` to the real
+    ``front``'s ``T_world_camera``; the observation has the real frame as ``front`` and the
+    twin's render from that pose as ``front_twin``."""
+    import mujoco
+
+    from beavr_sim.envs.camera_pose import PlacedCamera
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    # 1.45 m in front of the base, 1.35 m up, looking back at the robot and 30 deg down.
+    T = [[0.0, 0.5, -0.866025, 1.45], [1.0, 0.0, 0.0, 0.0], [0.0, -0.866025, -0.5, 1.35]]
+    rig = tmp_path / "rig.toml"
+    rig.write_text(
+        '[cameras.front]\ntype = "zmq"\nserver_address = "127.0.0.1"\n'
+        f"port = {server.port}\nwidth = 32\nheight = 24\nfovy_deg = 50.0\n"
+        f"T_world_camera = {[*T, [0, 0, 0, 1]]}\n"
+    )
+    placed = PlacedCamera("front", (*map(tuple, T), (0, 0, 0, 1)), fovy_deg=50.0)
+    robot = BeavrSimRobot(
+        _robot_config(
+            {"front": _zmq_robot_camera(server.port)},
+            twin=("front",),
+            camera_poses=str(rig),
+            camera_max_age_s=1.0,  # a busy machine's scheduling never reads as a dead camera
+            calibration_dir=tmp_path,
+            image_height=24,
+            image_width=32,
+        )
+    )
+    assert robot.observation_features["front"] == robot.observation_features["front_twin"]
+    robot.connect()
+    try:
+        obs = robot.get_observation()
+        env = robot.twin.env
+        data = env.render_data()
+        cam = mujoco.mj_name2id(env.render_model, mujoco.mjtObj.mjOBJ_CAMERA, "front")
+        np.testing.assert_allclose(data.cam_xpos[cam], placed.position, atol=1e-9)
+        np.testing.assert_allclose(
+            data.cam_xmat[cam].reshape(3, 3), placed.R_world_mujoco, atol=1e-6
+        )
+        assert env.render_model.cam_fovy[cam] == pytest.approx(50.0)
+        real, twin = obs["front"], obs["front_twin"]
+        assert real.shape == twin.shape == (24, 32, 3)
+        assert np.ptp(real.astype(int)) < 40 < np.ptp(twin.astype(int))  # grey frame vs render
+    finally:
+        robot.disconnect()
+    with pytest.raises(FileNotFoundError, match=r"camera_poses .*no such file"):
+        _robot_config({}, camera_poses=str(tmp_path / "missing.toml"))
 
 
 def test_lerobot_record_stores_the_robots_real_camera(server, tmp_path, monkeypatch):
@@ -778,10 +857,13 @@ def _realsense(depth: bool = True, **kw):
     return RealSenseCameraConfig("123456789", fps=30, width=64, height=48, use_depth=depth, **kw)
 
 
-def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins():
+@pytest.mark.parametrize("name, twin", [("wrist", "front"), ("front", "front_twin")])
+def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins(name, twin):
     """A RealSense with ``use_depth`` (rig ``use_depth = true``) records
     ``observation.images.NAME_depth``: (H, W, 1) uint16 mm of the colour frame's capture,
-    flagged ``is_depth_map`` (LeRobot's convention), next to the twin's ``front_depth``."""
+    flagged ``is_depth_map`` (LeRobot's convention), next to the twin's ``front`` and
+    ``front_depth``; a real ``front`` keeps its name and the twin's are ``front_twin``,
+    ``front_twin_depth`` (``beavr_sim.cameras.names``)."""
     import gymnasium as gym
     from lerobot.datasets.feature_utils import validate_frame
 
@@ -792,20 +874,21 @@ def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins()
 
     table = {"type": "intelrealsense", "serial_number_or_name": "123456789", "use_depth": True}
     assert parse_camera_table("wrist", {**table, "width": 64, "height": 48}).use_depth
-    real = RealCameras({"wrist": _realsense()}, control_period_s=1 / 30, make_cameras=_stand_in)
+    real = RealCameras({name: _realsense()}, control_period_s=1 / 30, make_cameras=_stand_in)
     real.connect()
     env = gym.make("beavr_sim/Playground-v0").unwrapped
     try:
-        assert real.names == ("wrist", "wrist_depth")
+        assert real.names == (name, name + "_depth")
         shapes = {n: real.frame_shape(n) for n in real.names}  # as the sessions declare them
-        assert shapes == {"wrist": (48, 64, 3), "wrist_depth": (48, 64, 1)}
+        assert shapes == {name: (48, 64, 3), name + "_depth": (48, 64, 1)}
         config = RecordingConfig(
-            cameras=(), depth_cameras=("front",), image_height=48, image_width=64,
+            cameras=("front",), depth_cameras=("front",), image_height=48, image_width=64,
             hand_keypoints=False,
         )  # fmt: skip
         features = lerobot_features(env.embodiment, config, real_cameras=shapes)
-        assert features["observation.images.wrist_depth"]["info"] == {"is_depth_map": True}
-        assert "info" not in features["observation.images.wrist"]
+        assert features[f"observation.images.{name}_depth"]["info"] == {"is_depth_map": True}
+        assert "info" not in features[f"observation.images.{name}"]
+        assert f"observation.images.{twin}_depth" in features
         env.reset(seed=0)
         sink = FrameSink()
         recorder = EpisodeRecorder(sink, env, config, real_cameras=real)  # type: ignore[arg-type]
@@ -822,11 +905,15 @@ def test_a_depth_camera_records_its_depth_as_its_own_feature_next_to_the_twins()
         env.close()
     for frame in sink.frames:
         validate_frame(frame, features)  # LeRobot's own check of each feature's dtype, shape
-        color, depth = frame["observation.images.wrist"], frame["observation.images.wrist_depth"]
+        color, depth = (
+            frame[f"observation.images.{name}"],
+            frame[f"observation.images.{name}_depth"],
+        )
         assert depth.dtype == np.uint16 and depth.shape == (48, 64, 1)
         assert (int(depth[0, 0, 0]) - 1000) % 250 == int(color[0, 0, 0])  # one capture
-        assert frame["observation.images.front_depth"].dtype == np.float32  # the twin's
-    assert real.summary()["wrist"]["frames"] == 3  # at begin, then after each frame
+        assert frame[f"observation.images.{twin}_depth"].dtype == np.float32  # the twin's
+        assert np.ptp(frame[f"observation.images.{twin}"].astype(int)) > 40  # a render
+    assert real.summary()[name]["frames"] == 3  # at begin, then after each frame
 
 
 def test_depth_camera_config_errors_are_one_line():

@@ -4,6 +4,7 @@
 ``real``: :class:`~beavr_sim.cameras.real.RealCameras`, owning the LeRobot cameras and handing
 the recorder their newest frames with capture ages; ``poses``: the twin cameras a rig table's
 ``T_world_camera`` places; ``calibrate``: that pose from images of a ChArUco board
-(``python -m beavr_sim.cameras calibrate``); ``errors``: their one-line errors.
+(``python -m beavr_sim.cameras calibrate``); ``names``: a twin camera beside a real one of
+its name is recorded as ``NAME_twin``; ``errors``: their one-line errors.
 Submodules are imported where used (LeRobot is a heavy import).
 """

@@ -1,11 +1,13 @@
 """Camera specs -> LeRobot camera configs.
 
-Two sources, one result (`dict[name, lerobot CameraConfig]`):
-- CLI `--camera NAME=SPEC`, SPEC `opencv:INDEX_OR_PATH`, `realsense:SERIAL` or `zmq:HOST:PORT`,
-  optionally suffixed `@WIDTHxHEIGHT`;
+Two sources, one parser, one result (`dict[name, lerobot CameraConfig]`):
 - a rig file's `[cameras.NAME]` table with LeRobot's config keys (`type`, `fps`, `width`,
   `height`, plus the type's own keys such as `index_or_path`, `serial_number_or_name`,
-  `server_address`, `port`).
+  `server_address`, `port`, `use_depth`): `parse_camera_table`;
+- CLI `--camera NAME=SPEC`, SPEC `opencv:INDEX_OR_PATH`, `realsense:SERIAL` or `zmq:HOST:PORT`,
+  optionally suffixed `@WIDTHxHEIGHT`, then `+depth` (a RealSense's depth, the table's
+  `use_depth = true`): `spec_table` turns the spec into the table it stands for, which
+  `parse_camera_table` reads, so the two forms give equal configs.
 A rig table may also carry where the camera stands, for the twin camera of its name
 (`beavr_sim.envs.camera_pose.PlacedCamera`): `T_world_camera` (4x4, the camera's optical frame
 x right, y down, z forward, in the world frame) and `fx`, `fy`, `cx`, `cy` (pixels at `width` x
@@ -43,7 +45,13 @@ CONFIG_TYPES: dict[str, type[CameraConfig]] = {
     "intelrealsense": RealSenseCameraConfig,
     "zmq": ZMQCameraConfig,
 }
-_SPEC_FORMS = "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally @WIDTHxHEIGHT"
+#: The `--camera` SPEC forms (the CLI help and errors say them).
+SPEC_FORMS = (
+    "opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally @WIDTHxHEIGHT, "
+    "then +depth on a realsense"
+)
+#: The `--camera` SPEC's last part asking for the camera's depth (a rig table's `use_depth`).
+DEPTH_FLAG = "+depth"
 
 
 def check_camera_name(name: str, source: str) -> None:
@@ -53,49 +61,56 @@ def check_camera_name(name: str, source: str) -> None:
 
 
 def parse_camera_arg(arg: str, fps: int = DEFAULT_FPS) -> tuple[str, CameraConfig]:
-    """`NAME=SPEC` from the command line -> (name, LeRobot config)."""
+    """`NAME=SPEC` from the command line -> (name, LeRobot config), through the rig table the
+    spec stands for (:func:`spec_table`), so both forms give the same config."""
     name, sep, spec = arg.partition("=")
     if not sep or not name or not spec:
-        raise CameraSpecError(f"--camera {arg!r}: expected NAME=SPEC with SPEC {_SPEC_FORMS}")
+        raise CameraSpecError(f"--camera {arg!r}: expected NAME=SPEC with SPEC {SPEC_FORMS}")
     check_camera_name(name, "--camera")
+    return name, parse_camera_table(name, spec_table(name, spec, fps))
+
+
+def spec_table(name: str, spec: str, fps: int = DEFAULT_FPS) -> dict[str, Any]:
+    """A `--camera` SPEC -> the rig `[cameras.NAME]` table it stands for (LeRobot's keys)."""
+    depth = spec.endswith(DEPTH_FLAG)
+    spec = spec.removesuffix(DEPTH_FLAG)
+    if DEPTH_FLAG in spec:
+        raise CameraSpecError(
+            f"camera {name!r}: {DEPTH_FLAG} goes last (realsense:SERIAL@WIDTHxHEIGHT{DEPTH_FLAG})"
+        )
     spec, at, size = spec.partition("@")
-    width = height = None
+    table: dict[str, Any] = {"fps": fps}
     if at:
         match = _SIZE.match(size)
         if match is None:
             raise CameraSpecError(
                 f"camera {name!r}: size {size!r} is not WIDTHxHEIGHT (e.g. 640x480)"
             )
-        width, height = int(match.group(1)), int(match.group(2))
+        table["width"], table["height"] = int(match.group(1)), int(match.group(2))
     kind, colon, target = spec.partition(":")
     if kind not in ("opencv", "realsense", "zmq") or not colon or not target:
-        raise CameraSpecError(f"camera {name!r}: spec {spec!r} is not one of {_SPEC_FORMS}")
-    common: dict[str, Any] = {"fps": fps, "width": width, "height": height}
-    try:
-        if kind == "opencv":
-            if target.isdigit():
-                return name, OpenCVCameraConfig(index_or_path=int(target), **common)
-            # A video file plays at its own rate; OpenCV cannot set a file's fps.
-            return name, OpenCVCameraConfig(index_or_path=Path(target), **{**common, "fps": None})
-        if kind == "realsense":
-            return name, RealSenseCameraConfig(serial_number_or_name=target, **common)
-        host, _, port = target.rpartition(":")
-        if not host or not port.isdigit():
-            raise CameraSpecError(f"camera {name!r}: zmq spec {target!r} is not HOST:PORT")
-        # The image server's camera is already warm; a second without a message is a dead
-        # server (RealCameras reports it), so LeRobot's read need not block longer.
-        return name, ZMQCameraConfig(
-            server_address=host,
-            port=int(port),
-            camera_name=name,
-            warmup_s=0,
-            timeout_ms=1000,
-            **common,
-        )
-    except CameraSpecError:
-        raise
-    except (ValueError, TypeError) as exc:
-        raise CameraSpecError(f"camera {name!r}: {exc}") from None
+        raise CameraSpecError(f"camera {name!r}: spec {spec!r} is not one of {SPEC_FORMS}")
+    table["type"] = kind
+    if depth:
+        table["use_depth"] = True  # parse_camera_table refuses it on a type without depth
+    if kind == "opencv":
+        if target.isdigit():
+            return {**table, "index_or_path": int(target)}
+        # A video file plays at its own rate; OpenCV cannot set a file's fps.
+        return {**table, "index_or_path": target, "fps": None}
+    if kind == "realsense":
+        if not at:  # LeRobot's RealSense takes fps, width and height together (fps is given)
+            raise CameraSpecError(
+                f"camera {name!r}: a realsense spec needs its size: "
+                f"realsense:{target}@WIDTHxHEIGHT (e.g. @640x480)"
+            )
+        return {**table, "serial_number_or_name": target}
+    host, _, port = target.rpartition(":")
+    if not host or not port.isdigit():
+        raise CameraSpecError(f"camera {name!r}: zmq spec {target!r} is not HOST:PORT")
+    # The image server's camera is already warm; a second without a message is a dead
+    # server (RealCameras reports it), so LeRobot's read need not block longer.
+    return {**table, "server_address": host, "port": int(port), "warmup_s": 0, "timeout_ms": 1000}
 
 
 def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
@@ -108,6 +123,11 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
             f"camera {name!r}: type {kind!r} is not one of {sorted(CONFIG_TYPES)}"
         )
     cls = CONFIG_TYPES[kind]
+    if "use_depth" in values and not _has_depth(cls):
+        raise CameraSpecError(
+            f"camera {name!r}: type {kind!r} has no depth (use_depth, {DEPTH_FLAG}); "
+            f"types with depth: {', '.join(depth_types())}"
+        )
     valid = sorted(f.name for f in dataclasses.fields(cls))
     unknown = sorted(set(values) - set(valid))
     if unknown:
@@ -124,6 +144,15 @@ def parse_camera_table(name: str, table: dict[str, Any]) -> CameraConfig:
         return cls(**values)
     except (ValueError, TypeError) as exc:
         raise CameraSpecError(f"camera {name!r}: {exc}") from None
+
+
+def _has_depth(cls: type[CameraConfig]) -> bool:
+    return any(f.name == "use_depth" for f in dataclasses.fields(cls))
+
+
+def depth_types() -> list[str]:
+    """The camera types that have depth (LeRobot's ``use_depth``)."""
+    return sorted(kind for kind, cls in CONFIG_TYPES.items() if _has_depth(cls))
 
 
 def merge_cameras(

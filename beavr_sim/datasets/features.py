@@ -12,6 +12,8 @@ Features (``docs/formats.md`` lists them with shapes):
   or one ``--camera-poses`` places: ``RecordingConfig.placed_cameras``), HxWx3 video; and the
   real cameras (``real_cameras``), their names kept as given (case too; two names differing
   only in case are refused: their folders would collide on a case-insensitive file system);
+  a twin camera with a real camera of its name is recorded as ``<camera>_twin``
+  (:mod:`beavr_sim.cameras.names`: the real camera keeps the plain name);
   a real camera's depth (``<camera>_depth``, HxWx1 uint16 millimetres) is flagged
   ``info.is_depth_map`` as LeRobot does for one-channel camera features;
 - ``observation.images.<camera>_depth`` (only for ``RecordingConfig.depth_cameras``): the twin
@@ -28,6 +30,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from beavr_sim.cameras.names import recorded_twin_names
 from beavr_sim.envs.scene import ALL_CAMERA_NAMES
 from beavr_sim.naming import check_name
 from beavr_sim.robots import Embodiment
@@ -131,14 +134,16 @@ def lerobot_features(
             )
         names = list(environment_state_names)
         features[ENV_STATE] = {"dtype": "float32", "shape": (len(names),), "names": names}
+    # A twin camera with a real namesake is recorded as NAME_twin (the real one keeps NAME).
+    twin = recorded_twin_names(config.cameras + config.depth_cameras, real_cameras or {})
     for camera in config.cameras:
-        features[IMAGE_PREFIX + camera] = {
+        features[IMAGE_PREFIX + twin[camera]] = {
             "dtype": "video" if config.use_videos else "image",
             "shape": (config.image_height, config.image_width, 3),
             "names": ["height", "width", "channels"],
         }
     for camera in config.depth_cameras:
-        features[IMAGE_PREFIX + camera + DEPTH_SUFFIX] = {
+        features[IMAGE_PREFIX + twin[camera] + DEPTH_SUFFIX] = {
             "dtype": "video" if config.use_videos else "image",
             "shape": (config.image_height, config.image_width, 1),
             "names": ["height", "width", "channels"],

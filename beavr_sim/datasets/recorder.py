@@ -21,6 +21,8 @@ Real cameras (:class:`~beavr_sim.cameras.RealCameras`, capturing on LeRobot's re
 each observation takes every camera's newest frame as ``observation.images.NAME``; frames older
 than 1.5 control periods are counted per camera (``cameras`` in ``meta/beavr_episodes.jsonl``),
 and a camera that stops delivering is the episode's hardware fault (its frame is not written).
+A twin camera with a real camera of its name is written as ``observation.images.NAME_twin``
+(:mod:`beavr_sim.cameras.names`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from beavr_sim.cameras.names import recorded_twin_names
 from beavr_sim.datasets.features import (
     ACTION,
     DEPTH_SUFFIX,
@@ -219,6 +222,11 @@ class EpisodeRecorder:
         self.cameras = CameraSet.of_env(
             env, config.cameras, config.image_height, config.image_width, config.depth_cameras
         )
+        #: Twin camera -> its feature name (``NAME_twin`` beside a real ``NAME``; as
+        #: ``lerobot_features`` declares it).
+        self._twin_names = recorded_twin_names(
+            config.cameras + config.depth_cameras, real_cameras.names if real_cameras else ()
+        )
         self.recording = False
         self._observation: dict[str, np.ndarray] | None = None
         self._keypoints = np.zeros((len(self.sides), N_JOINTS, 3), dtype=np.float32)
@@ -288,10 +296,11 @@ class EpisodeRecorder:
         obs = {STATE: np.asarray(state, dtype=np.float32)}
         if self.config.environment_state:
             obs[ENV_STATE] = self.env.environment_state
+        twin = self._twin_names
         for camera, image in self.cameras.render_env(self.env).items():
-            obs[IMAGE_PREFIX + camera] = image
+            obs[IMAGE_PREFIX + twin[camera]] = image
         for camera, depth in self.cameras.render_env_depth(self.env).items():
-            obs[IMAGE_PREFIX + camera + DEPTH_SUFFIX] = depth
+            obs[IMAGE_PREFIX + twin[camera] + DEPTH_SUFFIX] = depth
         if self.real_cameras is not None:
             grab = self.real_cameras.grab()
             if grab.dead and not self._camera_fault:

@@ -7,8 +7,11 @@ the twin's collision guard before the twin and any hardware get it.
 
 Images: the twin's renders (``camera_names``) and real cameras the LeRobot way (``cameras``: a
 dict of LeRobot camera configs, as LeRobot's own robots take them) plus a rig file's
-``[cameras.NAME]`` tables. A name is one or the other; a real camera states ``width``,
-``height`` and ``fps`` (the dataset declares each image's shape before the cameras open).
+``[cameras.NAME]`` tables; a real camera states ``width``, ``height`` and ``fps`` (the
+dataset declares each image's shape before the cameras open). ``camera_poses`` (a rig file,
+as teleop's ``--camera-poses``, read by the same loader) stands the twin's cameras at its
+tables' ``T_world_camera`` poses. A twin camera with a real camera of its name is observed as
+``NAME_twin``, the real one as ``NAME`` (:mod:`beavr_sim.cameras.names`, teleop's rule too).
 Every error is one line naming the camera.
 """
 
@@ -21,7 +24,11 @@ from lerobot.cameras.configs import CameraConfig
 from lerobot.robots.config import RobotConfig
 
 from beavr_sim.cameras.errors import CameraSpecError
+from beavr_sim.cameras.names import recorded_twin_names
+from beavr_sim.cameras.poses import load_camera_poses
+from beavr_sim.cameras.real import DEPTH_SUFFIX
 from beavr_sim.cameras.spec import CONFIG_TYPES, check_camera_name, merge_cameras, rig_cameras
+from beavr_sim.envs.camera_pose import PlacedCamera
 from beavr_sim.envs.scene import check_hand_variant
 from beavr_sim.integrations.options import (
     DEFAULT_EMBODIMENT,
@@ -62,6 +69,10 @@ class BeavrSimRobotConfig(RobotConfig):
     #: opencv, index_or_path: 0, width: 640, height: 480, fps: 30}}"``), recorded as
     #: ``observation.images.NAME`` next to the twin's; opened at connect (docs/cameras.md).
     cameras: dict[str, CameraConfig] = field(default_factory=dict)
+    #: A file of ``[cameras.NAME]`` tables (a rig file) whose ``T_world_camera`` poses place
+    #: the twin's cameras (as teleop's ``--camera-poses``): the scene's camera of that name
+    #: moves there, another name is added (and may be in ``camera_names``). None: no file.
+    camera_poses: str | None = None
     #: A real camera whose newest frame is older than this fails ``get_observation`` (as
     #: LeRobot's own robots' ``read_latest``: 0.5 s): never a frozen frame recorded as live.
     camera_max_age_s: float = 0.5
@@ -75,7 +86,8 @@ class BeavrSimRobotConfig(RobotConfig):
     def __post_init__(self) -> None:
         embodiment = check_embodiment(self.embodiment)
         self.task = check_task(self.task, self.embodiment)
-        self.camera_names = list(check_cameras(self.camera_names, embodiment))
+        placed = tuple(c.name for c in self.placed_cameras())
+        self.camera_names = list(check_cameras(self.camera_names, embodiment, placed))
         check_image_size(self.image_height, self.image_width)
         check_positive_int("fps", self.fps)
         if self.hardware not in HARDWARE_MODES:
@@ -106,6 +118,17 @@ class BeavrSimRobotConfig(RobotConfig):
         rig = rig_cameras(self.hardware) if self.hardware not in HARDWARE_MODES else {}
         return merge_cameras(rig, self.cameras, "cameras")
 
+    def placed_cameras(self) -> tuple[PlacedCamera, ...]:
+        """The twin cameras ``camera_poses`` places (none: ())."""
+        if self.camera_poses is None:
+            return ()
+        if not Path(self.camera_poses).is_file():
+            raise FileNotFoundError(
+                f"camera_poses {self.camera_poses!r}: no such file (a rig file's [cameras.NAME] "
+                "tables with T_world_camera, docs/cameras.md)"
+            )
+        return load_camera_poses(self.camera_poses)
+
     @property
     def mirrors_hardware(self) -> bool:
         return self.hardware != "sim"
@@ -113,7 +136,8 @@ class BeavrSimRobotConfig(RobotConfig):
 
 def check_real_cameras(cameras: dict[str, object], twin_cameras: list[str]) -> None:
     """Real cameras' names and configs: each a LeRobot ``CameraConfig`` with ``width``,
-    ``height`` and ``fps``, none named as a twin camera; raises one line naming the camera."""
+    ``height`` and ``fps``; a twin camera of a real one's name is observed as ``NAME_twin``,
+    which must be no other camera's name. Raises one line naming the camera."""
     for name, config in cameras.items():
         check_camera_name(name, "cameras")
         if not isinstance(config, CameraConfig):
@@ -121,14 +145,17 @@ def check_real_cameras(cameras: dict[str, object], twin_cameras: list[str]) -> N
                 f"camera {name!r}: {config!r} is not a LeRobot camera config; "
                 f"types: {', '.join(sorted(CONFIG_TYPES))}"
             )
-        if name in twin_cameras:
-            raise CameraSpecError(
-                f"camera {name!r} is both a twin camera (camera_names) and a real one "
-                "(cameras or the rig file); rename the real camera or leave it out of camera_names"
-            )
         missing = [key for key in ("width", "height", "fps") if getattr(config, key) is None]
         if missing:
             raise CameraSpecError(
                 f"camera {name!r}: give {', '.join(missing)} (the dataset declares each image's "
                 "shape before the camera opens; a video file's are checked against it)"
             )
+    twin_observation_names(twin_cameras, cameras)
+
+
+def twin_observation_names(twin_cameras: list[str], cameras: dict[str, object]) -> dict[str, str]:
+    """Twin camera -> its observation key beside the real ``cameras`` (their depth maps
+    ``NAME_depth`` included): ``NAME``, or ``NAME_twin`` where a real camera is ``NAME``."""
+    depth = [n + DEPTH_SUFFIX for n, c in cameras.items() if getattr(c, "use_depth", False)]
+    return recorded_twin_names(twin_cameras, [*cameras, *depth])

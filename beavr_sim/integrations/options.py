@@ -36,11 +36,14 @@ def check_embodiment(name: object) -> Embodiment:
     return make_embodiment(name)  # type: ignore[arg-type]
 
 
-def check_cameras(cameras: Iterable[str], embodiment: Embodiment) -> tuple[str, ...]:
-    """``cameras`` as a tuple, each one of the embodiment's scene cameras, none repeated."""
+def check_cameras(
+    cameras: Iterable[str], embodiment: Embodiment, placed: Iterable[str] = ()
+) -> tuple[str, ...]:
+    """``cameras`` as a tuple, each one of the embodiment's scene cameras or ``placed`` (twin
+    cameras a ``camera_poses`` file adds to the scene), none repeated."""
     if isinstance(cameras, str):
         cameras = [c for c in cameras.split(",") if c.strip()]
-    valid = camera_names(embodiment)
+    valid = tuple(dict.fromkeys(camera_names(embodiment) + tuple(placed)))
     out = tuple(
         check_name("camera", c.strip(), valid, f"for embodiment {embodiment.name}") for c in cameras
     )

@@ -14,9 +14,12 @@ guarded targets go to the devices, and the observation is the devices' measured 
 is told the episode's start and fixtures (``begin_episode``): its own guard checks every
 catch-up against this layout's fixtures, never a previous one's.
 
-Camera images are the twin's renders (``camera_names``) and the real cameras' newest frames
-(``cameras`` and a rig file's: LeRobot cameras opened at connect through
-:class:`beavr_sim.cameras.real.RealCameras`, read on their own threads). A real camera that
+Camera images are the twin's renders (``camera_names``; ``camera_poses`` stands them at a
+rig file's ``T_world_camera`` poses, as teleop's ``--camera-poses``) and the real cameras'
+newest frames (``cameras`` and a rig file's: LeRobot cameras opened at connect through
+:class:`beavr_sim.cameras.real.RealCameras`, read on their own threads). A twin camera with a
+real camera of its name is observed as ``NAME_twin``; the real one keeps ``NAME``
+(:mod:`beavr_sim.cameras.names`, as teleop records them). A real camera that
 stops delivering (its newest frame older than ``camera_max_age_s``, or its read thread ended)
 makes :meth:`BeavrSimRobot.get_observation` raise one line: a frozen frame is never handed to
 the recorder as a live one.
@@ -40,7 +43,11 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 from beavr_sim.cameras.errors import CameraStoppedError
 from beavr_sim.cameras.real import DEPTH_SUFFIX, RealCameras
 from beavr_sim.envs.beavr_env import BeavrEnv
-from beavr_sim.integrations.config_robot import ROBOT_TYPE, BeavrSimRobotConfig
+from beavr_sim.integrations.config_robot import (
+    ROBOT_TYPE,
+    BeavrSimRobotConfig,
+    twin_observation_names,
+)
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
 from beavr_sim.integrations.options import check_embodiment
 from beavr_sim.teleop.mirroring import MirrorFollower, RigChoice, connect_mirror
@@ -63,10 +70,18 @@ class BeavrSimRobot(Robot):
         self.joint_names: tuple[str, ...] = self.embodiment.joint_names
         #: The real cameras' LeRobot configs (``cameras`` and a rig file's).
         self.real_camera_configs = config.real_camera_configs()
-        #: Camera name -> (height, width), the twin's then the real ones (``lerobot-record``
-        #: counts them).
+        #: The twin cameras ``camera_poses`` stands at real cameras' poses (none: ()).
+        self.placed_cameras = config.placed_cameras()
+        #: Twin camera -> its observation key: ``NAME``, or ``NAME_twin`` beside a real
+        #: camera ``NAME`` (``beavr_sim.cameras.names``).
+        self.twin_names = twin_observation_names(config.camera_names, self.real_camera_configs)
+        #: Observation key -> (height, width), the twin's then the real ones
+        #: (``lerobot-record`` counts them).
         self.cameras: dict[str, tuple[int, int]] = {
-            **{c: (config.image_height, config.image_width) for c in config.camera_names},
+            **{
+                self.twin_names[c]: (config.image_height, config.image_width)
+                for c in config.camera_names
+            },
             **{n: (int(c.height), int(c.width)) for n, c in self.real_camera_configs.items()},
         }
         #: The real cameras while connected (None without any).
@@ -148,6 +163,7 @@ class BeavrSimRobot(Robot):
                 camera_height=cfg.image_height,
                 camera_width=cfg.image_width,
                 hand_variant=hand_variant,
+                placed_cameras=self.placed_cameras,
             )
             self._closers.append(env.close)
             twin = TwinInterface(env, use_guard=cfg.use_guard)
@@ -232,7 +248,7 @@ class BeavrSimRobot(Robot):
         twin = self._require()
         obs: dict[str, Any] = action_dict(self.measured_positions(), self.joint_names)
         for camera in self.config.camera_names:
-            obs[camera] = twin.env.render_camera(camera)
+            obs[self.twin_names[camera]] = twin.env.render_camera(camera)
         if self.real_cameras is not None:
             obs.update(self._real_frames(self.real_cameras))
         return obs

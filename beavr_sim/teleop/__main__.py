@@ -217,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME=SPEC",
         help="record a real camera as observation.images.NAME (repeatable) through LeRobot's "
         "cameras; SPEC opencv:INDEX_OR_PATH, realsense:SERIAL or zmq:HOST:PORT, optionally "
-        "@WIDTHxHEIGHT (docs/cameras.md)",
+        "@WIDTHxHEIGHT, then +depth on a realsense to record its depth as NAME_depth too "
+        "(e.g. realsense:123456789@640x480+depth; docs/cameras.md)",
     )
     add_camera_poses_arg(rec)
     rec.add_argument(
