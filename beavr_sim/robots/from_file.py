@@ -10,7 +10,8 @@ the embodiment attaches like a bundled part. Writing it:
 - freezes each body's mass and inertia as compiled, so visual geoms can be dropped from the
   physics without changing it;
 - adds a ``flange`` site (the hand's mount, +z out of the flange) and one position servo per
-  joint (``servo`` gains, critically damped by default; ctrl range = joint range);
+  joint (``servo`` gains, critically damped by default; ctrl range = joint range), whose
+  damping replaces the model's passive joint damping;
 - reads the joint limits from the model (``limits_deg`` only where the model has none);
 - turns gravity compensation on (arm controllers compensate gravity);
 - moves visual geoms (contype = conaffinity = 0) to the visual group and collision geoms to
@@ -226,6 +227,10 @@ def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Pa
                 f"{where}.joints: {name!r} has no limits in the model; give them as "
                 f"limits_deg.{name} = [lower, upper]"
             )
+        # The servo's kv is the joint's damping: a model's own passive damping (tuned for its
+        # own actuators) would add to it and, under the torque cap, cap the joint's speed at
+        # force_limit / damping (the Panda's 100 N m s/rad: 50 deg/s against 87 N m).
+        joint.damping = np.zeros_like(joint.damping)
         actuator = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         actuator.set_to_position(kp=arm.servo.kp, kv=kv)
         actuator.ctrlrange = list(joint.range)
