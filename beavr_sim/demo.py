@@ -15,7 +15,8 @@ import numpy as np
 
 import beavr_sim  # noqa: F401  (registers the envs)
 from beavr_sim.robots import EMBODIMENTS
-from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT
+from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT, embodiment_spec
+from beavr_sim.robots.identity import embodiment_label
 from beavr_sim.viz.twin_view import TwinView
 
 
@@ -41,7 +42,11 @@ def scripted_targets(env, t: float) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m beavr_sim.demo", description=__doc__)
-    parser.add_argument("--embodiment", default=DEFAULT_EMBODIMENT, choices=sorted(EMBODIMENTS))
+    parser.add_argument(
+        "--embodiment",
+        default=DEFAULT_EMBODIMENT,
+        help=f"{', '.join(sorted(EMBODIMENTS))}, or a robot file (path/to/robot.toml)",
+    )
     parser.add_argument(
         "--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)"
     )
@@ -49,6 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--viser-host", default="127.0.0.1")
     parser.add_argument("--viser-port", type=int, default=8080)
     args = parser.parse_args(argv)
+    try:
+        label = embodiment_label(embodiment_spec(args.embodiment).name)
+    except (ValueError, OSError) as exc:  # unknown name, missing or unreadable robot file
+        parser.error(str(exc))
 
     env = gym.make("beavr_sim/Playground-v0", embodiment=args.embodiment, max_episode_seconds=1e9)
     env.reset(seed=0)
@@ -59,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
             u.render_model,
             host=args.viser_host,
             port=args.viser_port,
-            title=f"beavr_sim — Playground — {args.embodiment}",
+            title=f"beavr_sim — Playground — {label}",
         )
         print(f"browser view: {view.url}", flush=True)
     period = 1.0 / u.control_hz
@@ -76,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
                 ticks += 1
             if view is not None:
                 view.update(
-                    u.data, status=f"**Playground** · {args.embodiment} · t = {t_sim:5.1f} s"
+                    u.data, status=f"**Playground** · {label} · t = {t_sim:5.1f} s"
                 )
             now = time.perf_counter()
             if now - last_print >= 1.0:

@@ -88,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
             scale=scale_config(args),
             camera_poses=args.camera_poses,
         )
-    except (UnknownNameError, ValueError, FileExistsError, ImportError, JobFailed) as exc:
+    except (UnknownNameError, ValueError, FileExistsError, FileNotFoundError, ImportError,
+            JobFailed) as exc:  # fmt: skip
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(asdict(summary)))

@@ -52,6 +52,7 @@ from beavr_sim.datasets.features import (
 )
 from beavr_sim.datasets.writer import EpisodeWriter
 from beavr_sim.envs.cameras import OffscreenCameras
+from beavr_sim.robots.identity import embodiment_label
 from beavr_sim.wire.hand import N_JOINTS, HandFrame
 from beavr_sim.wire.records import Tick, TwinState
 
@@ -269,7 +270,7 @@ class EpisodeRecorder:
             "frames": self.frames,
             "seconds": round(self.frames / self.config.fps, 3),
             "task": self.env.task.name,
-            "embodiment": self.env.embodiment.name,
+            "embodiment": embodiment_label(self.env.embodiment.name),
             **info,
         }
         if self.watch is not None:

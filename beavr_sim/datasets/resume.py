@@ -14,6 +14,7 @@ from pathlib import Path
 
 from beavr_sim.datasets.shards import read_log
 from beavr_sim.datasets.writer import dataset_exists
+from beavr_sim.robots.identity import embodiment_label
 
 #: The values of :attr:`OutputPlan.mode` (and of a run summary's ``mode``).
 MODES = ("new", "resume", "overwrite")
@@ -56,6 +57,6 @@ def plan_output(out: Path, task: str, embodiment: str, overwrite: bool) -> Outpu
         if r.get("kept")
         and isinstance(r.get("seed"), int)
         and r.get("task") == task
-        and r.get("embodiment") == embodiment
+        and r.get("embodiment") in (embodiment, embodiment_label(embodiment))
     )
     return OutputPlan("resume", total, seeds)

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from beavr_sim.datasets.quiet import quiet_dataset_writes
+from beavr_sim.datasets.robot_meta import write_robot_meta
+from beavr_sim.robots.identity import robot_identity
 
 log = logging.getLogger("beavr_sim.datasets")
 
@@ -60,7 +62,12 @@ def dataset_exists(root: Path) -> bool:
 
 
 class EpisodeWriter:
-    """Frames in, one durable LeRobot episode per :meth:`save_episode`."""
+    """Frames in, one durable LeRobot episode per :meth:`save_episode`.
+
+    ``robot_type``: the embodiment (a built-in's name or a robot file's path); ``info.json``
+    records its label and, for a robot file, ``meta/beavr_robot.json`` its path and hash
+    (:mod:`beavr_sim.datasets.robot_meta`).
+    """
 
     def __init__(
         self,
@@ -77,6 +84,7 @@ class EpisodeWriter:
         self.repo_id = repo_id
         self.fps = int(fps)
         self._dataset_cls = require_lerobot()
+        identity = robot_identity(robot_type)
         if dataset_exists(self.root):
             if overwrite:
                 shutil.rmtree(self.root)
@@ -95,13 +103,14 @@ class EpisodeWriter:
                 fps,
                 features,
                 root=self.root,
-                robot_type=robot_type,
+                robot_type=identity.name,
                 use_videos=use_videos,
                 video_backend=VIDEO_BACKEND,
                 metadata_buffer_size=1,
             )
         else:
             self._dataset = None  # resumed when the first frame arrives
+        write_robot_meta(self.root, robot_type)  # a robot file's path and hash
         self.features = features
         self.frames_in_episode = 0
         self.episodes_saved = 0

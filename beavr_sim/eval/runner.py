@@ -25,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from beavr_sim.datasets.recorder import CameraSet
+from beavr_sim.robots.identity import robot_identity
 from beavr_sim.scaling.stats import wilson_interval
 
 
@@ -244,9 +245,10 @@ def summarize(
     successes = sum(r.success for r in results)
     low, high = wilson_interval(successes, len(results))
     success_times = [r.seconds for r in results if r.success]
+    robot = robot_identity(embodiment)
     summary = {
         "task": task,
-        "embodiment": embodiment,
+        "embodiment": robot.name,
         "policy": policy_type,
         "episodes": len(results),
         "successes": successes,
@@ -257,6 +259,8 @@ def summarize(
         "mean_success_time_s": (round(float(np.mean(success_times)), 3) if success_times else None),
         "mode": "async" if asynchronous else "sync",
     }
+    if robot.is_file:  # which file: its label alone does not say
+        summary["robot_file"] = {"path": robot.path, "sha256": robot.sha256}
     if asynchronous:
         periods = np.array([p for r in results for p in r.periods_ms])
         dt_ms = 1e3 / control_hz

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         task = canonical_task_name(args.task)
         report, results = run_expert(task, args.embodiment, args.episodes, args.seed, args.render)
-    except (UnknownNameError, ValueError) as exc:
+    except (UnknownNameError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.verbose:

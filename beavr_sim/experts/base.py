@@ -19,6 +19,8 @@ import numpy as np
 
 from beavr_sim.experts import grasps
 from beavr_sim.experts.ik import TwinIK
+from beavr_sim.robots.embodiment import EMBODIMENTS
+from beavr_sim.robots.robot_file import is_robot_file
 from beavr_sim.workcell import TABLE_TOP_Z
 
 #: Hand speed limits of every expert: a calm human reaching speed.
@@ -52,6 +54,18 @@ def smoothstep(s: float) -> float:
     return s * s * (3 - 2 * s)
 
 
+def check_expert_embodiment(embodiment: str) -> None:
+    """Refuse a robot file in one line naming the built-in embodiments: the experts' grasp
+    headings (:attr:`~beavr_sim.robots.parts.ArmModel.pinch_heading_deg_by_side`) and reaches
+    are tuned on the built-in arms, and a robot file's arm states none. Other names are left to
+    the embodiment check."""
+    if is_robot_file(embodiment):
+        raise ValueError(
+            f"the scripted experts run on the built-in embodiments ({', '.join(EMBODIMENTS)}), "
+            f"not on the robot file {embodiment}: their grasp headings are tuned for those arms"
+        )
+
+
 class ScriptedExpert(ABC):
     """Base of the scripted experts: runs a :meth:`script` through the IK, one step per call."""
 
@@ -59,6 +73,7 @@ class ScriptedExpert(ABC):
         self.env = env.unwrapped
         self.task = self.env.task
         self.embodiment = self.env.embodiment
+        check_expert_embodiment(self.embodiment.name)
         self.dt = 1.0 / self.env.control_hz
         self.ik = TwinIK(self.embodiment, self.dt)
         self.ready_q = self.ik.converge(self.ready_poses())

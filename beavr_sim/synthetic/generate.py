@@ -54,6 +54,7 @@ from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
 from beavr_sim.datasets.resume import plan_output
 from beavr_sim.datasets.shards import TRACES, Shard, merge_shards
 from beavr_sim.datasets.writer import EpisodeWriter, dataset_exists
+from beavr_sim.experts.base import check_expert_embodiment
 from beavr_sim.scaling.executors import ScaleConfig, make_executor
 from beavr_sim.tasks.registry import canonical_task_name
 
@@ -339,6 +340,8 @@ def generate(
     config = config or RecordingConfig()
     out = Path(out)
     repo_id = repo_id or f"beavr_sim/{task.lower()}"
+    if not source:  # the scripted experts make the demonstrations
+        check_expert_embodiment(embodiment)
     plan = plan_output(out, task, embodiment, overwrite)
     print(plan.describe(out, task, embodiment), file=sys.stderr)
     quiet_dataset_writes()

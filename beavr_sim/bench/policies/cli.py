@@ -95,6 +95,9 @@ def table_config(args: argparse.Namespace) -> TableConfig:
     )
     for policy in policies:
         check_name("policy", policy, TRAINED_POLICIES)
+    from beavr_sim.experts.base import check_expert_embodiment  # local: heavy (mujoco)
+
+    check_expert_embodiment(args.embodiment)  # the demonstrations are the experts'
     loops = _names(args.loops)
     for loop in loops:
         check_name("loop", loop, LOOPS)

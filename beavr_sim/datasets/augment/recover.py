@@ -31,6 +31,7 @@ import numpy as np
 
 from beavr_sim.datasets.augment.replay_match import MatchConfig, Recorded, match_seeds
 from beavr_sim.datasets.features import ACTION, ENV_STATE, STATE
+from beavr_sim.datasets.robot_meta import dataset_embodiment
 from beavr_sim.datasets.shards import EPISODE_LOG
 from beavr_sim.tasks.registry import TASKS, task_class
 
@@ -157,6 +158,7 @@ def recover(root, info: dict, config: RecoveryConfig | None = None) -> Recovered
     embodiment = info.get("robot_type")
     if not embodiment:
         raise ValueError(f"{lost} and its info.json names no robot_type (the embodiment)")
+    embodiment = dataset_embodiment(root, embodiment)
     features = info.get("features", {})
     if ENV_STATE not in features and STATE not in features:
         raise ValueError(f"{lost}, no {ENV_STATE} and no {STATE} to find the seeds from: {record}")

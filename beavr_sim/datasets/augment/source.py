@@ -18,6 +18,7 @@ import numpy as np
 
 from beavr_sim.datasets.augment.recover import recover
 from beavr_sim.datasets.features import ACTION, ENV_STATE, IMAGE_PREFIX, KEYPOINTS, RecordingConfig
+from beavr_sim.datasets.robot_meta import dataset_embodiment
 from beavr_sim.datasets.shards import EPISODE_LOG, read_log
 from beavr_sim.datasets.writer import dataset_exists
 
@@ -90,7 +91,7 @@ def open_source(root: str | Path) -> Source:
     return Source(
         root=root,
         task=task,
-        embodiment=embodiment,
+        embodiment=dataset_embodiment(root, embodiment),
         fps=int(info["fps"]),
         episodes=tuple(int(r["episode_index"]) for r in kept),
         seeds=tuple(int(r["seed"]) for r in kept),
