@@ -153,6 +153,9 @@ def test_the_xarm7_from_a_robot_file_is_the_built_in_one(write):
     arm_act = j1.actuator_ids[:7]
     np.testing.assert_allclose(m1.actuator_gainprm[arm_act, 0], 1000.0)  # the file's servo kp
     np.testing.assert_allclose(m1.actuator_biasprm[arm_act, 2], -100.0)  # default kv = kp / 10
+    # The servo's kv is the joints' damping: the model's own (the built-in's MJCF has some)
+    # would cap the joints' speed at force_limit / damping under the torque cap.
+    assert m2.dof_damping[j2.qvel_adr[:7]].all() and not m1.dof_damping[j1.qvel_adr[:7]].any()
     d1, d2 = mujoco.MjData(m1), mujoco.MjData(m2)
     for m, d, j in ((m1, d1, j1), (m2, d2, j2)):
         d.qpos[j.qpos_adr] = j.home
