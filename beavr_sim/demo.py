@@ -84,9 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                 t_sim += period
                 ticks += 1
             if view is not None:
-                view.update(
-                    u.data, status=f"**Playground** · {label} · t = {t_sim:5.1f} s"
-                )
+                view.update(u.data, status=f"**Playground** · {label} · t = {t_sim:5.1f} s")
             now = time.perf_counter()
             if now - last_print >= 1.0:
                 print(f"\rt={t_sim:6.1f} s  ticks={ticks}", end="", file=sys.stderr, flush=True)

@@ -103,9 +103,7 @@ def test_the_franka_robot_file_passes_the_check(franka, capsys):
     assert "missing: nothing" in out
 
 
-def test_a_bundled_trace_drives_the_franka_with_no_guard_refusal(
-    franka, short_trace, monkeypatch
-):
+def test_a_bundled_trace_drives_the_franka_with_no_guard_refusal(franka, short_trace, monkeypatch):
     lags = []  # each tick: the twin's hand to the operator's target
 
     def step(ik, T_world_target, dt=None):

@@ -61,7 +61,7 @@ def test_a_dataset_of_a_robot_file_names_it_and_finds_it_again(robot, tmp_path):
     with pytest.raises(FileNotFoundError, match=r"mine\.toml \(name 'xarm_from_file'\), which no"):
         open_source(root)
     (root / ROBOT_META).unlink()
-    with pytest.raises(ValueError, match="not a built-in .* no meta/beavr_robot.json"):
+    with pytest.raises(ValueError, match=r"not a built-in .* no meta/beavr_robot\.json"):
         dataset_embodiment(root, "xarm_from_file")
 
 
@@ -70,7 +70,9 @@ def test_an_eval_summary_names_a_robot_file_by_its_name_and_file(robot):
     summary = summarize(results, "PickupBox", str(robot), "act", False, 30.0)
     assert summary["embodiment"] == "xarm_from_file"
     assert summary["robot_file"]["path"] == str(robot.resolve())
-    assert "robot_file" not in summarize(results, "PickupBox", "xarm7_leap_right", "act", False, 30.0)
+    assert "robot_file" not in summarize(
+        results, "PickupBox", "xarm7_leap_right", "act", False, 30.0
+    )
 
 
 def test_the_demo_takes_a_robot_file_and_refuses_a_missing_one_in_one_line(robot, capsys):
