@@ -127,6 +127,7 @@ def test_a_bundled_trace_drives_the_franka_with_no_guard_refusal(franka, short_t
     finally:
         env.close()
     assert visual_panda_geoms(render) >= 8 and visual_panda_geoms(env.model) == 0
+    assert summary.embodiment == "franka_leap_right"  # the file's name, not its path
     assert summary.commands_applied > 150  # the arm moved: the trace reached the twin
     assert guard.checks > 150 and guard.refusals == 0, guard.refusals_by_rule
     assert "guard" not in summary.holds.get("right", {}), summary.holds

@@ -18,6 +18,7 @@ import numpy as np
 from beavr_sim.assets import mjcf_path
 from beavr_sim.naming import check_name
 from beavr_sim.robots.from_file import load_robot_file
+from beavr_sim.robots.identity import embodiment_label
 from beavr_sim.robots.parts import (
     LEAP_ON_RX1,
     RX1_ARM,
@@ -163,7 +164,13 @@ class Embodiment:
 
     @property
     def name(self) -> str:
+        """What builds it again: a built-in's name, or a robot file's path."""
         return self.spec.name
+
+    @property
+    def label(self) -> str:
+        """What summaries and viewers show: a built-in's name, or a robot file's ``name``."""
+        return embodiment_label(self.spec.name)
 
     @property
     def body_joints(self) -> tuple[str, ...]:

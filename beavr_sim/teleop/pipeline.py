@@ -773,7 +773,7 @@ class TeleopLoop:
                 listener_errors[name] = listener_errors.get(name, 0) + listener.errors
         return TeleopSummary(
             task=env.task.name,
-            embodiment=env.embodiment.name,
+            embodiment=env.embodiment.label,
             success=bool(success),
             frames_received=self.frames_received,
             frames_rejected=self.validator.rejected,

@@ -689,7 +689,7 @@ def run_session(
             viewers["webxr"] = loop.source.server
             if not options.headless:  # the twin drawn in the headset
                 env = loop.twin.env
-                info = {"task": env.task.name, "embodiment": env.embodiment.name}
+                info = {"task": env.task.name, "embodiment": env.embodiment.label}
                 loop.listeners.append(
                     loop.source.twin_feed(env.render_model, env.data, loop.operator, info)
                 )

@@ -61,7 +61,7 @@ class TwinPageFeed:
         self.geometry = TwinGeometry.from_model(env.render_model)
         self.data = env.data
         self.gate = RateGate(config.rate_hz, clock)
-        info = {"task": env.task.name, "embodiment": env.embodiment.name}
+        info = {"task": env.task.name, "embodiment": env.embodiment.label}
         message = self.geometry.scene_message(env.data, **info)
         self.scene = TwinSceneMsg(message=encode_page_message(message))
         self._newest: TwinPosesMsg | None = None

@@ -237,7 +237,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             host=config.view.host,
             port=config.view.port,
             task=env.task.name,
-            embodiment=env.embodiment.name,
+            embodiment=env.embodiment.label,
             effector_bodies=subtree_bodies(
                 env.model, {n: joints.names[sl] for n, sl in joints.slices.items()}
             ),
@@ -715,7 +715,7 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
                     "duration_s": env.elapsed_seconds,
                     "ticks": tick if config.lockstep else int(round(env.elapsed_seconds / dt)),
                     "task": env.task.name,
-                    "embodiment": env.embodiment.name,
+                    "embodiment": env.embodiment.label,
                 }
             ).encode()
         )

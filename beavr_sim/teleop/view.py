@@ -146,7 +146,7 @@ def attach_view(
         title="beavr_sim twin",
         episode_control=control,
         task=env.task.name,
-        embodiment=env.embodiment.name,
+        embodiment=env.embodiment.label,
         effector_bodies=subtree_bodies(env.model, by_effector),
         mirroring=mirroring,
         rate_hz=rate_hz,

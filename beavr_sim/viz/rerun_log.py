@@ -310,12 +310,12 @@ class RerunLogger:
     # ------------------------------------------------------------------ static
     def _log_static(self, source: str | None) -> None:
         env, rec = self.env, self.rec
-        rec.send_recording_name(f"{env.task.name} / {env.embodiment.name}")
+        rec.send_recording_name(f"{env.task.name} / {env.embodiment.label}")
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         effectors = list(self.loop.twin.slices)
         values = {
             "task": env.task.name,
-            "embodiment": env.embodiment.name,
+            "embodiment": env.embodiment.label,
             "control_hz": float(env.control_hz),
             "effectors": effectors,
             "joint_names": list(self.joint_names),
