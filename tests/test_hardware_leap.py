@@ -390,6 +390,31 @@ def test_vanished_port_raises_device_error_quickly(emu, hand):
     assert not hand.connected
 
 
+def test_waiting_for_a_reply_sleeps_instead_of_polling_the_port():
+    """The SDK polls a non-blocking port until the reply window ends: thousands of reads (a
+    core) per silent request, which starve whatever must answer. Ours sleeps until a byte or
+    the window's end, and the SDK still gives up at that end."""
+    master, slave = os.openpty()  # a bus where nothing answers
+    try:
+        port = _Port(os.ttyname(slave), 0.05)
+        assert port.openPort() and port.setBaudRate(4_000_000)
+        reads = 0
+        read = port.ser.read
+
+        def counted(n):
+            nonlocal reads
+            reads += 1
+            return read(n)
+
+        port.ser.read = counted
+        _, result, _ = PacketHandler(2.0).ping(port, 1)
+        port.closePort()
+    finally:
+        os.close(master), os.close(slave)
+    assert result != COMM_SUCCESS  # no reply: a timeout, as before
+    assert reads <= 3, f"{reads} reads of the port in one 50 ms reply window"
+
+
 @pytest.mark.parametrize("retries", [0, 1])
 def test_a_lost_reply_is_retried_once(emu, retries):
     with LeapHand(_cfg(emu.port, retries=retries)) as h:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import select
 import termios
 import time
 from abc import abstractmethod
@@ -85,7 +86,14 @@ def check_limits(owner: str, lower: Any, upper: Any, n: int) -> None:
 
 class ReplyTimeoutPort:
     """Mixin for an SDK's ``PortHandler``: the reply timeout from the config (None keeps the
-    SDK's). Use as ``class _Port(ReplyTimeoutPort, PortHandler)``."""
+    SDK's), and a read that waits for the reply instead of spinning. Use as
+    ``class _Port(ReplyTimeoutPort, PortHandler)``.
+
+    The SDKs open the port non-blocking and poll it in a loop until the reply or the timeout:
+    a core spent per waiting bus, taken from the control loop and from whatever must answer
+    (on a busy host, the replies themselves come later). :meth:`readPort` instead sleeps in
+    ``select`` until a byte arrives or the reply window ends; what it returns, and when the
+    SDK gives up, are unchanged."""
 
     def __init__(self, port_name: str, reply_timeout_s: float | None) -> None:
         super().__init__(port_name)  # type: ignore[call-arg]
@@ -97,6 +105,14 @@ class ReplyTimeoutPort:
             return
         self.packet_start_time = self.getCurrentTime()  # type: ignore[attr-defined]
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.reply_timeout_ms  # type: ignore[attr-defined]
+
+    def readPort(self, length: int):
+        ser = self.ser  # type: ignore[attr-defined]
+        if not ser.in_waiting:
+            rest_ms = self.packet_timeout - self.getTimeSinceStart()  # type: ignore[attr-defined]
+            if rest_ms > 0:
+                select.select([ser.fileno()], [], [], rest_ms / 1000.0)
+        return super().readPort(length)  # type: ignore[misc]
 
 
 @dataclass(frozen=True)
