@@ -40,8 +40,8 @@ from beavr_sim.hardware.leap.emulator import (
 )
 
 TOL = 1e-9
-# The SDK busy-polls the port for about 34 ms per reply; on a loaded CI machine the emulator
-# thread can miss that now and then. Tests that are not about timeouts allow more.
+# The SDK waits about 34 ms per reply; on a loaded CI machine the emulator thread can miss
+# that now and then. Tests that are not about timeouts allow more.
 REPLY_S = 1.0  # 0.25 lost a connect's write through two tries in a clean-clone run under load
 
 

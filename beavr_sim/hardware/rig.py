@@ -340,7 +340,7 @@ class EmulatedRig:
 
     The emulators run in a child process (``python -m beavr_sim.hardware.emulators``), as a
     real controller and a real bus run outside ours: they do not compete with the drivers for
-    this interpreter (the Dynamixel SDK busy-waits for replies). The constructor returns once
+    this interpreter. The constructor returns once
     every emulator is serving. :meth:`close` stops them and keeps what they received in
     :attr:`received` (``{device: [[time, targets], ...]}``: every servo_j target of an arm;
     every goal write of a hand, ``{motor id: model radians}``).

@@ -16,7 +16,8 @@ sync read (0x82; fast sync read 0x8A only through ``fastSyncRead``) and drops ea
 packet's error byte, so reads go out through the group and the replies come back through
 ``PacketHandler.readRx``, which keeps it; ``txPacket`` discards the result of its own byte
 stuffing, so instruction packets go out unstuffed (harmless here: goals within 0..4095 never
-hold FF FF FD); replies are busy-polled against a timeout of about 34 ms, which
+hold FF FF FD); replies are busy-polled against a timeout of about 34 ms (our port waits in
+``select`` instead: :class:`~beavr_sim.hardware.serial_bus.ReplyTimeoutPort`), which
 ``reply_timeout_s`` can replace, and a lost or corrupt reply is asked for again ``retries``
 times.
 
