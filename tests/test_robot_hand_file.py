@@ -58,9 +58,9 @@ def test_a_bad_hand_table_names_the_key_and_the_valid_choices(table, change, mes
 
 def test_names_the_model_lacks_are_listed_with_the_valid_ones(table):
     fingers = {**table["fingers"], "index": "site:robot0:S_nope"}
-    with pytest.raises(RobotFileError, match="valid sites: .*robot0:S_fftip"):
+    with pytest.raises(RobotFileError, match=r"valid sites: .*robot0:S_fftip"):
         load_hand(read_hand_table(HAND, "shadow", {**table, "fingers": fingers}))
-    with pytest.raises(RobotFileError, match="Valid root bod.*robot0:palm"):
+    with pytest.raises(RobotFileError, match=r"Valid root bod.*robot0:palm"):
         load_hand(read_hand_table(HAND, "shadow", {**table, "root": "palm"}))
 
 

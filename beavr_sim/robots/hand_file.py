@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.robots.robot_file import RobotFileError, _Reader
+from beavr_sim.robots.robot_file import _Reader
 
 #: Finger names a hand or a human hand may have, human order.
 FINGER_NAMES = ("thumb", "index", "middle", "ring", "little")
@@ -184,7 +184,7 @@ def load_hand(spec: HandFile, where: Path | None = None) -> ModelHand:
         free = [n for n, j in zip(joint_names, ids, strict=True) if not model.jnt_limited[j]]
         raise r.fail(f"{key}.joints", f"joints without limits in the model: {', '.join(free)}")
     lower, upper = model.jnt_range[ids, 0].copy(), model.jnt_range[ids, 1].copy()
-    home = (np.radians(spec.home_deg) if spec.home_deg is not None else np.zeros(len(ids)))
+    home = np.radians(spec.home_deg) if spec.home_deg is not None else np.zeros(len(ids))
     home = np.clip(home, lower, upper)
     tips = []
     for finger, kind, target in spec.fingers:
@@ -211,7 +211,9 @@ def load_hand(spec: HandFile, where: Path | None = None) -> ModelHand:
     data.qpos[hand.qpos_ids] = home
     mujoco.mj_kinematics(model, data)
     points = tip_points(hand, data)
-    hand.reach.update({f: float(np.linalg.norm(p)) for (f, _, _), p in zip(tips, points, strict=True)})
+    hand.reach.update(
+        {f: float(np.linalg.norm(p)) for (f, _, _), p in zip(tips, points, strict=True)}
+    )
     if not all(math.isfinite(v) and v > 0 for v in hand.reach.values()):
         raise r.fail(f"{key}.fingers", f"a fingertip sits on the root's origin: {hand.reach}")
     return hand
