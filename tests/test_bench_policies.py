@@ -107,14 +107,23 @@ def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
 
     monkeypatch.setattr(training.subprocess, "run", fake_run)
     monkeypatch.setattr(training, "executable", lambda: "lerobot-train")
-    assert training.train(TRAIN, tmp_path / "data", "r/d", stage, resume=True) == stage / "run"
+    run = training.train(TRAIN, tmp_path / "data", "r/d", stage, resume=True, loader_workers=3)
+    assert run == stage / "run"
     (command,) = commands
     last = training.checkpoint(stage / "run", 10) / "train_config.json"
     assert f"--config_path={last}" in command and "--resume=true" in command
     assert "--steps=20" in command
+    assert "--num_workers=3" in command  # the resumed run loads as the fresh one did
     # Finished: nothing runs again.
     assert training.train(TRAIN, tmp_path / "data", "r/d", stage) == stage / "run"
     assert len(commands) == 1
+
+
+def test_a_fresh_run_loads_data_with_the_workers_asked_for(tmp_path, monkeypatch):
+    monkeypatch.setattr(training, "executable", lambda: "lerobot-train")
+    command = training.train_command(TRAIN, tmp_path, "r/d", tmp_path / "run", "cuda", 4)
+    assert "--num_workers=4" in command and "--policy.device=cuda" in command
+    assert "--num_workers=0" in training.train_command(TRAIN, tmp_path, "r/d", tmp_path, "cpu")
 
 
 def test_a_failing_lerobot_train_is_one_line_naming_its_log(tmp_path, monkeypatch):

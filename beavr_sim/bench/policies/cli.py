@@ -81,7 +81,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue cut training runs")
     p.add_argument("--device", default="cpu", help="torch device for training and evaluation")
     p.add_argument(
+        "--eval-device",
+        default=None,
+        help="torch device for the evaluation episodes (default: --device); with a GPU, cpu "
+        "often evaluates faster (each worker would set up CUDA)",
+    )
+    p.add_argument(
         "--workers", type=int, default=1, help="local processes for generation and evaluation"
+    )
+    p.add_argument(
+        "--loader-workers",
+        type=int,
+        default=0,
+        help="data-loading processes per training run (LeRobot's --num_workers; 0: in the "
+        "training process, enough on a CPU, the bottleneck on a GPU)",
     )
     return p
 
@@ -135,10 +148,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = table_config(args)
         options = RunOptions(
-            out=args.out, device=args.device, workers=args.workers, resume=args.resume
+            out=args.out,
+            device=args.device,
+            workers=args.workers,
+            resume=args.resume,
+            loader_workers=args.loader_workers,
+            eval_device=args.eval_device,
         )
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        if args.loader_workers < 0:
+            raise ValueError(f"--loader-workers must be >= 0, got {args.loader_workers}")
         stages = Stages(stage_count(config))
         result = run_table(config, options, stages)
     except (UnknownNameError, ValueError, FileNotFoundError, TrainFailed, TrainUnfinished,

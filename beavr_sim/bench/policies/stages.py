@@ -80,6 +80,12 @@ class RunOptions:
     device: str = "cpu"
     workers: int = 1
     resume: bool = False
+    #: LeRobot's data-loading processes per training run (``--num_workers``).
+    loader_workers: int = 0
+    #: Torch device of the evaluation episodes (None: ``device``). On a GPU machine the CPU is
+    #: often the faster choice: every evaluation stage starts fresh worker processes, and each
+    #: would set up CUDA for a policy of a few million parameters.
+    eval_device: str | None = None
 
 
 def _cpu_seconds() -> float:
@@ -229,7 +235,13 @@ def train_policy(
 
     def work() -> dict:
         run = training.train(
-            train, dataset, repo_id(train.demos), stage, options.device, options.resume
+            train,
+            dataset,
+            repo_id(train.demos),
+            stage,
+            options.device,
+            options.resume,
+            options.loader_workers,
         )
         curve = training.losses(stage / "train.log")
         return {
@@ -267,7 +279,7 @@ def evaluate(
                 scale=ScaleConfig(workers=options.workers),
                 asynchronous=evaluation.mode == "async",
                 max_seconds=evaluation.max_seconds,
-                device=options.device,
+                device=options.eval_device or options.device,
                 progress=False,
             )["results"][0]
         return {"config": asdict(evaluation), **row}
@@ -381,6 +393,7 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
         "protocol": {**config.protocol.describe(), "embodiment": config.embodiment},
         "config": asdict(config),
         "device": options.device,
+        "eval_device": options.eval_device or options.device,
         "rows": rows,
         "stages": stages.records,
         "budget": stages.budget(),

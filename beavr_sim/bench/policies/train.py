@@ -61,9 +61,16 @@ def checkpoint(run: Path, step: int) -> Path:
 
 
 def train_command(
-    config: TrainConfig, dataset: Path, repo_id: str, run: Path, device: str
+    config: TrainConfig,
+    dataset: Path,
+    repo_id: str,
+    run: Path,
+    device: str,
+    loader_workers: int = 0,
 ) -> list[str]:
-    """A fresh run of ``config`` on the dataset at ``dataset``."""
+    """A fresh run of ``config`` on the dataset at ``dataset`` (``loader_workers``: LeRobot's
+    data-loading processes; 0 loads in the training process, which is what bounds the step
+    rate on a GPU)."""
     return [
         executable(),
         f"--policy.type={config.policy}",
@@ -77,14 +84,16 @@ def train_command(
         f"--steps={config.steps}",
         f"--save_freq={config.save_freq}",
         f"--log_freq={max(1, min(200, config.save_freq))}",
-        "--num_workers=0",
+        f"--num_workers={loader_workers}",
         f"--seed={config.seed}",
         "--wandb.enable=false",
         f"--output_dir={run}",
     ]
 
 
-def resume_command(config: TrainConfig, run: Path, device: str) -> list[str]:
+def resume_command(
+    config: TrainConfig, run: Path, device: str, loader_workers: int = 0
+) -> list[str]:
     """Continue the run at ``run`` from its last checkpoint up to ``config.steps``."""
     last = checkpoint(run, saved_steps(run)[-1])
     return [
@@ -93,6 +102,7 @@ def resume_command(config: TrainConfig, run: Path, device: str) -> list[str]:
         "--resume=true",
         f"--steps={config.steps}",
         f"--policy.device={device}",
+        f"--num_workers={loader_workers}",
         f"--output_dir={run}",
     ]
 
@@ -104,6 +114,7 @@ def train(
     stage: Path,
     device: str = "cpu",
     resume: bool = False,
+    loader_workers: int = 0,
 ) -> Path:
     """Train into ``stage/run`` (see the module docstring); returns the run folder.
 
@@ -121,11 +132,11 @@ def train(
             f"{steps[-1]} of {config.steps} in {run}; pass --resume to continue it"
         )
     if steps:
-        command = resume_command(config, run, device)
+        command = resume_command(config, run, device, loader_workers)
     else:
         if run.exists():
             shutil.rmtree(run)
-        command = train_command(config, dataset, repo_id, run, device)
+        command = train_command(config, dataset, repo_id, run, device, loader_workers)
     stage.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
     with log.open("a") as out:
