@@ -18,6 +18,7 @@ from beavr_sim.bench.policies.config import (
     NOT_RUN_OFFLINE,
     TEST_SEED,
     VALIDATION_SEED,
+    AugmentConfig,
     DemoConfig,
     EvalConfig,
     Protocol,
@@ -262,3 +263,27 @@ def test_quick_again_is_read_from_its_cache(quick):
     assert again["rows"] == first["rows"]
     assert again["budget"]["this_run_wall_s"] == 0
     assert again["budget"]["cpu_s"] == first["budget"]["cpu_s"]
+
+
+def test_augment_adds_generated_scenes_to_the_demonstrations_and_is_cached(quick, tmp_path):
+    from beavr_sim.bench.policies.config import AUGMENT_SEED
+    from beavr_sim.bench.policies.stages import RunOptions, Stages, make_augmented
+    from beavr_sim.datasets.shards import read_log
+
+    out, _, _ = quick
+    (demos,) = (out / "demos").glob("*/dataset")
+    augment = AugmentConfig(source=DEMOS, episodes=1)
+    options = RunOptions(out=tmp_path)
+    stages = Stages(2, echo=lambda line: None)
+    merged = make_augmented(augment, demos, stages, options)
+    records = [r for r in read_log(merged) if r.get("kept")]
+    seeds = sorted(r["seed"] for r in records)
+    # The two demonstrations, then one new scene at or above AUGMENT_SEED (above the test and
+    # validation seeds), made from them: no expert.
+    demo_seeds = sorted(r["seed"] for r in read_log(demos) if r.get("kept"))
+    assert len(seeds) == 3 and seeds[:2] == demo_seeds
+    assert seeds[2] >= AUGMENT_SEED > VALIDATION_SEED + 999
+    record = stages.records[-1]
+    assert record["stage"] == "augment" and not record["cached"]
+    assert make_augmented(augment, demos, stages, options) == merged
+    assert stages.records[-1]["cached"]

@@ -1,7 +1,9 @@
 """``python -m beavr_sim.bench policies [--tasks T,...] [--policies act,diffusion] [--demos 50]
-[--episodes 50] [--quick] [--out DIR] [--resume] [--device cpu|cuda]``: the policy table.
+[--episodes 50] [--augment N] [--quick] [--out DIR] [--resume] [--device cpu|cuda]``: the policy
+table.
 
-Generates seeded demonstrations, trains each policy with ``lerobot-train``, chooses each run's
+Generates seeded demonstrations (and, with ``--augment N``, N episodes made from them by
+``datasets augment``, trained on with them), trains each policy with ``lerobot-train``, chooses each run's
 checkpoint on validation seeds, evaluates it on the test seeds (sync and think-act) beside the
 scripted expert through the teleop pipeline, and writes ``DIR/table.md`` and
 ``DIR/table.json`` (also printed, last, as one JSON line). Every stage is cached in ``DIR`` by
@@ -57,6 +59,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=None, help="test episodes (50)")
     p.add_argument(
         "--validation-episodes", type=int, default=None, help="per checkpoint (20; --quick 2)"
+    )
+    p.add_argument(
+        "--augment",
+        type=int,
+        default=0,
+        help="also generate this many episodes from the demonstrations (datasets augment: "
+        "their own motion in new scenes, no expert) and train on both (0: demos alone)",
     )
     p.add_argument("--steps", type=int, default=None, help="training steps (the preset's)")
     p.add_argument(
@@ -122,6 +131,8 @@ def table_config(args: argparse.Namespace) -> TableConfig:
     if depth:
         raise ValueError("--cameras: the policies take RGB cameras only")
     height, width = parse_size(args.image_size)
+    if args.augment < 0:
+        raise ValueError(f"--augment must be >= 0 episodes, got {args.augment}")
     return TableConfig(
         tasks=tuple(dict.fromkeys(canonical_task_name(t) for t in tasks)),
         policies=tuple(dict.fromkeys(policies)),
@@ -139,6 +150,7 @@ def table_config(args: argparse.Namespace) -> TableConfig:
         save_freq=args.save_freq,
         max_seconds=args.max_seconds or (1.0 if quick else None),
         modes=tuple(dict.fromkeys(loops)),
+        augment=args.augment,
     )
 
 

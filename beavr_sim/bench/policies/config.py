@@ -4,7 +4,8 @@ presets, and the cache key of a stage.
 Seeds (the protocol): demonstrations are recorded from ``TRAIN_SEED`` upwards (a failed
 synthesis skips its seed, at most ``5 * demos + 10`` of them), checkpoints are chosen on
 ``VALIDATION_SEED ..`` and the table is measured on ``TEST_SEED ..``; :class:`Protocol` refuses
-counts that would make the three ranges overlap.
+counts that would make the three ranges overlap. Episodes generated from the demonstrations
+(``--augment``) are new scenes from ``AUGMENT_SEED`` upwards, above all three.
 
 A stage's cache key is a hash of its configuration, the configurations it depends on included
 (a training run's key covers its demonstrations'), so changing any field re-runs that stage and
@@ -25,6 +26,9 @@ from beavr_sim.naming import check_name
 TRAIN_SEED = 0
 TEST_SEED = 1000
 VALIDATION_SEED = 2000
+#: First seed of the scenes ``--augment`` generates (above every validation seed: at most
+#: ``VALIDATION_SEED - TEST_SEED`` validation episodes).
+AUGMENT_SEED = 3000
 #: Policies trained here (LeRobot ``--policy.type``).
 TRAINED_POLICIES = ("act", "diffusion")
 #: Rows that need pretrained weights from a hub, which an offline machine does not have.
@@ -86,8 +90,24 @@ class DemoConfig:
 
 
 @dataclass(frozen=True)
+class AugmentConfig:
+    """Episodes made from the demonstrations by ``datasets augment`` (MimicGen-style: the
+    demonstrations' own motion carried into new scenes, no expert), from ``seed`` upwards;
+    training then sees the demonstrations and these together."""
+
+    source: DemoConfig
+    episodes: int
+    seed: int = AUGMENT_SEED
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ValueError(f"augment must be >= 1 episodes, got {self.episodes}")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
-    """One ``lerobot-train`` run on one demonstration set."""
+    """One ``lerobot-train`` run on one demonstration set (and the episodes generated from
+    it, ``augmented`` of them)."""
 
     policy: str
     demos: DemoConfig
@@ -97,9 +117,13 @@ class TrainConfig:
     seed: int = 0
     #: Extra ``--policy.*`` flags (the preset), as ``name=value`` pairs.
     policy_flags: tuple[str, ...] = ()
+    #: Episodes generated from the demonstrations and trained on with them (0: none).
+    augmented: int = 0
 
     def __post_init__(self) -> None:
         check_name("policy", self.policy, TRAINED_POLICIES)
+        if self.augmented < 0:
+            raise ValueError(f"augmented must be >= 0, got {self.augmented}")
         if self.steps < 1 or self.save_freq < 1 or self.batch_size < 1:
             raise ValueError(
                 f"steps, save_freq and batch_size must be >= 1, got {self.steps}, "

@@ -2,7 +2,8 @@
 and the pipeline that chains them.
 
 Stages, per task: demonstrations (``demos/<task>-<key>/``, a LeRobot dataset, resumed by the
-generator itself), per policy a training run (``train/<policy>-<task>-<key>/``: LeRobot's
+generator itself), with ``augment`` the episodes generated from them and merged with them
+(``augment/<task>-<key>/``: ``generated/dataset`` and the merged ``dataset``), per policy a training run (``train/<policy>-<task>-<key>/``: LeRobot's
 ``run/``, ``train.log``), the checkpoint choice (every saved checkpoint on the validation seeds,
 sync; the most successes wins, the later step on a tie), the test episodes of the chosen one
 (sync and think-act), and the scripted expert through the teleop pipeline on the test seeds
@@ -18,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import resource
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -32,6 +34,7 @@ from beavr_sim.bench.policies.config import (
     QUICK_PRESETS,
     TEST_SEED,
     VALIDATION_SEED,
+    AugmentConfig,
     DemoConfig,
     EvalConfig,
     Protocol,
@@ -68,6 +71,9 @@ class TableConfig:
     max_seconds: float | None = None
     #: Evaluation loops on the test seeds.
     modes: tuple[str, ...] = ("sync", "async")
+    #: Episodes generated from the demonstrations (``datasets augment``) and trained on with
+    #: them (0: the demonstrations alone).
+    augment: int = 0
     #: Also the scripted expert through the teleop pipeline (the "human" row).
     expert_row: bool = True
 
@@ -171,6 +177,17 @@ def train_config(config: TableConfig, policy: str, demos: DemoConfig) -> TrainCo
         save_freq=min(config.save_freq or preset.save_freq, steps),
         batch_size=preset.batch_size,
         policy_flags=preset.flags,
+        augmented=config.augment,
+    )
+
+
+def inputs(train: TrainConfig) -> str:
+    """What a row's policy saw: its inputs, and the generated episodes it was trained on."""
+    if not train.augmented:
+        return train.demos.inputs
+    return (
+        f"{train.demos.inputs}; {train.demos.episodes} demos + {train.augmented} generated "
+        "from them"
     )
 
 
@@ -223,6 +240,60 @@ def make_demos(demos: DemoConfig, stages: Stages, options: RunOptions) -> Path:
 
     what = f"demos {demos.task}: {demos.episodes} from seed {demos.seed} ({demos.inputs})"
     stages.run("demos", what, key, root / DONE, work)
+    return root / "dataset"
+
+
+def make_augmented(
+    augment: AugmentConfig, demos: Path, stages: Stages, options: RunOptions
+) -> Path:
+    """The demonstrations at ``demos`` and ``augment.episodes`` episodes generated from them
+    (``datasets augment``: only the demonstrations drive them), merged into one dataset."""
+    from beavr_sim.datasets.augment.source import open_source  # local: heavy (lerobot)
+    from beavr_sim.datasets.shards import Shard, merge_shards  # local: heavy (lerobot)
+    from beavr_sim.synthetic.generate import generate  # local: heavy (mujoco, the pipeline)
+
+    key = cache_key("augment", augment)
+    root = options.out / "augment" / f"{augment.source.task}-{key}"
+
+    def work() -> dict:
+        source = open_source(demos)
+        summary = generate(
+            source.task,
+            augment.episodes,
+            augment.seed,
+            root / "generated" / "dataset",
+            repo_id=repo_id(augment.source),
+            embodiment=source.embodiment,
+            config=source.recording_config(),
+            progress=False,
+            scale=ScaleConfig(workers=options.workers),
+            source=source.root,
+        )
+        written = summary.episodes_written + len(summary.seeds_skipped)
+        if written < augment.episodes:
+            raise StageFailed(
+                f"{source.task}: augmentation kept {written} of {augment.episodes} episodes "
+                f"(failures by reason {summary.failure_reasons}); see {root}"
+            )
+        merged = root / "dataset"
+        if merged.exists():  # a merge cut short: made again from its parts
+            shutil.rmtree(merged)
+        total = merge_shards(
+            [Shard(demos.parent), Shard(root / "generated")], merged, repo_id(augment.source)
+        )
+        return {
+            "config": asdict(augment),
+            "kept": written,
+            "tried": written + summary.failures,
+            "failure_reasons": summary.failure_reasons,
+            "episodes_merged": total,
+        }
+
+    what = (
+        f"augment {augment.source.task}: {augment.episodes} from {augment.source.episodes} "
+        f"demos, scenes from seed {augment.seed}"
+    )
+    stages.run("augment", what, key, root / DONE, work)
     return root / "dataset"
 
 
@@ -342,7 +413,7 @@ def stage_count(config: TableConfig) -> int:
     total = 0
     for task in config.tasks:
         demos = demo_config(config, task)
-        total += 1 + (1 if config.expert_row else 0)
+        total += 1 + (1 if config.expert_row else 0) + (1 if config.augment else 0)
         for policy in config.policies:
             train = train_config(config, policy, demos)
             checkpoints = -(-train.steps // train.save_freq)  # every save_freq and the last
@@ -358,6 +429,8 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
     for task in config.tasks:
         demos = demo_config(config, task)
         dataset = make_demos(demos, stages, options)
+        if config.augment:
+            dataset = make_augmented(AugmentConfig(demos, config.augment), dataset, stages, options)
         for policy in config.policies:
             train = train_config(config, policy, demos)
             key, run = train_policy(train, dataset, stages, options)
@@ -371,9 +444,10 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
                 name = f"{policy}-{task}-step{step}-test"
                 row = evaluate(evaluation, training.checkpoint(run, step), stages, options, name)
                 rows.append(
-                    _row(row, policy, demos.inputs, mode)
+                    _row(row, policy, inputs(train), mode)
                     | {
                         "demos": demos.episodes,
+                        "augmented": train.augmented,
                         "train_steps": train.steps,
                         "checkpoint_step": step,
                         "chosen_on": f"validation seeds {validation_seeds[0]}-"
