@@ -240,6 +240,15 @@ def build_parser() -> argparse.ArgumentParser:
         "changes it, with a blend slider); auto (default): both where the twin has a camera "
         "of the real camera's name (--camera-poses puts it at the real pose), else real",
     )
+    rec.add_argument(
+        "--quest-cameras",
+        default=None,
+        metavar="NAME[,NAME...]",
+        help="the streamed panels the Quest app's camera panel shows (a grid of them; default: "
+        "every panel of a session with real cameras, the twin's headset images without): real "
+        "cameras, NAME_depth depth panels, or without real cameras the twin's panels; an "
+        "unknown name stops the session at start, listing the panels there are",
+    )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()
     start.add_argument(
