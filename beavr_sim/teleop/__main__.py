@@ -229,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="stream camera panels to the browser view, the WebXR page and the Quest's camera "
         "panel at HZ panels per second (default 0: off; e.g. 5), off the control thread: the "
         "real cameras and the twin's renders of them, or without real cameras the twin's "
-        "cameras (--camera-poses' cameras, else front)",
+        "cameras (--camera-poses' cameras, else front) and the twin depth --cameras "
+        "NAME:depth records (NAME_depth)",
     )
     rec.add_argument(
         "--camera-view",
