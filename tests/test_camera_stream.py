@@ -353,7 +353,7 @@ def test_the_twin_process_streams_its_renders_to_the_view_from_its_steps():
     twin.reset(0)
     stage = TwinStage(twin)
     view = _View()
-    close = attach_camera_stream(TwinCameraStream(20.0), env, stage, None, view=view)
+    close = attach_camera_stream(TwinCameraStream(StreamConfig(20.0)), env, stage, None, view=view)
     try:
         deadline = time.monotonic() + WAIT_S
         while len(view.panel.frames) < 2:  # the stream renders what the steps copied
@@ -431,7 +431,7 @@ def test_the_twin_process_quest_panel_never_doubles_the_headset_images(monkeypat
     class _Stage:
         after_step: list = []
 
-    config = twin_camera_stream.TwinCameraStream(50.0, quest=True)
+    config = twin_camera_stream.TwinCameraStream(StreamConfig(50.0), quest=True)
     close = twin_camera_stream.attach_camera_stream(
         config, None, _Stage(), None, view=view, quest=quest
     )

@@ -166,12 +166,9 @@ class _QuestPublisher:
         return np.asarray(Image.open(io.BytesIO(self.sent[-1])))
 
 
-def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
-    """``RealCameras.peek`` gives the depth map too; the Quest panel's one image is the colour
-    panel and the coloured depth panel side by side."""
+def _depth_cameras() -> RealCameras:
+    """A connected ``RealCameras`` of one stand-in depth camera ``wrist``."""
     from lerobot.cameras.realsense.configuration_realsense import RealSenseCameraConfig
-
-    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
 
     config = RealSenseCameraConfig("1", fps=30, width=W, height=H, use_depth=True)
     real = RealCameras(
@@ -179,6 +176,15 @@ def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
         make_cameras=lambda configs: {n: _StandInDepthCamera(c) for n, c in configs.items()},
     )  # fmt: skip
     real.connect()
+    return real
+
+
+def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
+    """``RealCameras.peek`` gives the depth map too; the Quest panel's one image is the colour
+    panel and the coloured depth panel side by side."""
+    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
+
+    real = _depth_cameras()
     quest = _QuestPublisher()
     try:
         assert "wrist_depth" in real.peek().frames
@@ -196,6 +202,84 @@ def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
     assert _close(depth[:, 4 : W // 3 - 4], NEAR, 12)  # near: blue
     assert _close(depth[:, W // 3 + 4 : 2 * W // 3 - 4], FAR, 12)  # far: red
     assert depth[:, 2 * W // 3 + 4 :].max() < 25  # no depth: black
+
+
+def test_the_quest_panel_shows_only_the_panels_chosen():
+    """--quest-cameras wrist_depth: the Quest image is the depth panel alone (no grid, no
+    colour tile), while the stream still composes every panel for the other viewers."""
+    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
+
+    real = _depth_cameras()
+    quest = _QuestPublisher()
+    try:
+        config = StreamConfig(rate_hz=50.0, quest_panels=("wrist_depth",))
+        stream = start_camera_stream(real, config, CameraViewers(quest=quest))
+        try:
+            image = quest.wait()
+        finally:
+            stream.close()
+    finally:
+        real.close()
+    assert stream.shapes.keys() == {"wrist", "wrist_depth"}  # both still streamed
+    assert image.shape == (H, W, 3)  # one panel: its image, not a grid of two
+    assert _close(image[:, 4 : W // 3 - 4], NEAR, 12)  # the depth's colours, not wrist's grey
+    assert _close(image[:, W // 3 + 4 : 2 * W // 3 - 4], FAR, 12)
+
+
+def test_an_unknown_quest_camera_is_one_line_naming_the_panels():
+    from beavr_sim.naming import UnknownNameError
+    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
+
+    real = _depth_cameras()
+    quest = _QuestPublisher()
+    try:
+        config = StreamConfig(rate_hz=50.0, quest_panels=("wrist", "wirst_depth"))
+        with pytest.raises(UnknownNameError) as caught:
+            start_camera_stream(real, config, CameraViewers(quest=quest))
+    finally:
+        real.close()
+    message = str(caught.value)
+    assert "\n" not in message and "'wirst_depth' (--quest-cameras)" in message
+    assert message.endswith("Valid Quest camera panels (--quest-cameras): wrist, wrist_depth.")
+    assert quest.sent == []
+
+
+def test_quest_cameras_is_one_option_of_both_layouts():
+    """--quest-cameras reaches the one StreamConfig both layouts start their stream from; the
+    --multiprocess twin checks the names against its panels at its start (a bad one: the
+    supervisor's bad input), and the option needs a Quest and a stream."""
+    from types import SimpleNamespace
+
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.naming import UnknownNameError
+    from beavr_sim.teleop.__main__ import build_parser
+    from beavr_sim.teleop.processes import process_configs
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.teleop.twin_camera_stream import TwinCameraStream, check_quest_panels
+    from beavr_sim.teleop.twin_process import BAD_INPUT, _fail_start
+
+    trace = ["--source", "trace", "--trace", str(bundled_trace("PickupBox"))]
+    argv = ["--task", "PickupBox", "--no-viser", "--camera-stream-hz", "5"]
+    argv += ["--quest-cameras", "front, front_depth"]
+    with pytest.raises(ValueError, match=r"--quest-cameras .* needs --camera-stream-hz HZ and "):
+        SessionOptions.from_args(build_parser().parse_args([*argv, *trace]))  # no Quest
+    options = SessionOptions.from_args(build_parser().parse_args([*argv, "--multiprocess"]))
+    assert options.camera_stream_config().quest_panels == ("front", "front_depth")
+    _, twin = process_configs(options)
+    assert twin.camera_stream.stream == options.camera_stream_config()
+
+    env = SimpleNamespace(embodiment=SimpleNamespace(cameras=()))  # the headset camera: front
+    stream = TwinCameraStream(options.camera_stream_config(), depth=("front",), quest=True)
+    assert check_quest_panels(stream, env, None) == ("front", "front_depth")
+    assert stream.quest_shows_panels(None)  # chosen: the Quest shows them, not headset images
+    bare = TwinCameraStream(StreamConfig(5.0), quest=True)
+    assert not bare.quest_shows_panels(None)  # not chosen, no real camera: headset images
+    side = TwinCameraStream(StreamConfig(5.0, quest_panels=("side",)), quest=True)
+    with pytest.raises(UnknownNameError, match=r"Valid Quest camera panels .*: front\.$") as bad:
+        check_quest_panels(side, env, None)
+    sent: list = []
+    _fail_start(SimpleNamespace(send_bytes=sent.append), SimpleNamespace(close=list), [], bad.value)
+    assert sent[0].decode().startswith(BAD_INPUT + "Unknown Quest camera panel 'side'")
 
 
 # --- every camera on the Quest panel ----------------------------------------------------------

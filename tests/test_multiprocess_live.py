@@ -112,8 +112,9 @@ def test_the_episode_line_is_one_process_s_label_in_every_phase():
 
 
 def test_a_multiprocess_quest_session_streams_its_camera_to_the_quest_app_panel(quest_options):
-    """``--source quest --camera front=... --camera-stream-hz`` under ``--multiprocess``: the
-    twin process reads the camera and the Quest app's camera socket gets its panels."""
+    """``--source quest --camera front=... --camera-stream-hz --quest-cameras front`` under
+    ``--multiprocess``: the twin process reads the camera, checks the chosen panel at its
+    start, and the Quest app's camera socket gets its panels."""
     from beavr_sim.teleop.processes import MultiprocessSession
 
     camera = ImageServer()
@@ -122,6 +123,7 @@ def test_a_multiprocess_quest_session_streams_its_camera_to_the_quest_app_panel(
         multiprocess=True,
         camera_stream_hz=10.0,
         real_cameras=(f"front=zmq:127.0.0.1:{camera.port}",),
+        quest_cameras=("front",),
     )
     context = zmq.Context()
     sub = context.socket(zmq.SUB)

@@ -369,3 +369,71 @@ def test_datasets_generate_places_the_twin_cameras_of_camera_poses(tmp_path, mon
     bare = tmp_path / "bare.toml"
     bare.write_text('[cameras.front]\ntype = "opencv"\nindex_or_path = 0\n')
     assert main([*common, "--camera-poses", str(bare), "--overwrite"]) == 2
+
+
+def test_a_twin_only_session_streams_the_twin_depth_it_records(tmp_path):
+    """No real camera, --cameras front,front:depth: the streamed panels are the twin's front
+    and its depth panel front_depth (the twin's depth, in the real depth panels' colours,
+    labelled as the twin's), through the one stream both layouts start."""
+    import threading
+
+    from waiting import HANG_GUARD_S
+
+    from beavr_sim.assets import bundled_trace
+    from beavr_sim.cameras.stream import LIVE, StreamConfig, colour_depth
+    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
+    from beavr_sim.teleop.processes import process_configs
+    from beavr_sim.teleop.session import SessionOptions
+    from beavr_sim.teleop.twin_camera_feed import twin_feed
+
+    common = dict(task="PickupBox", source="trace", trace=bundled_trace("PickupBox"))
+    common.update(viser=False, headless=True, progress=False, camera_stream_hz=5.0)
+    recording = RecordingConfig(cameras=("front",), depth_cameras=("front",))
+    options = SessionOptions(**common, record=tmp_path / "d", recording=recording)
+    assert options.streamed_twin_depth == ("front",)
+    multi = SessionOptions(**common, record=tmp_path / "e", recording=recording, multiprocess=True)
+    _, twin = process_configs(multi)  # --multiprocess: the twin process's stream gets it too
+    assert twin.camera_stream.depth == ("front",)
+    assert SessionOptions(**common).streamed_twin_depth == ()  # recording nothing: colour only
+
+    env = gym.make("beavr_sim/Playground-v0").unwrapped
+    env.reset(seed=0)
+    feed, panels = twin_feed(env, 50.0)
+    feed(Tick(t=0.0, frames=(), commands={}, state=None))  # type: ignore[arg-type]
+    arrived, seen, shapes = threading.Event(), {}, {}
+
+    class _Panel:
+        def __call__(self, frame):
+            seen[frame.name] = frame
+            if frame.name == "front_depth" and frame.state == LIVE:
+                arrived.set()
+
+        def attach(self, stream):
+            pass
+
+    class _View:
+        def add_camera_panel(self, panel_shapes):
+            shapes.update(panel_shapes)
+            return _Panel()
+
+    viewers = CameraViewers(view=_View(), twin=feed, twin_panels=panels, twin_depth=("front",))
+    stream = start_camera_stream(None, StreamConfig(rate_hz=50.0), viewers)
+    try:
+        assert arrived.wait(HANG_GUARD_S), "no live twin depth panel"
+    finally:
+        stream.close()
+    height, width = feed.panel_shape("front")[:2]
+    direct = mujoco.Renderer(env.render_model, height, width)
+    direct.enable_depth_rendering()
+    direct.update_scene(env.render_data(), camera="front", scene_option=render_option())
+    expected = colour_depth(direct.render()[..., None])
+    direct.close()
+    env.close()
+    assert panels == ("front",)
+    assert shapes == {"front": (height, width, 3), "front_depth": (height, width, 1)}
+    depth = seen["front_depth"]
+    assert depth.label.startswith("front_depth: live, age ")
+    assert depth.label.endswith("(depth 0.2-2 m, twin)")  # the twin's depth, its colours
+    assert depth.image.shape == (height, width, 3)
+    assert np.abs(depth.image.astype(int) - expected).mean() < 1.0  # the twin's depth, coloured
+    assert not np.array_equal(depth.image, seen["front"].image)  # not the colour render

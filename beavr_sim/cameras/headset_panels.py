@@ -3,8 +3,8 @@ page's camera panel.
 
 Both are :data:`~beavr_sim.cameras.stream.Sink` callables run on the camera stream's worker
 thread (never the control thread). The Quest app shows one image stream (one JPEG per message,
-its panel a texture of the image's size): :class:`QuestCameraSink` composes every panel of the
-stream into that one image, a grid of tiles each labelled with its panel's line (one panel: the
+its panel a texture of the image's size): :class:`QuestCameraSink` composes the panels it is
+given (every panel of the stream, or those ``--quest-cameras`` chose) into that one image, a grid of tiles each labelled with its panel's line (one panel: the
 panel alone, as composed), at most :data:`QUEST_IMAGE_MAX` pixels, and forwards it to a
 ``HeadsetImagePublisher`` (which paces and encodes; its short send queue drops what a slow
 headset cannot take). :class:`WebXRCameraSink` publishes each panel as a ``camera`` message

@@ -62,12 +62,15 @@ _DEPTH_LUT_SPAN = (16, 240)
 class StreamConfig:
     """``rate_hz``: panels per second at most (``0``: the stream is off); ``view``: one of
     :data:`VIEWS`; ``blend``: the twin's weight in ``overlay`` (0..1); ``dead_after_s``: a
-    frame older than this when shown is "no signal"."""
+    frame older than this when shown is "no signal"; ``quest_panels``: the panels the Quest
+    app's camera panel shows (``--quest-cameras``; None: every panel), checked against the
+    session's panels when the stream starts."""
 
     rate_hz: float = DEFAULT_RATE_HZ
     view: str = "real"
     blend: float = 0.5
     dead_after_s: float = 1.0
+    quest_panels: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.view != AUTO:
@@ -77,6 +80,13 @@ class StreamConfig:
         check_blend(self.blend)
         if self.dead_after_s <= 0:
             raise ValueError(f"dead_after_s must be > 0, got {self.dead_after_s}")
+        if self.quest_panels is not None:
+            panels = tuple(self.quest_panels)
+            if not panels or not all(isinstance(n, str) and n for n in panels):
+                raise ValueError(
+                    f"--quest-cameras takes panel names, NAME[,NAME...], got {self.quest_panels!r}"
+                )
+            object.__setattr__(self, "quest_panels", tuple(dict.fromkeys(panels)))
 
 
 def check_view(view: str) -> str:

@@ -229,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="stream camera panels to the browser view, the WebXR page and the Quest's camera "
         "panel at HZ panels per second (default 0: off; e.g. 5), off the control thread: the "
         "real cameras and the twin's renders of them, or without real cameras the twin's "
-        "cameras (--camera-poses' cameras, else front)",
+        "cameras (--camera-poses' cameras, else front) and the twin depth --cameras "
+        "NAME:depth records (NAME_depth)",
     )
     rec.add_argument(
         "--camera-view",
@@ -239,6 +240,15 @@ def build_parser() -> argparse.ArgumentParser:
         "it, both side by side, or the twin blended over the real frame (the browser view "
         "changes it, with a blend slider); auto (default): both where the twin has a camera "
         "of the real camera's name (--camera-poses puts it at the real pose), else real",
+    )
+    rec.add_argument(
+        "--quest-cameras",
+        default=None,
+        metavar="NAME[,NAME...]",
+        help="the streamed panels the Quest app's camera panel shows (a grid of them; default: "
+        "every panel of a session with real cameras, the twin's headset images without): real "
+        "cameras, NAME_depth depth panels, or without real cameras the twin's panels; an "
+        "unknown name stops the session at start, listing the panels there are",
     )
     rec.add_argument("--episodes", type=int, default=1, help="episodes to record (default 1)")
     start = rec.add_mutually_exclusive_group()

@@ -123,6 +123,7 @@ from beavr_sim.teleop.twin_page_stream import (
     TwinPageStream,
 )
 from beavr_sim.teleop.twin_process import (
+    BAD_INPUT,
     twin_main,
 )
 from beavr_sim.teleop.twin_rerun import TwinRerun
@@ -199,7 +200,10 @@ class MultiprocessSession:
             reply = pipe.recv_bytes()
             if reply != b"ready":
                 self._abort_start(replied=name)
-                raise MirrorError(reply.decode(errors="replace").removeprefix("error: "))
+                text = reply.decode(errors="replace")
+                if text.startswith(BAD_INPUT):  # a bad option only the process could check
+                    raise ValueError(text.removeprefix(BAD_INPUT))
+                raise MirrorError(text.removeprefix("error: "))
         self.session_pub.wait_for_subscribers(len(TARGETS), HANDSHAKE_TIMEOUT_S)
         self.send("resume")  # everyone is ready: the operator starts a trace now
 
@@ -442,9 +446,9 @@ def process_configs(
         ),
         camera_stream=(
             TwinCameraStream(
-                options.camera_stream_hz,
-                options.camera_view,
+                options.camera_stream_config(),
                 placed=tuple(c.name for c in options.placed_cameras),
+                depth=options.streamed_twin_depth,
                 quest=options.source == "quest" and not options.headless,
                 page=options.source == "webxr",
                 real_cameras=tuple(options.real_cameras),

@@ -49,7 +49,11 @@ from beavr_sim.robots.embodiment import DEFAULT_EMBODIMENT, embodiment_layout
 from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.tasks.registry import canonical_task_name
 from beavr_sim.teleop.announce import announce_view, announce_webxr
-from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
+from beavr_sim.teleop.camera_viewers import (
+    CameraViewers,
+    parse_quest_cameras,
+    start_camera_stream,
+)
 from beavr_sim.teleop.console import CONSOLE
 from beavr_sim.teleop.episodes import (
     STARTS,
@@ -178,12 +182,22 @@ class SessionOptions:
     #: ``--camera-view`` (``auto`` or one of ``beavr_sim.cameras.stream.VIEWS``).
     camera_stream_hz: float = 0.0
     camera_view: str = "auto"
+    #: ``--quest-cameras``: the streamed panels the Quest app's camera panel shows (None:
+    #: every panel of a session with real cameras; without, the twin's headset images).
+    quest_cameras: tuple[str, ...] | None = None
     #: ``--camera-poses F.toml``: a file of ``[cameras.NAME]`` tables (a rig file) whose
     #: ``T_world_camera`` poses place the twin's cameras (``beavr_sim.cameras.poses``).
     camera_poses: str | Path | None = None
 
     def __post_init__(self) -> None:
         self.camera_stream_config()  # a bad rate or view fails here, before anything starts
+        if self.quest_cameras is not None and not (
+            self.camera_stream_hz > 0 and self.source == "quest" and not self.headless
+        ):
+            raise ValueError(
+                "--quest-cameras chooses the streamed panels the Quest app shows: it needs "
+                "--camera-stream-hz HZ and --source quest (not --headless)"
+            )
         if self.real_cameras:
             from beavr_sim.cameras.spec import (
                 parse_camera_arg,
@@ -311,7 +325,15 @@ class SessionOptions:
         """The real cameras' stream to the viewers (``CameraStream``'s config)."""
         from beavr_sim.cameras.stream import StreamConfig  # local: heavy (OpenCV, ~170 ms)
 
-        return StreamConfig(rate_hz=self.camera_stream_hz, view=self.camera_view)
+        return StreamConfig(
+            rate_hz=self.camera_stream_hz, view=self.camera_view, quest_panels=self.quest_cameras
+        )
+
+    @property
+    def streamed_twin_depth(self) -> tuple[str, ...]:
+        """The twin cameras whose depth is a streamed panel (``NAME_depth``) in a session
+        without real cameras: those whose depth is recorded (``--cameras NAME:depth``)."""
+        return tuple(self.recording.depth_cameras) if self.record is not None else ()
 
     def webxr_config(self):
         """The WebXR page server's :class:`~beavr_sim.headset.webxr_server.WebXRConfig`."""
@@ -425,6 +447,7 @@ class SessionOptions:
             real_cameras=tuple(getattr(args, "camera", None) or ()),
             camera_stream_hz=getattr(args, "camera_stream_hz", 0.0),
             camera_view=getattr(args, "camera_view", "auto"),
+            quest_cameras=parse_quest_cameras(getattr(args, "quest_cameras", None)),
             camera_poses=poses,
         )
 
@@ -701,10 +724,10 @@ def run_session(
             )
             closers.append(publisher.close)
         streams_cameras = options.camera_stream_hz > 0 and (
-            options.real_cameras or options.mirror_hardware
+            options.real_cameras or options.mirror_hardware or options.quest_cameras is not None
         )
         if not options.headless and options.source == "quest" and streams_cameras:
-            viewers["quest"] = publisher  # the panel shows every real camera, not the twin
+            viewers["quest"] = publisher  # the panel shows the streamed panels, not the twin
         elif not options.headless and options.source == "quest":
             images = headset_listener(
                 publisher, loop, options.headset_image_size, 1.0 / options.headset_image_hz
@@ -752,11 +775,12 @@ def run_session(
 def twin_camera_panels(options: SessionOptions, loop: TeleopLoop) -> dict[str, object]:
     """The twin's renders for the streamed camera panels: a tick listener of ``loop`` copying
     the pose at the stream's rate, and the twin-only panels (the cameras ``--camera-poses``
-    places, else the headset's camera) shown when the session has no real camera."""
+    places, else the headset's camera, and the recorded twin depth cameras' ``NAME_depth``)
+    shown when the session has no real camera."""
     placed = tuple(c.name for c in options.placed_cameras)
     feed, panels = twin_feed(loop.twin.env, options.camera_stream_hz, placed)
     loop.listeners.append(feed)
-    return {"twin": feed, "twin_panels": panels}
+    return {"twin": feed, "twin_panels": panels, "twin_depth": options.streamed_twin_depth}
 
 
 def rearm(mirror) -> None:
@@ -871,7 +895,14 @@ def record_episodes(
     if note:
         print(note, file=sys.stderr)
     real = _real_cameras(options, config.fps)
-    stream = start_camera_stream(real, options.camera_stream_config(), viewers or CameraViewers())
+    try:  # a bad --quest-cameras name fails here: the cameras closed
+        stream = start_camera_stream(
+            real, options.camera_stream_config(), viewers or CameraViewers()
+        )
+    except ValueError:
+        if real is not None:
+            real.close()
+        raise
     writer = EpisodeWriter(
         options.record,
         options.repo_id,

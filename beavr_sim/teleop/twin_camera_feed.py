@@ -146,6 +146,11 @@ def twin_feed(
     """The twin's renders for a session's camera panels (both layouts): the feed (a tick /
     ``after_step`` hook to add) and the twin-only panels shown when the session has no real
     camera: the cameras ``--camera-poses`` places (``placed``), else the headset's camera."""
-    fallback = headset_camera(env.embodiment)
-    feed = TwinCameraFeed(env.render_model, env.data, fallback, rate_hz)
-    return feed, tuple(placed) or (fallback,)
+    feed = TwinCameraFeed(env.render_model, env.data, headset_camera(env.embodiment), rate_hz)
+    return feed, twin_panel_names(env, placed)
+
+
+def twin_panel_names(env, placed: Sequence[str] = ()) -> tuple[str, ...]:
+    """The twin-only panels of a session without real cameras: the cameras ``--camera-poses``
+    places (``placed``), else the headset's camera."""
+    return tuple(placed) or (headset_camera(env.embodiment),)

@@ -21,10 +21,19 @@ import json
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
-from beavr_sim.teleop.twin_camera_feed import twin_feed
+from beavr_sim.teleop.camera_viewers import (
+    CameraViewers,
+    panel_names,
+    quest_panels,
+    start_camera_stream,
+)
+from beavr_sim.teleop.twin_camera_feed import twin_feed, twin_panel_names
 from beavr_sim.wire.messages import CameraPanelMsg
+
+if TYPE_CHECKING:
+    from beavr_sim.cameras.stream import StreamConfig
 
 #: The state stream's topic of the WebXR page's camera panels.
 PANEL_TOPIC = b"camera"
@@ -32,16 +41,17 @@ PANEL_TOPIC = b"camera"
 
 @dataclass(frozen=True)
 class TwinCameraStream:
-    """The twin process's camera stream: ``rate_hz`` panels per second, the ``view`` asked
-    (``auto`` or one of ``beavr_sim.cameras.stream.VIEWS``), the twin-only panels' names (the
-    cameras ``--camera-poses`` places; none: the headset's camera), and whether the Quest
-    app's camera panel shows every real camera's panel (one image, a grid), composed in the
-    view chosen (in place of the twin's headset images, which stay when there is no real
-    camera)."""
+    """The twin process's camera stream: ``stream``, the session's ``StreamConfig`` (rate,
+    view, the Quest's panels: the one config of both layouts), the twin-only panels' names
+    (the cameras ``--camera-poses`` places; none: the headset's camera) and the twin cameras
+    whose recorded depth is a twin-only panel too (``depth``), and whether the session has the
+    Quest app (``quest``), whose camera panel then shows the streamed panels (one image, a
+    grid), composed in the view chosen, in place of the twin's headset images: with real
+    cameras, or when ``stream.quest_panels`` chose panels (else those images stay)."""
 
-    rate_hz: float
-    view: str = "auto"
+    stream: StreamConfig
     placed: tuple[str, ...] = ()
+    depth: tuple[str, ...] = ()
     quest: bool = False
     #: The WebXR page's panels, sent to the operator process that hosts its server.
     page: bool = False
@@ -51,14 +61,19 @@ class TwinCameraStream:
     rig_file: str | None = None
 
     def __post_init__(self) -> None:
-        if not self.rate_hz > 0:
-            raise ValueError(f"the twin's camera stream rate must be > 0, got {self.rate_hz}")
+        if not self.stream.rate_hz > 0:
+            raise ValueError(
+                f"the twin's camera stream rate must be > 0, got {self.stream.rate_hz}"
+            )
 
-    def stream_config(self):
-        """The stream's ``StreamConfig``."""
-        from beavr_sim.cameras.stream import StreamConfig  # local: heavy (OpenCV, ~170 ms)
+    @property
+    def rate_hz(self) -> float:
+        return self.stream.rate_hz
 
-        return StreamConfig(rate_hz=self.rate_hz, view=self.view)
+    def quest_shows_panels(self, real) -> bool:
+        """The Quest app's camera panel shows the streamed panels (``real``: the connected
+        ``RealCameras`` or None), in place of the twin's headset images."""
+        return self.quest and (real is not None or self.stream.quest_panels is not None)
 
 
 class PagePanels:
@@ -81,6 +96,15 @@ class PagePanels:
         return list(newest.values())
 
 
+def check_quest_panels(config: TwinCameraStream, env, real) -> tuple[str, ...]:
+    """The panels the Quest app will show of this stream (``real``: the connected
+    ``RealCameras`` or None); a ``--quest-cameras`` name that is no panel is one line
+    (``UnknownNameError``), raised at the twin process's start, before anything streams."""
+    cameras = (real.cameras, real.depth_cameras) if real is not None else ((), ())
+    panels = panel_names(*cameras, twin_panel_names(env, config.placed), config.depth)
+    return quest_panels(config.stream.quest_panels, panels)
+
+
 def attach_camera_stream(
     config: TwinCameraStream, env, stage, real, view=None, quest=None, page=None
 ) -> Callable[[], None]:
@@ -92,12 +116,13 @@ def attach_camera_stream(
     viewers = CameraViewers(
         view=view,
         webxr=page,
-        # the Quest app's panel shows every real camera's panel (in the view chosen) in place
-        # of the twin's headset images; without a real camera those images stay alone
-        quest=quest if config.quest and real is not None else None,
+        # the Quest app's panel shows the streamed panels (in the view chosen) in place of the
+        # twin's headset images (which stay alone without real cameras, unless chosen)
+        quest=quest if config.quest_shows_panels(real) else None,
         twin=feed,
         twin_panels=panels,
+        twin_depth=config.depth,
     )
-    stream = start_camera_stream(real, config.stream_config(), viewers)
+    stream = start_camera_stream(real, config.stream, viewers)
 
     return stream.close if stream is not None else lambda: None  # (it closes the feed)

@@ -24,6 +24,7 @@ from beavr_sim.cameras.errors import CameraError
 from beavr_sim.hardware.device import MirrorError
 from beavr_sim.hardware.mirror import Fixtures
 from beavr_sim.headset.quest_io import HeadsetImagePublisher
+from beavr_sim.naming import UnknownNameError
 from beavr_sim.teleop.announce import announce_view
 from beavr_sim.teleop.episodes import (
     request_of,
@@ -62,6 +63,7 @@ from beavr_sim.teleop.twin_camera_stream import (
     PANEL_TOPIC,
     PagePanels,
     attach_camera_stream,
+    check_quest_panels,
 )
 from beavr_sim.teleop.twin_page_stream import (
     POSES_TOPIC,
@@ -127,12 +129,18 @@ def make_twin_env(config: TwinProcessConfig):
     return gym.make(f"beavr_sim/{config.task}-v0", embodiment=config.embodiment, **kwargs).unwrapped
 
 
+#: The start reply of a twin process refusing an option it alone could check (a
+#: ``--quest-cameras`` name that is no panel): the supervisor's bad input (exit 2).
+BAD_INPUT = "bad input: "
+
+
 def _fail_start(conn, env, closers: list[Callable[[], None]], exc: BaseException) -> None:
     """The twin process could not start (the rig, the dataset or a camera): close what was
     opened, newest first, and tell the supervisor in one line."""
     for close in reversed(closers):
         close()
-    conn.send_bytes(f"error: {exc}".encode())
+    prefix = BAD_INPUT if isinstance(exc, UnknownNameError) else "error: "
+    conn.send_bytes(f"{prefix}{exc}".encode())
     env.close()
 
 
@@ -185,6 +193,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
             )
             if real is not None:
                 closers.append(real.close)
+        if streaming is not None:  # a --quest-cameras name that is no panel fails here
+            check_quest_panels(streaming, env, real)
     except (ValueError, OSError, CameraError) as exc:
         _fail_start(conn, env, closers, exc)
         return
@@ -253,8 +263,8 @@ def twin_main(config: TwinProcessConfig, transport: TransportConfig, conn) -> No
         browser_estop = BrowserEstop(view, mirror)
     publisher = None
     page_panels: PagePanels | None = None
-    # the Quest app's camera panel shows every real camera in place of the twin's images
-    quest_panel = streaming is not None and streaming.quest and real is not None
+    # the Quest app's camera panel shows the streamed panels in place of the twin's images
+    quest_panel = streaming is not None and streaming.quest_shows_panels(real)
     if config.headset_images is not None:
         images = config.headset_images
         publisher = HeadsetImagePublisher(context, transport, rate_hz=images.rate_hz)
