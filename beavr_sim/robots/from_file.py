@@ -31,8 +31,8 @@ model's actuators, tendons (so tendon-coupled joints move independently), sensor
 equalities, keyframes, contact pairs and excludes (its geoms keep their own contact bits);
 freezes inertia;
 adds one position servo per hand joint (the table's ``servo``; ctrl range = joint range),
-whose damping replaces the model's passive joint damping; adds a ``palm_centre`` site and a
-``tip_<finger>`` site per finger; sorts geoms into the visual and collision groups as above.
+whose damping replaces the model's passive joint damping; adds a ``palm_centre`` site (unless
+the hand has one) and a ``tip_<finger>`` site per finger; sorts geoms into the visual and collision groups as above.
 """
 
 from __future__ import annotations
@@ -286,7 +286,11 @@ def hand_model(robot: RobotFile, hand_file: HandFile) -> HandModel:
     not there yet (see the module docstring). One part serves every side naming it."""
     hand = load_hand(hand_file, robot.path)
     sides = sorted({e.side for e in robot.effectors if e.hand == hand_file.name})
-    part = cache_dir() / f"{robot.name}-{_hand_digest(robot, hand_file)}" / f"hand_{hand.spec.name}.xml"
+    part = (
+        cache_dir()
+        / f"{robot.name}-{_hand_digest(robot, hand_file)}"
+        / f"hand_{hand.spec.name}.xml"
+    )
     if not part.is_file():
         write_hand_part(robot, hand, part)
     tip_bodies = []
@@ -355,9 +359,11 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
     data.qpos[hand.qpos_ids] = hand.home
     mujoco.mj_kinematics(hand.model, data)
     centre = 0.5 * tip_points(hand, data).mean(axis=0)  # halfway to the tips: the palm's middle
-    if src.site(PALM_SITE) is not None:
-        raise RobotFileError(f"{where}: the model has a site {PALM_SITE!r} already")
-    root.add_site(name=PALM_SITE, pos=centre.tolist(), group=4)
+    own = src.site(PALM_SITE)
+    if own is None:
+        root.add_site(name=PALM_SITE, pos=centre.tolist(), group=4)
+    elif own.parent.name not in subtree:
+        raise RobotFileError(f"{where}: the model has a site {PALM_SITE!r} outside the hand")
     for geom in src.geoms:
         if geom.contype or geom.conaffinity:
             geom.group = COLLISION_GROUP
@@ -375,6 +381,9 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
                 ("jnt", "site", "geom", "body", "tendon", "actuator", "sensor"))):  # fmt: skip
         setattr(src, key, getattr(fresh, key))
     src.option.iterations = fresh.option.iterations
+    root.pos = [0.0, 0.0, 0.0]  # the root's frame is placed by the hand frame alone
+    root.quat = [1.0, 0.0, 0.0, 0.0]
+    root.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(hand.R_palm_root.T).reshape(9))
     frame = top.add_frame(quat=quat.tolist())

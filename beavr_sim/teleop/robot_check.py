@@ -25,8 +25,8 @@ from beavr_sim.assets import bundled_traces
 from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.operator.retarget import HandMap, RetargetConfig
 from beavr_sim.operator.retarget_model import finger_scales
-from beavr_sim.robots.hand_file import load_hand
 from beavr_sim.robots.embodiment import Embodiment, embodiment_layout, embodiment_spec
+from beavr_sim.robots.hand_file import load_hand
 from beavr_sim.tasks.registry import TASKS, task_class
 
 
