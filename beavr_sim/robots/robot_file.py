@@ -1,8 +1,9 @@
 """The robot file: a robot described in TOML, parsed into frozen dataclasses (no MuJoCo here).
 
 A robot file names one or two arms (each from its own MJCF or URDF, paths relative to the
-file), a hand per effector, the mount (flange -> hand), the sides and where each arm stands at
-the table. :func:`read_robot_file` parses and checks it; every error names the file, the key
+file), a hand per effector (the built-in LEAP hand, or a ``[hands.NAME]`` table: a hand from
+its own MJCF, :class:`HandFile`), the mount (flange -> hand), the sides and where each arm
+stands at the table. :func:`read_robot_file` parses and checks it; every error names the file, the key
 and, for a choice, the valid values. :mod:`beavr_sim.robots.from_file` turns the result into an
 :class:`~beavr_sim.robots.embodiment.EmbodimentSpec`; ``docs/robots.md`` documents the format::
 
@@ -28,6 +29,17 @@ and, for a choice, the valid values. :mod:`beavr_sim.robots.from_file` turns the
     hand = "leap"
     base_pos = [0.0, 0.0, 0.0]              # metres, table frame: z = 0 on the table top
     mount = { pos = [0.0, 0.0, 0.0], yaw_deg = 0.0 }
+
+A hand table (read by :func:`read_hand_table`; its model is checked by
+:func:`beavr_sim.robots.hand_file.load_hand`)::
+
+    [hands.shadow]
+    model = "shadow/hand.xml"
+    root = "palm"                           # the palm body: the hand is its subtree
+    palm_axes = ["y", "-x", "z"]            # the root's axes as human palm axes
+    servo = { kp = 2.0 }                    # the twin's servos on the hand joints
+    [hands.shadow.fingers]
+    thumb = "site:thtip"                    # a fingertip site (or "body:NAME") per finger
 
 A path may also be ``pkg://<python package>/<path inside it>``: the file ships inside an
 installed (or unpacked) package and is found without importing it.
