@@ -71,8 +71,8 @@ def test_the_franka_shadow_robot_file_passes_the_check(shadow_robot, capsys):
 def test_a_bundled_trace_drives_the_shadow_hand_with_no_guard_refusal(shadow_robot, monkeypatch):
     fingers = []  # each retargeted hand command
 
-    def retarget(self, keypoints, tracked=None):
-        q = original(self, keypoints, tracked)
+    def retarget(self, keypoints, tracked=None, dt=None):
+        q = original(self, keypoints, tracked, dt)
         fingers.append(q)
         return q
 

@@ -526,7 +526,10 @@ class EffectorOperator:
             self._T_target = target
             if self._fresh:
                 self._fresh = False  # a frame that fails here is not retried every tick
-                q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
+                if isinstance(self.retargeter, ModelHandRetargeter):  # caps speed over dt
+                    q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked, dt)
+                else:
+                    q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
                 fingers_held = self.retargeter.infeasible
                 self._q_hand = q_hand
                 self.ik.set_fingers(q_hand)

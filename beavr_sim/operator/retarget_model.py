@@ -9,8 +9,8 @@ where ``h`` is the human finger the file maps to ``f`` and ``scale_f`` is derive
 are in :mod:`beavr_sim.operator.retarget`: the hand finger's reach at home (root origin ->
 fingertip) over the human template's wrist -> tip length for ``h``. Each tick a few damped
 least-squares steps on the fingertip positions move the joints toward the targets; the step
-is clipped to the joint limits, to ``max_velocity_deg_s * dt`` and to a change of speed of at
-most ``max_acceleration * dt`` from the previous step (under the twin guard's hand
+is clipped to the joint limits, to ``speed_fraction * max_velocity_deg_s * dt`` and to a
+change of speed of at most ``max_acceleration * dt`` from the previous step (under the twin guard's hand
 acceleration cap). The per-tick call never raises: a non-finite or missing keypoint set holds
 the last command (counted in ``holds``); a finger whose human tip is untracked holds.
 
@@ -43,6 +43,11 @@ class ModelRetargetConfig:
     #: guard refuses hand joints above 250: a reversal at full speed would pass it at 30 Hz
     #: only for caps under 3.75 rad/s).
     max_acceleration: float = 200.0
+    #: The share of the hand's speed cap (``max_velocity_deg_s``, the twin's and the guard's)
+    #: the retargeter moves at, as the arm IK's 2 rad/s sits under the xArm's pi: commands
+    #: that come per hand frame add up within one control period, and the twin shortens a
+    #: joint's steps beyond its cap from the last physics step.
+    speed_fraction: float = 2 / 3
 
 
 class ModelHandMap:
@@ -119,10 +124,15 @@ class ModelHandRetargeter:
         self.q = np.clip(q, self.hand.lower, self.hand.upper)
         self._v[:] = 0.0
 
-    def retarget(self, keypoints_palm: np.ndarray, tracked: np.ndarray | None = None) -> np.ndarray:
+    def retarget(
+        self,
+        keypoints_palm: np.ndarray,
+        tracked: np.ndarray | None = None,
+        dt: float | None = None,
+    ) -> np.ndarray:
         """Joint targets for one hand frame (palm-frame keypoints, per-joint tracked flags),
-        one step of :attr:`dt`: the operator's call."""
-        return self.step(keypoints_palm, self.dt, tracked)
+        one step of ``dt`` (default :attr:`dt`): the operator's call."""
+        return self.step(keypoints_palm, self.dt if dt is None else dt, tracked)
 
     def root_targets(self, keypoints: np.ndarray) -> np.ndarray:
         """The fingertip targets (n_fingers x 3, root frame) of palm-frame ``keypoints``."""
@@ -163,7 +173,7 @@ class ModelHandRetargeter:
         hand, model, data = self.hand, self.hand.model, self._data
         goal = self.root_targets(np.nan_to_num(np.asarray(keypoints, dtype=float)))
         weight = np.where(held, 0.0, self._weight)
-        cap = np.radians(hand.spec.max_velocity_deg_s) * dt
+        cap = self.config.speed_fraction * np.radians(hand.spec.max_velocity_deg_s) * dt
         q = self.q.copy()
         for _ in range(self.config.iterations):
             data.qpos[hand.qpos_ids] = q
