@@ -41,7 +41,6 @@ import hashlib
 import math
 import os
 import tempfile
-import warnings
 from pathlib import Path
 
 import mujoco
@@ -67,6 +66,8 @@ HANDS = {"leap": LEAP_HAND}
 HAND_BODY = "hand"
 #: The palm site of every written hand part.
 PALM_SITE = "palm_centre"
+#: A prefix the hand part's names carry while it is built (none in the written file).
+_PART_PREFIX = "beavr-hand-part-prefix:"
 
 
 def cache_dir() -> Path:
@@ -387,9 +388,8 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(hand.R_palm_root.T).reshape(9))
     frame = top.add_frame(quat=quat.tolist())
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the source's sizes and options: the scene's win
-        frame.attach_body(root, "", "")
+    # Attached under a prefix (MuJoCo warns of an empty one), removed from the written text.
+    frame.attach_body(root, _PART_PREFIX, "")
     used = {g.meshname for g in out.geoms if g.meshname}
     for mesh in list(out.meshes):
         if mesh.name not in used:
@@ -402,10 +402,8 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
     for kind in ("jnt", "site", "geom", "body", "tendon", "actuator", "sensor"):
         setattr(out, f"nuser_{kind}", -1)
     servo = spec_file.servo
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the source's sizes and options: the scene's win
-        model = out.compile()
-    for name in hand.joint_names:
+    model = out.compile()
+    for name in (_PART_PREFIX + j for j in hand.joint_names):
         joint = out.joint(name)
         index = model.joint(name).id
         joint.damping = np.zeros_like(joint.damping)
@@ -419,13 +417,12 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
         if force > 0:
             actuator.forcerange = [-force, force]
             actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            out.compile()
-        except ValueError as e:
-            raise RobotFileError(f"{where}: the hand part does not compile: {e}") from e
-        xml = out.to_xml()
+    xml = out.to_xml()  # the source's top default class would repeat the part's own "main"
+    xml = xml.replace(f'"{_PART_PREFIX}main"', '"hand_main"').replace(_PART_PREFIX, "")
+    try:
+        mujoco.MjModel.from_xml_string(xml)
+    except ValueError as e:
+        raise RobotFileError(f"{where}: the hand part does not compile: {e}") from e
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as f:
         f.write(xml)
