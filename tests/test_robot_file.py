@@ -265,3 +265,74 @@ def test_the_check_names_what_is_missing_and_prints_the_derived_facts(write, cap
     assert "finger scales (human -> hand): thumb " in out
     assert main(["check", str(path.with_name("absent.toml"))]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def leap_table(name: str = "leapfile") -> str:
+    """A ``[hands.NAME]`` table naming our own LEAP MJCF: the LEAP hand as a model-file hand,
+    its joints in motor order (the model's is another). Its ``palm`` body is turned -90 deg
+    about y in the hand frame: the root's x is the palm frame's z, its z the palm frame's -x."""
+    return textwrap.dedent(
+        f"""\
+        [hands.{name}]
+        model = "{mjcf_path("xarm7_leap/leap_right.xml")}"
+        root = "palm"
+        palm_axes = ["z", "y", "-x"]
+        joints = {[f"leap_{i}" for i in range(16)]}
+        [hands.{name}.fingers]
+        thumb = "site:thumb_tip"
+        index = "site:index_tip"
+        middle = "site:middle_tip"
+        ring = "site:ring_tip"
+        """
+    )
+
+
+@pytest.mark.parametrize(
+    ("hand", "table", "message"),
+    [
+        ('"leapfle"', leap_table(), "effectors[0].hand: Unknown hand 'leapfle'"),
+        ('"leapfle"', leap_table(), "Valid hands: leap, leapfile"),
+        ('"leap"', leap_table("leap"), "hands.leap: 'leap' is a built-in hand"),
+        (
+            '"leapfile"',
+            leap_table() + 'colour = "red"\n',
+            "hands.leapfile.fingers.colour: Unknown finger 'colour'. Valid fingers: index,",
+        ),
+    ],
+)
+def test_an_effector_names_a_hand_table_or_a_built_in(write, hand, table, message):
+    text = xarm_toml(hand=hand).replace("[[effectors]]", table + "[[effectors]]")
+    with pytest.raises(RobotFileError) as err:
+        read_robot_file(write(text))
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_leap_hand_from_its_model_file_lands_where_the_built_in_one_does(write):
+    # The palm body sits at (-0.0115, 0.0224, 0.112) in the LEAP hand frame; a hand part puts
+    # the root at the hand frame's origin, so the mount moves it there.
+    text = xarm_toml(hand='"leapfile"').replace("[[effectors]]", leap_table() + "[[effectors]]")
+    text += "mount = { pos = [-0.0115, 0.0224, 0.112] }\n"
+    ours, builtin = make_embodiment(str(write(text))), make_embodiment("xarm7_leap_right")
+    hand = ours.spec.effectors[0].hand
+    assert hand.joints == tuple(f"leap_{i}" for i in range(16)) and hand.source is not None
+    assert hand.collision_bodies == ("palm", "thumb_distal", "index_distal", "middle_distal",
+                                     "ring_distal")  # fmt: skip
+    poses = []
+    for embodiment in (ours, builtin):
+        scene = mujoco.MjSpec()
+        embodiment.attach_to(scene)
+        model = scene.compile()
+        joints = embodiment.bind(model)
+        data = mujoco.MjData(model)
+        data.qpos[joints.qpos_adr] = joints.home + np.r_[np.zeros(7), np.full(16, 0.3)]
+        mujoco.mj_kinematics(model, data)
+        poses.append((model, joints, data))
+    (m1, j1, d1), (_, j2, d2) = poses
+    np.testing.assert_allclose(j1.lower, j2.lower)  # the hand's limits from its model
+    np.testing.assert_allclose(j1.upper, j2.upper)
+    for finger in ("thumb", "index", "middle", "ring"):
+        np.testing.assert_allclose(
+            d1.site(f"right/tip_{finger}").xpos, d2.site(f"right/{finger}_tip").xpos, atol=1e-6
+        )
+    assert not m1.dof_damping[j1.qvel_adr[7:]].any()  # the servos' kv is the damping
+    np.testing.assert_allclose(m1.actuator_gainprm[j1.actuator_ids[7:], 0], 2.0)

@@ -109,7 +109,23 @@ def test_bad_keypoints_hold_the_last_command_and_are_counted(shadow):
     ik = ModelHandRetargeter(shadow, "right")
     q = ik.step(pinch(0.5), 1 / 30)
     bad = pinch(0.5)
-    bad[3, 1] = np.nan
+    bad[JOINT_INDEX["thumb_tip"], 1] = np.nan  # a tip the solver uses
     for keypoints in (bad, None, np.zeros((5, 3)), "junk"):
         assert np.array_equal(ik.step(keypoints, 1 / 30), q)  # type: ignore[arg-type]
     assert ik.holds == 4
+
+
+def test_a_finger_whose_tip_is_untracked_holds_and_the_others_follow(shadow):
+    ik = ModelHandRetargeter(shadow, "right", dt=1 / 30)
+    q0 = ik.retarget(pinch(0.0))
+    tracked = np.ones(len(JOINT_INDEX), dtype=bool)
+    tracked[JOINT_INDEX["index_tip"]] = False
+    k = pinch(1.0)
+    k[JOINT_INDEX["index_tip"]] = np.nan  # untracked: its position is meaningless
+    for _ in range(10):
+        q = ik.retarget(k, tracked)
+    index = [i for i, n in enumerate(shadow.joint_names) if n.startswith("robot0:FF")]
+    thumb = [i for i, n in enumerate(shadow.joint_names) if n.startswith("robot0:TH")]
+    assert np.array_equal(q[index], q0[index])
+    assert np.abs(q[thumb] - q0[thumb]).max() > 0.1
+    assert ik.holds == 0

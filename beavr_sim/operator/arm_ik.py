@@ -47,11 +47,13 @@ from beavr_sim.operator.obstacles import (
 )
 from beavr_sim.operator.qp import StepQP
 from beavr_sim.robots.embodiment import BODY_PREFIX, Embodiment, JointIndex
+from beavr_sim.robots.parts import LEAP_HAND
 from beavr_sim.workcell import TABLE_WORKSPACE_BOX
 
-#: Hand bodies whose geoms are checked: the palm and the four fingertips (the parts that
-#: reach furthest; fewer pairs keep the IK well under a millisecond).
-HAND_BODIES = ("palm", "thumb_distal", "index_distal", "middle_distal", "ring_distal")
+#: Hand bodies whose geoms are checked: the hand's ``collision_bodies``, the palm and the
+#: fingertip links (the parts that reach furthest; fewer pairs keep the IK well under a
+#: millisecond). The LEAP hand's:
+HAND_BODIES = LEAP_HAND.collision_bodies
 
 #: Name of the IK scene's wall on the back face of the twin guard's workspace box.
 BACK_WALL = "ik_back_wall"
@@ -277,8 +279,9 @@ class ArmIK:
         each other and against the back wall (:meth:`_arm_pairs`)."""
         model, p = self.model, self.effector.name + "/"
         arm = self.single.spec.effectors[0].arm
-        hand = [g for b in HAND_BODIES for g in _body_geoms(model, p + b)]
-        palm = _body_geoms(model, p + "palm")
+        hand_model = self.single.spec.effectors[0].hand
+        hand = [g for b in hand_model.collision_bodies for g in _body_geoms(model, p + b)]
+        palm = _body_geoms(model, p + hand_model.palm_body)
         forearm = [g for link in arm.forearm_links for g in _body_geoms(model, p + link)]
         upper = [g for link in arm.upper_arm_links for g in _body_geoms(model, p + link)]
         body = [

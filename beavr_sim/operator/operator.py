@@ -55,9 +55,10 @@ beyond the session rules above:
 - ``"ik_infeasible"``: the arm IK's QP had no solution (e.g. already closer to the table than
   the collision margin): the arm holds its previous joints (``hold=True``) while the fingers
   still follow the hand in that tick (both runners' twins apply the command's positions).
-- ``"retarget_infeasible"``: the LEAP retargeting's QP had no solution: the fingers hold their
-  previous joints while the arm moves, so the command is not a hold (``hold=False``) but
-  carries the reason; counted in ``holds`` like the others. A tick where both QPs failed
+- ``"retarget_infeasible"``: the LEAP retargeting's QP had no solution (a model-file hand's
+  damped least-squares retargeting, :mod:`beavr_sim.operator.retarget_model`, always has
+  one): the fingers hold their previous joints while the arm moves, so the command is not a
+  hold (``hold=False``) but carries the reason; counted in ``holds`` like the others. A tick where both QPs failed
   has reason ``"ik_infeasible"`` and counts under both.
 
 Infeasible ticks are logged at the same rate as errors, per reason.
@@ -82,7 +83,9 @@ from beavr_sim.operator.filters import KeypointFilter, PoseFilter
 from beavr_sim.operator.obstacles import Obstacle
 from beavr_sim.operator.palm import T_world_palm
 from beavr_sim.operator.retarget import LeapRetargeter, RetargetConfig, human_template
+from beavr_sim.operator.retarget_model import ModelHandRetargeter
 from beavr_sim.robots import Embodiment
+from beavr_sim.robots.hand_file import load_hand
 from beavr_sim.wire.hand import (
     JOINT_INDEX,
     N_JOINTS,
@@ -176,7 +179,8 @@ class EffectorTargets:
 
     ``T_world_target``: the arm's hand-frame target (None until the mapping is anchored);
     ``T_world_hand``: the hand frame the IK reached; ``finger_targets_world``: the LEAP tip and
-    distal targets (8 x 3, placed on ``T_world_hand``); ``keypoints_world``: the operator's
+    distal targets (8 x 3; a model-file hand's fingertip targets, one per finger; placed on
+    ``T_world_hand``); ``keypoints_world``: the operator's
     hand skeleton (26 canonical joints) drawn at the arm target with the finger scale, so the
     human hand and the robot hand overlap. The last two are None before the first frame.
     """
@@ -219,7 +223,15 @@ class EffectorOperator:
         self.effector = embodiment.effector(effector)
         self.side = self.effector.side
         self.ik = ArmIK(embodiment, effector, dt, config.arm_ik)
-        self.retargeter = LeapRetargeter(self.side, config.retarget)
+        hand = embodiment.spec.effectors[
+            [e.name for e in embodiment.effectors].index(self.effector.name)
+        ].hand
+        #: The LEAP hand's retargeter, or a model-file hand's (the robot file's ``[hands]``).
+        self.retargeter: LeapRetargeter | ModelHandRetargeter = (
+            LeapRetargeter(self.side, config.retarget)
+            if hand.source is None
+            else ModelHandRetargeter(load_hand(hand.source), self.side, dt=dt)
+        )
         self.mapping = RelativeMotionMapping(axis_map(embodiment.name, self.side))
         self.keypoints = KeypointFilter(
             config.keypoint_min_cutoff_hz, config.keypoint_beta, config.keypoint_d_cutoff_hz
@@ -514,7 +526,10 @@ class EffectorOperator:
             self._T_target = target
             if self._fresh:
                 self._fresh = False  # a frame that fails here is not retried every tick
-                q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
+                if isinstance(self.retargeter, ModelHandRetargeter):  # caps speed over dt
+                    q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked, dt)
+                else:
+                    q_hand = self.retargeter.retarget(self._palm_keypoints, self._tracked)
                 fingers_held = self.retargeter.infeasible
                 self._q_hand = q_hand
                 self.ik.set_fingers(q_hand)

@@ -20,6 +20,19 @@ the embodiment attaches like a bundled part. Writing it:
 The upper-arm and forearm links the operator's IK keeps clear default to the links before and
 after the middle joint. Anything else the operator, the guard and the twin need they derive
 from the compiled scene, as for the built-in robots.
+
+An effector's ``hand`` is the LEAP hand, or a ``[hands.NAME]`` table of the file: a hand from
+its own MJCF (:mod:`beavr_sim.robots.hand_file`), written as a *hand part* beside the arm
+parts. Its top body ``hand`` is the hand's mount frame in the LEAP hand's convention (the
+human palm frame's: +z along the fingers, +x out of the palm, thumb at +y on a right hand),
+the model's root (palm) body at its origin turned by ``palm_axes``; below it the root's
+subtree, without the joints on the root itself (a wrist: the arm's job). Writing it drops the
+model's actuators, tendons (so tendon-coupled joints move independently), sensors,
+equalities, keyframes, contact pairs and excludes (its geoms keep their own contact bits);
+freezes inertia;
+adds one position servo per hand joint (the table's ``servo``; ctrl range = joint range),
+whose damping replaces the model's passive joint damping; adds a ``palm_centre`` site (unless
+the hand has one) and a ``tip_<finger>`` site per finger; sorts geoms into the visual and collision groups as above.
 """
 
 from __future__ import annotations
@@ -33,8 +46,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from beavr_sim.robots.parts import LEAP_HAND, ArmModel, ArmServo, HandMount
-from beavr_sim.robots.robot_file import ArmFile, RobotFile, RobotFileError, read_robot_file
+from beavr_sim.robots.hand_file import ModelHand, load_hand, tip_points
+from beavr_sim.robots.parts import LEAP_HAND, ArmModel, ArmServo, HandModel, HandMount
+from beavr_sim.robots.robot_file import (
+    ArmFile,
+    HandFile,
+    RobotFile,
+    RobotFileError,
+    read_robot_file,
+)
 from beavr_sim.robots.specs import EffectorSpec, EmbodimentSpec
 from beavr_sim.robots.visuals import COLLISION_GROUP, VISUAL_GROUP
 from beavr_sim.workcell import TABLE_TOP_Z
@@ -42,6 +62,12 @@ from beavr_sim.workcell import TABLE_TOP_Z
 #: Name of the site the hand mounts on, in every written arm part.
 FLANGE_SITE = "flange"
 HANDS = {"leap": LEAP_HAND}
+#: The top body of every written hand part: the hand's mount frame (as the LEAP hand's).
+HAND_BODY = "hand"
+#: The palm site of every written hand part.
+PALM_SITE = "palm_centre"
+#: A prefix the hand part's names carry while it is built (none in the written file).
+_PART_PREFIX = "beavr-hand-part-prefix:"
 
 
 def cache_dir() -> Path:
@@ -55,6 +81,10 @@ def load_robot_file(path: str | Path) -> EmbodimentSpec:
     process of a pipeline (which pass embodiments by name) loads the same robot."""
     robot = read_robot_file(path)
     arms = {name: arm_model(robot, arm) for name, arm in robot.arms.items()}
+    hands = dict(HANDS)
+    for name, hand in robot.hands.items():
+        if any(e.hand == name for e in robot.effectors):
+            hands[name] = hand_model(robot, hand)
     effectors = tuple(
         EffectorSpec(
             name=e.name,
@@ -62,7 +92,7 @@ def load_robot_file(path: str | Path) -> EmbodimentSpec:
             base_pos=(e.base_pos[0], e.base_pos[1], e.base_pos[2] + TABLE_TOP_Z),
             base_yaw_deg=e.base_yaw_deg,
             arm=arms[e.arm],
-            hand=HANDS[e.hand],
+            hand=hands[e.hand],
             mount=HandMount(pos=e.mount.pos, yaw_deg_by_side={e.side: e.mount.yaw_deg}),
         )
         for e in robot.effectors
@@ -125,7 +155,7 @@ def load_arm_spec(robot: RobotFile, arm: ArmFile) -> mujoco.MjSpec:
         if isinstance(e, RobotFileError):
             raise
         raise RobotFileError(f"{where}.model: MuJoCo cannot read {arm.model}: {e}") from e
-    _absolute_meshes(spec, arm, where)
+    _absolute_meshes(spec, arm.model, arm.fragments, arm.asset_root, where)
     bodies = [b.name for b in spec.bodies if b.name and b.name != spec.worldbody.name]
     for key, name in (("base_body", arm.base_body), ("flange.body", arm.flange.body)):
         if name and spec.body(name) is None:
@@ -252,6 +282,160 @@ def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Pa
     os.replace(f.name, path)
 
 
+def hand_model(robot: RobotFile, hand_file: HandFile) -> HandModel:
+    """The :class:`HandModel` of a ``[hands.NAME]`` table, its part written to the cache if
+    not there yet (see the module docstring). One part serves every side naming it."""
+    hand = load_hand(hand_file, robot.path)
+    sides = sorted({e.side for e in robot.effectors if e.hand == hand_file.name})
+    part = (
+        cache_dir()
+        / f"{robot.name}-{_hand_digest(robot, hand_file)}"
+        / f"hand_{hand.spec.name}.xml"
+    )
+    if not part.is_file():
+        write_hand_part(robot, hand, part)
+    tip_bodies = []
+    for _, kind, i in hand.tips:
+        body = int(hand.model.site_bodyid[i]) if kind == "site" else i
+        tip_bodies.append(hand.model.body(body).name)
+    return HandModel(
+        name=hand_file.name,
+        mjcf_by_side={side: str(part) for side in sides},
+        joints=hand.joint_names,
+        palm_site=PALM_SITE,
+        fingertip_sites=tuple(f"tip_{f}" for f, _, _ in hand.tips),
+        root_body=HAND_BODY,
+        home=tuple(float(v) for v in hand.home),
+        palm_body=hand_file.root,
+        collision_bodies=tuple(dict.fromkeys((hand_file.root, *tip_bodies))),
+        max_velocity=math.radians(hand_file.max_velocity_deg_s),
+        source=hand_file,
+    )
+
+
+def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
+    """Write the hand part of ``hand`` (see the module docstring) to ``path`` atomically."""
+    spec_file = hand.spec
+    where = f"{robot.path}: hands.{spec_file.name}"
+    src = mujoco.MjSpec.from_file(str(spec_file.model))
+    _absolute_meshes(src, spec_file.model, (), None, where)
+    # The model's contact pairs go too: the operator's distance model takes only its own
+    # pairs (and MuJoCo cannot delete pairs from a spec with attached parts).
+    for kind in ("sensors", "tendons", "actuators", "equalities", "keys", "pairs", "excludes"):
+        for item in list(getattr(src, kind)):
+            src.delete(item)
+    compiled = src.compile()
+    root = src.body(spec_file.root)
+    subtree = _subtree_names(root)
+    for body in src.bodies:
+        if body.name in subtree:
+            c = compiled.body(body.name)
+            body.explicitinertial = True
+            body.mass = float(c.mass[0])
+            body.ipos = c.ipos.tolist()
+            body.iquat = c.iquat.tolist()
+            body.inertia = c.inertia.tolist()
+            body.fullinertia = [math.nan] * 6
+            body.gravcomp = 0.0
+    for joint in list(root.joints):  # a wrist on the root: the arm moves the hand
+        src.delete(joint)
+    joints = [j.name for j in src.joints if j.parent.name in subtree]
+    extra = [j for j in joints if j not in hand.joint_names]
+    if extra:
+        raise RobotFileError(
+            f"{where}.joints: the model also has joints {extra} below {spec_file.root!r}: "
+            "list them in joints (the twin needs a servo on every joint of the hand)"
+        )
+    for (finger, kind, i), name in zip(hand.tips, (f"tip_{f}" for f, _, _ in hand.tips),
+                                       strict=True):  # fmt: skip
+        if kind == "site":
+            site = src.site(hand.model.site(i).name)
+            owner, pos = site.parent, list(site.pos)
+        else:
+            owner, pos = src.body(hand.model.body(i).name), [0.0] * 3
+        if src.site(name) is not None:
+            raise RobotFileError(f"{where}.fingers.{finger}: the model has a site {name!r} already")
+        owner.add_site(name=name, pos=pos, group=4)
+    data = mujoco.MjData(hand.model)
+    data.qpos[hand.qpos_ids] = hand.home
+    mujoco.mj_kinematics(hand.model, data)
+    centre = 0.5 * tip_points(hand, data).mean(axis=0)  # halfway to the tips: the palm's middle
+    own = src.site(PALM_SITE)
+    if own is None:
+        root.add_site(name=PALM_SITE, pos=centre.tolist(), group=4)
+    elif own.parent.name not in subtree:
+        raise RobotFileError(f"{where}: the model has a site {PALM_SITE!r} outside the hand")
+    for geom in src.geoms:
+        if geom.contype or geom.conaffinity:
+            geom.group = COLLISION_GROUP
+        else:
+            geom.group = VISUAL_GROUP
+            geom.mass = 0.0
+            geom.density = 0.0
+
+    out = mujoco.MjSpec()
+    out.modelname = f"{robot.name}_{spec_file.name}"
+    out.compiler.degree = src.compiler.degree
+    top = out.worldbody.add_body(name=HAND_BODY)
+    fresh = mujoco.MjSpec()  # the source's sizes and solver options: the scene's win
+    for key in ("njmax", "nconmax", "nstack", *(f"nuser_{k}" for k in
+                ("jnt", "site", "geom", "body", "tendon", "actuator", "sensor"))):  # fmt: skip
+        setattr(src, key, getattr(fresh, key))
+    src.option.iterations = fresh.option.iterations
+    root.pos = [0.0, 0.0, 0.0]  # the root's frame is placed by the hand frame alone
+    root.quat = [1.0, 0.0, 0.0, 0.0]
+    root.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(hand.R_palm_root.T).reshape(9))
+    frame = top.add_frame(quat=quat.tolist())
+    # Attached under a prefix (MuJoCo warns of an empty one), removed from the written text.
+    frame.attach_body(root, _PART_PREFIX, "")
+    used = {g.meshname for g in out.geoms if g.meshname}
+    for mesh in list(out.meshes):
+        if mesh.name not in used:
+            out.delete(mesh)
+    for actuator in list(out.actuators):
+        out.delete(actuator)
+    for kind in ("bodies", "joints", "geoms", "sites"):  # the model's user data: none of ours
+        for item in getattr(out, kind):
+            item.userdata = []
+    for kind in ("jnt", "site", "geom", "body", "tendon", "actuator", "sensor"):
+        setattr(out, f"nuser_{kind}", -1)
+    servo = spec_file.servo
+    model = out.compile()
+    for name in (_PART_PREFIX + j for j in hand.joint_names):
+        joint = out.joint(name)
+        index = model.joint(name).id
+        joint.damping = np.zeros_like(joint.damping)
+        actuator = out.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        actuator.set_to_position(kp=servo.kp, kv=servo.damping)
+        actuator.ctrlrange = list(model.jnt_range[index])
+        actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        force = servo.force_limit or (
+            float(model.jnt_actfrcrange[index, 1]) if model.jnt_actfrclimited[index] else 0.0
+        )
+        if force > 0:
+            actuator.forcerange = [-force, force]
+            actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    xml = out.to_xml()  # the source's top default class would repeat the part's own "main"
+    xml = xml.replace(f'"{_PART_PREFIX}main"', '"hand_main"').replace(_PART_PREFIX, "")
+    try:
+        mujoco.MjModel.from_xml_string(xml)
+    except ValueError as e:
+        raise RobotFileError(f"{where}: the hand part does not compile: {e}") from e
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as f:
+        f.write(xml)
+    os.replace(f.name, path)
+
+
+def _subtree_names(body) -> set[str]:
+    names = {body.name}
+    for child in body.bodies:
+        names |= _subtree_names(child)
+    return names
+
+
 def _check_home(part: mujoco.MjModel, robot: RobotFile, arm: ArmFile, sides) -> None:
     """Raise naming the joint, its limits and the key when a home pose leaves the limits."""
     for side in sides:
@@ -270,13 +454,15 @@ def _is_fragment(path: Path) -> bool:
         return b"<mujocoinclude" in f.read(4096)
 
 
-def _absolute_meshes(spec: mujoco.MjSpec, arm: ArmFile, where: str) -> None:
+def _absolute_meshes(
+    spec: mujoco.MjSpec, model: Path, fragments, asset_root: Path | None, where: str
+) -> None:
     """Point every mesh at its file by an absolute path. A relative ``meshdir`` is relative
     to ``asset_root`` (default: the model's folder); MuJoCo reads a fragment's mesh paths
     relative to the fragment's folder, which ``asset_root`` corrects."""
-    root = arm.asset_root or arm.model.parent
+    root = asset_root or model.parent
     meshdir = root / spec.meshdir if spec.meshdir else root
-    sources = [p.parent for p in (arm.model, *arm.fragments)]
+    sources = [p.parent for p in (model, *fragments)]
     for mesh in spec.meshes:
         if not mesh.file:
             continue
@@ -322,6 +508,18 @@ def _strip(spec: mujoco.MjSpec, arm: ArmFile) -> None:
 
 def _contains(body, target) -> bool:
     return any(child.name == target.name or _contains(child, target) for child in body.bodies)
+
+
+def _hand_digest(robot: RobotFile, hand: HandFile) -> str:
+    """The hand part's cache key: this writer, the robot file, the model and its includes
+    (every file of the model's folder that it names)."""
+    h = hashlib.sha256(f"{mujoco.__version__}\n".encode())
+    h.update(Path(__file__).read_bytes())
+    h.update(robot.path.read_bytes())
+    h.update(str(hand.model).encode())
+    for path in sorted(hand.model.parent.glob("*.xml")):
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
 
 
 def _digest(robot: RobotFile, arm: ArmFile) -> str:

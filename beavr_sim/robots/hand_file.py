@@ -1,16 +1,18 @@
-"""A hand from a model file: the ``[hands.NAME]`` table of a robot file, and the hand it loads.
+"""A hand from a model file: the hand a robot file's ``[hands.NAME]`` table loads.
 
-The table names an MJCF model (path relative to the robot file or ``pkg://package/path``),
-its root body (the palm: its frame is the hand's palm frame), the axes of that frame in the
-human palm frame's terms (``palm_axes``, e.g. ``["y", "-x", "z"]``: the root's x is the human
-+y, ...), per finger a fingertip site or body (``[hands.NAME.fingers]``: finger = "site:NAME" or
-"body:NAME"), which finger is the thumb, which human finger drives each hand finger
-(``human_fingers``, default the same name), the joint order (default: the model's hinge joints
-on the bodies below the root), home (default 0 clipped into the limits) and a speed cap.
-Joint limits are read from the model. Every error is one line naming the file, the key and
-the valid choices. :func:`load_hand` turns the table into a :class:`ModelHand`: the compiled
-model with the ids the retargeter (:mod:`beavr_sim.operator.retarget_model`) needs, and the
-per-finger reach at home (root origin -> fingertip) from which finger scales are derived.
+The table (parsed by :func:`beavr_sim.robots.robot_file.read_hand_table` into a
+:class:`~beavr_sim.robots.robot_file.HandFile`) names an MJCF model (path relative to the robot
+file or ``pkg://package/path``), its root body (the palm: its frame is the hand's palm frame),
+the axes of that frame in the human palm frame's terms (``palm_axes``, e.g. ``["y", "-x",
+"z"]``: the root's x is the human +y, ...), per finger a fingertip site or body
+(``[hands.NAME.fingers]``: finger = "site:NAME" or "body:NAME"), which finger is the thumb,
+which human finger drives each hand finger (``human_fingers``, default the same name), the
+joint order (default: the model's hinge joints on the bodies below the root), home (default 0
+clipped into the limits), a speed cap and the twin's servo gains. Joint limits are read from
+the model. Every error is one line naming the file, the key and the valid choices.
+:func:`load_hand` turns the table into a :class:`ModelHand`: the compiled model with the ids
+the retargeter (:mod:`beavr_sim.operator.retarget_model`) needs, and the per-finger reach at
+home (root origin -> fingertip) from which finger scales are derived.
 """
 
 from __future__ import annotations
@@ -18,37 +20,30 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import mujoco
 import numpy as np
 
 from beavr_sim.naming import check_name
-from beavr_sim.robots.robot_file import _Reader
+from beavr_sim.robots.robot_file import (
+    FINGER_NAMES,
+    TIP_KINDS,
+    HandFile,
+    _Reader,
+    read_hand_table,
+)
+from beavr_sim.robots.robot_file import palm_rotation as _palm_rotation
 
-#: Finger names a hand or a human hand may have, human order.
-FINGER_NAMES = ("thumb", "index", "middle", "ring", "little")
-#: Fingertip kinds: a site, or a body's origin.
-TIP_KINDS = ("site", "body")
-_AXES = ("x", "y", "z", "-x", "-y", "-z")
-_HAND_KEYS = ("model", "root", "palm_axes", "fingers", "thumb", "human_fingers", "joints",
-              "home_deg", "max_velocity_deg_s")  # fmt: skip
-
-
-@dataclass(frozen=True)
-class HandFile:
-    """One ``[hands.NAME]`` table, checked against the file's grammar (not yet the model)."""
-
-    name: str
-    model: Path
-    root: str
-    palm_axes: tuple[str, str, str]
-    fingers: tuple[tuple[str, str, str], ...]  # (finger, "site" | "body", model name)
-    thumb: str
-    human_fingers: tuple[tuple[str, str], ...]  # (hand finger, human finger)
-    joints: tuple[str, ...] | None
-    home_deg: tuple[float, ...] | None
-    max_velocity_deg_s: float = 180.0
+__all__ = [
+    "FINGER_NAMES",
+    "TIP_KINDS",
+    "HandFile",
+    "ModelHand",
+    "load_hand",
+    "palm_rotation",
+    "read_hand_table",
+    "tip_points",
+]
 
 
 @dataclass(frozen=True)
@@ -73,74 +68,9 @@ class ModelHand:
         return len(self.joint_names)
 
 
-def palm_rotation(axes: tuple[str, str, str]) -> np.ndarray:
+def palm_rotation(axes: tuple[str, ...]) -> np.ndarray:
     """Rows: the root frame's x, y, z as signed human-palm axes; raises on a non-rotation."""
-    R = np.zeros((3, 3))
-    for row, axis in enumerate(axes):
-        R[row, "xyz".index(axis[-1])] = -1.0 if axis.startswith("-") else 1.0
-    if not np.isclose(np.linalg.det(R), 1.0):
-        raise ValueError(f"palm_axes {list(axes)} is not a right-handed rotation")
-    return R
-
-
-def read_hand_table(path: Path, name: str, table: Any) -> HandFile:
-    """Check one ``[hands.NAME]`` table of the robot file at ``path``."""
-    r = _Reader(Path(path))
-    where = f"hands.{name}"
-    if not isinstance(table, dict):
-        raise r.fail(where, "expected a table")
-    r.keys(table, _HAND_KEYS, where)
-    axes = r.names(table, "palm_axes", where, ("x", "y", "z"))
-    if len(axes) != 3 or any(a not in _AXES for a in axes):
-        raise r.fail(f"{where}.palm_axes", f"expected 3 of {', '.join(_AXES)}, got {list(axes)}")
-    try:
-        palm_rotation(axes)  # type: ignore[arg-type]
-    except ValueError as e:
-        raise r.fail(f"{where}.palm_axes", str(e)) from None
-    finger_table = r.get(table, "fingers", dict, where)
-    if not finger_table:
-        raise r.fail(f"{where}.fingers", f"no finger; valid fingers: {', '.join(FINGER_NAMES)}")
-    fingers = []
-    for finger, text in finger_table.items():
-        key = f"{where}.fingers.{finger}"
-        try:
-            check_name("finger", finger, FINGER_NAMES)
-        except ValueError as e:
-            raise r.fail(key, str(e)) from None
-        kind, sep, target = text.partition(":") if isinstance(text, str) else ("", "", "")
-        if not sep or kind not in TIP_KINDS or not target:
-            raise r.fail(key, f"expected 'site:NAME' or 'body:NAME', got {text!r}")
-        fingers.append((finger, kind, target))
-    names = [f for f, _, _ in fingers]
-    thumb = r.get(table, "thumb", str, where, "thumb")
-    try:
-        check_name("thumb", thumb, names)
-    except ValueError as e:
-        raise r.fail(f"{where}.thumb", str(e)) from None
-    human_table = r.get(table, "human_fingers", dict, where, {})
-    for finger, human in human_table.items():
-        try:
-            check_name("hand finger", finger, names)
-            check_name("human finger", human, FINGER_NAMES)
-        except ValueError as e:
-            raise r.fail(f"{where}.human_fingers.{finger}", str(e)) from None
-    human = tuple((f, human_table.get(f, f)) for f in names)
-    velocity = r.get(table, "max_velocity_deg_s", float, where, 180.0)
-    if not velocity > 0:
-        raise r.fail(f"{where}.max_velocity_deg_s", f"must be positive, got {velocity}")
-    joints = r.names(table, "joints", where, None)
-    return HandFile(
-        name=name,
-        model=r.file(r.get(table, "model", str, where), f"{where}.model"),
-        root=r.get(table, "root", str, where),
-        palm_axes=axes,  # type: ignore[arg-type]
-        fingers=tuple(fingers),
-        thumb=thumb,
-        human_fingers=human,
-        joints=joints,
-        home_deg=r.floats(table, "home_deg", where, len(joints) if joints else None, None),
-        max_velocity_deg_s=velocity,
-    )
+    return np.array(_palm_rotation(axes))
 
 
 def _below(model: mujoco.MjModel, body: int, root: int) -> bool:

@@ -11,10 +11,14 @@ Nothing in the code branches on the side.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from beavr_sim.naming import check_name
+
+if TYPE_CHECKING:
+    from beavr_sim.robots.robot_file import HandFile
 
 SIDES = ("right", "left")
 
@@ -127,6 +131,13 @@ class HandModel:
     ``"full"`` and ``"lite"``), the current limit (mA) its servos run under; with
     ``torque_constant`` (N m/A) it sets each finger joint's torque cap (:meth:`torque_cap`),
     which the scene applies to the hand's actuators. Empty: the hand file's limits stand.
+
+    ``palm_body`` and ``collision_bodies`` (the palm and the fingertip links) are the bodies
+    the operator's arm IK keeps off the table, the fixtures and the upper arm.
+    ``max_velocity``: the hand joints' speed cap (rad/s) where lower than the guard's
+    (``None``: the guard's). ``source``: the robot file's ``[hands.NAME]`` table of a hand
+    from a model file (the operator retargets it with
+    :mod:`beavr_sim.operator.retarget_model`); ``None``: the LEAP hand.
     """
 
     name: str
@@ -141,6 +152,12 @@ class HandModel:
     mirror_signs_by_side: dict[str, tuple[float, ...]] = field(default_factory=dict)
     current_limit_ma_by_variant: dict[str, float] = field(default_factory=dict)
     torque_constant: float = 0.0
+    palm_body: str = "palm"
+    collision_bodies: tuple[str, ...] = (
+        "palm", "thumb_distal", "index_distal", "middle_distal", "ring_distal",
+    )  # fmt: skip
+    max_velocity: float | None = None
+    source: HandFile | None = None
 
     def __post_init__(self) -> None:
         for side in self.mjcf_by_side:

@@ -1,8 +1,9 @@
 """The robot file: a robot described in TOML, parsed into frozen dataclasses (no MuJoCo here).
 
 A robot file names one or two arms (each from its own MJCF or URDF, paths relative to the
-file), a hand per effector, the mount (flange -> hand), the sides and where each arm stands at
-the table. :func:`read_robot_file` parses and checks it; every error names the file, the key
+file), a hand per effector (the built-in LEAP hand, or a ``[hands.NAME]`` table: a hand from
+its own MJCF, :class:`HandFile`), the mount (flange -> hand), the sides and where each arm
+stands at the table. :func:`read_robot_file` parses and checks it; every error names the file, the key
 and, for a choice, the valid values. :mod:`beavr_sim.robots.from_file` turns the result into an
 :class:`~beavr_sim.robots.embodiment.EmbodimentSpec`; ``docs/robots.md`` documents the format::
 
@@ -29,6 +30,17 @@ and, for a choice, the valid values. :mod:`beavr_sim.robots.from_file` turns the
     base_pos = [0.0, 0.0, 0.0]              # metres, table frame: z = 0 on the table top
     mount = { pos = [0.0, 0.0, 0.0], yaw_deg = 0.0 }
 
+A hand table (read by :func:`read_hand_table`; its model is checked by
+:func:`beavr_sim.robots.hand_file.load_hand`)::
+
+    [hands.shadow]
+    model = "shadow/hand.xml"
+    root = "palm"                           # the palm body: the hand is its subtree
+    palm_axes = ["y", "-x", "z"]            # the root's axes as human palm axes
+    servo = { kp = 2.0 }                    # the twin's servos on the hand joints
+    [hands.shadow.fingers]
+    thumb = "site:thtip"                    # a fingertip site (or "body:NAME") per finger
+
 A path may also be ``pkg://<python package>/<path inside it>``: the file ships inside an
 installed (or unpacked) package and is found without importing it.
 """
@@ -45,13 +57,18 @@ from typing import Any
 from beavr_sim.naming import check_name
 
 SIDES = ("right", "left")
-#: Hands a robot file can name: built in (a model-file hand comes in a later version).
+#: Hands a robot file can name besides its own ``[hands.NAME]`` tables.
 BUILTIN_HANDS = ("leap",)
+#: Finger names a hand or a human hand may have, human order.
+FINGER_NAMES = ("thumb", "index", "middle", "ring", "little")
+#: Fingertip kinds of a ``[hands.NAME.fingers]`` entry: a site, or a body's origin.
+TIP_KINDS = ("site", "body")
+_AXES = ("x", "y", "z", "-x", "-y", "-z")
 #: Suffixes of the model files MuJoCo's compiler reads.
 MODEL_SUFFIXES = (".xml", ".mjcf", ".urdf")
 PACKAGE_SCHEME = "pkg://"
 
-_TOP_KEYS = ("name", "description", "arms", "effectors", "guard_box", "workspace")
+_TOP_KEYS = ("name", "description", "arms", "hands", "effectors", "guard_box", "workspace")
 _ARM_KEYS = (
     "model", "fragments", "asset_root", "base_body", "flange", "joints", "home_deg",
     "home_deg_by_side", "max_velocity_deg_s", "max_acceleration_rad_s2", "remove_bodies",
@@ -62,6 +79,8 @@ _FLANGE_KEYS = ("body", "site", "pos")
 _SERVO_KEYS = ("kp", "kv", "force_limit")
 _EFFECTOR_KEYS = ("name", "side", "arm", "hand", "base_pos", "base_yaw_deg", "mount")
 _MOUNT_KEYS = ("pos", "yaw_deg")
+_HAND_KEYS = ("model", "root", "palm_axes", "fingers", "thumb", "human_fingers", "joints",
+              "home_deg", "max_velocity_deg_s", "servo")  # fmt: skip
 
 
 class RobotFileError(ValueError):
@@ -91,6 +110,40 @@ class ServoGains:
     @property
     def damping(self) -> float:
         return self.kv if self.kv > 0 else self.kp / 10
+
+
+#: The position servos of a model-file hand's joints unless its ``servo`` says otherwise:
+#: about the LEAP hand's stiffness (1.6 N m/rad), damped with ``kp / 10``.
+HAND_SERVO = ServoGains(kp=2.0)
+
+
+@dataclass(frozen=True)
+class HandFile:
+    """One ``[hands.NAME]`` table, checked against the file's grammar (not yet the model:
+    :func:`beavr_sim.robots.hand_file.load_hand` does that)."""
+
+    name: str
+    model: Path
+    root: str
+    palm_axes: tuple[str, str, str]
+    fingers: tuple[tuple[str, str, str], ...]  # (finger, "site" | "body", model name)
+    thumb: str
+    human_fingers: tuple[tuple[str, str], ...]  # (hand finger, human finger)
+    joints: tuple[str, ...] | None
+    home_deg: tuple[float, ...] | None
+    max_velocity_deg_s: float = 180.0
+    servo: ServoGains = HAND_SERVO
+
+
+def palm_rotation(axes: tuple[str, ...]) -> list[list[float]]:
+    """Rows: the root frame's x, y, z as signed human-palm axes; raises on a non-rotation."""
+    R = [[0.0] * 3 for _ in range(3)]
+    for row, axis in enumerate(axes):
+        R[row]["xyz".index(axis[-1])] = -1.0 if axis.startswith("-") else 1.0
+    (a, b, c), (d, e, f), (g, h, i) = R
+    if round(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)) != 1:
+        raise ValueError(f"palm_axes {list(axes)} is not a right-handed rotation")
+    return R
 
 
 @dataclass(frozen=True)
@@ -154,6 +207,7 @@ class RobotFile:
     effectors: tuple[EffectorFile, ...]
     guard_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     workspace: tuple[tuple[float, float], tuple[float, float]] | None = None
+    hands: dict[str, HandFile] = field(default_factory=dict)
 
 
 def is_robot_file(name: object) -> bool:
@@ -188,6 +242,11 @@ def read_robot_file(path: str | Path) -> RobotFile:
     except tomllib.TOMLDecodeError as e:
         raise RobotFileError(f"{path}: not valid TOML: {e}") from e
     return _Reader(path).robot(data)
+
+
+def read_hand_table(path: str | Path, name: str, table: Any) -> HandFile:
+    """Check one ``[hands.NAME]`` table of the robot file at ``path``."""
+    return _Reader(Path(path)).hand(name, table)
 
 
 class _Reader:
@@ -252,10 +311,14 @@ class _Reader:
         if not arms_table:
             raise self.fail("arms", "no arm: add an [arms.NAME] table")
         arms = {key: self.arm(key, table) for key, table in arms_table.items()}
+        hands = {
+            key: self.hand(key, table)
+            for key, table in self.get(data, "hands", dict, "top level", {}).items()
+        }
         entries = self.get(data, "effectors", list, "top level")
         if not 1 <= len(entries) <= 2:
             raise self.fail("effectors", f"expected one or two [[effectors]], got {len(entries)}")
-        effectors = tuple(self.effector(i, e, arms) for i, e in enumerate(entries))
+        effectors = tuple(self.effector(i, e, arms, hands) for i, e in enumerate(entries))
         for kind, values in (("name", [e.name for e in effectors]),
                              ("side", [e.side for e in effectors])):  # fmt: skip
             if len(set(values)) != len(values):
@@ -286,6 +349,7 @@ class _Reader:
             effectors=effectors,
             guard_box=guard_box,  # type: ignore[arg-type]
             workspace=workspace,  # type: ignore[arg-type]
+            hands=hands,
         )
 
     def arm(self, name: str, table: Any) -> ArmFile:
@@ -327,13 +391,7 @@ class _Reader:
             if not lo < hi:
                 raise self.fail(f"{where}.limits_deg.{joint}", "expected lower < upper")
             limits[joint] = (lo, hi)
-        servo_table = self.get(table, "servo", dict, where, {})
-        self.keys(servo_table, _SERVO_KEYS, f"{where}.servo")
-        servo = ServoGains(
-            **{k: self.get(servo_table, k, float, f"{where}.servo") for k in servo_table}
-        )
-        if not servo.kp > 0 or servo.kv < 0 or servo.force_limit < 0:
-            raise self.fail(f"{where}.servo", "kp must be positive, kv and force_limit >= 0")
+        servo = self.servo(table, where, ServoGains())
         arm = ArmFile(
             name=name,
             model=model,
@@ -366,7 +424,83 @@ class _Reader:
                 raise self.fail(f"{where}.{key}", f"must be positive, got {getattr(arm, key)}")
         return arm
 
-    def effector(self, index: int, table: Any, arms: dict[str, ArmFile]) -> EffectorFile:
+    def servo(self, table: dict[str, Any], where: str, default: ServoGains) -> ServoGains:
+        servo_table = self.get(table, "servo", dict, where, {})
+        self.keys(servo_table, _SERVO_KEYS, f"{where}.servo")
+        values = {k: self.get(servo_table, k, float, f"{where}.servo") for k in servo_table}
+        servo = ServoGains(**{**default.__dict__, **values})
+        if not servo.kp > 0 or servo.kv < 0 or servo.force_limit < 0:
+            raise self.fail(f"{where}.servo", "kp must be positive, kv and force_limit >= 0")
+        return servo
+
+    def hand(self, name: str, table: Any) -> HandFile:
+        where = f"hands.{name}"
+        if name in BUILTIN_HANDS:
+            raise self.fail(where, f"{name!r} is a built-in hand: give this table another name")
+        if not isinstance(table, dict):
+            raise self.fail(where, "expected a table")
+        self.keys(table, _HAND_KEYS, where)
+        axes = self.names(table, "palm_axes", where, ("x", "y", "z"))
+        if len(axes) != 3 or any(a not in _AXES for a in axes):
+            raise self.fail(
+                f"{where}.palm_axes", f"expected 3 of {', '.join(_AXES)}, got {list(axes)}"
+            )
+        try:
+            palm_rotation(axes)
+        except ValueError as e:
+            raise self.fail(f"{where}.palm_axes", str(e)) from None
+        finger_table = self.get(table, "fingers", dict, where)
+        if not finger_table:
+            raise self.fail(
+                f"{where}.fingers", f"no finger; valid fingers: {', '.join(FINGER_NAMES)}"
+            )
+        fingers = []
+        for finger, text in finger_table.items():
+            key = f"{where}.fingers.{finger}"
+            try:
+                check_name("finger", finger, FINGER_NAMES)
+            except ValueError as e:
+                raise self.fail(key, str(e)) from None
+            kind, sep, target = text.partition(":") if isinstance(text, str) else ("", "", "")
+            if not sep or kind not in TIP_KINDS or not target:
+                raise self.fail(key, f"expected 'site:NAME' or 'body:NAME', got {text!r}")
+            fingers.append((finger, kind, target))
+        names = [f for f, _, _ in fingers]
+        thumb = self.get(table, "thumb", str, where, "thumb")
+        try:
+            check_name("thumb", thumb, names)
+        except ValueError as e:
+            raise self.fail(f"{where}.thumb", str(e)) from None
+        human_table = self.get(table, "human_fingers", dict, where, {})
+        for finger, human in human_table.items():
+            try:
+                check_name("hand finger", finger, names)
+                check_name("human finger", human, FINGER_NAMES)
+            except ValueError as e:
+                raise self.fail(f"{where}.human_fingers.{finger}", str(e)) from None
+        velocity = self.get(table, "max_velocity_deg_s", float, where, 180.0)
+        if not velocity > 0:
+            raise self.fail(f"{where}.max_velocity_deg_s", f"must be positive, got {velocity}")
+        joints = self.names(table, "joints", where, None)
+        if joints is not None and len(set(joints)) != len(joints):
+            raise self.fail(f"{where}.joints", f"joints repeat: {list(joints)}")
+        return HandFile(
+            name=name,
+            model=self.file(self.get(table, "model", str, where), f"{where}.model"),
+            root=self.get(table, "root", str, where),
+            palm_axes=axes,  # type: ignore[arg-type]
+            fingers=tuple(fingers),
+            thumb=thumb,
+            human_fingers=tuple((f, human_table.get(f, f)) for f in names),
+            joints=joints,
+            home_deg=self.floats(table, "home_deg", where, len(joints) if joints else None, None),
+            max_velocity_deg_s=velocity,
+            servo=self.servo(table, where, HAND_SERVO),
+        )
+
+    def effector(
+        self, index: int, table: Any, arms: dict[str, ArmFile], hands: dict[str, HandFile]
+    ) -> EffectorFile:
         where = f"effectors[{index}]"
         if not isinstance(table, dict):
             raise self.fail(where, "expected a table")
@@ -377,7 +511,7 @@ class _Reader:
         choices = {
             "side": (self.get(table, "side", str, where), SIDES),
             "arm": (self.get(table, "arm", str, where), tuple(arms)),
-            "hand": (self.get(table, "hand", str, where, "leap"), BUILTIN_HANDS),
+            "hand": (self.get(table, "hand", str, where, "leap"), BUILTIN_HANDS + tuple(hands)),
         }
         for key, (value, valid) in choices.items():
             try:

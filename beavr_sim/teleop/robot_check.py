@@ -24,7 +24,9 @@ from gymnasium.utils.env_checker import check_env
 from beavr_sim.assets import bundled_traces
 from beavr_sim.operator.arm_ik import ArmIK, ArmIKConfig
 from beavr_sim.operator.retarget import HandMap, RetargetConfig
+from beavr_sim.operator.retarget_model import finger_scales
 from beavr_sim.robots.embodiment import Embodiment, embodiment_layout, embodiment_spec
+from beavr_sim.robots.hand_file import load_hand
 from beavr_sim.tasks.registry import TASKS, task_class
 
 
@@ -44,6 +46,8 @@ class EffectorFacts:
     ik_link_pairs: int
     ik_wall_pairs: int
     touching_at_home: tuple[str, ...]
+    hand: str
+    hand_joints: int
     finger_scales: dict[str, float]
     upper_arm_links: tuple[str, ...]
     forearm_links: tuple[str, ...]
@@ -133,7 +137,10 @@ def _effector_facts(embodiment: Embodiment, index: int) -> EffectorFacts:
         if c.dist < 0:
             a, b = (model.body(model.geom_bodyid[g]).name for g in (c.geom1, c.geom2))
             touching.append(f"{a} / {b} ({-c.dist * 1000:.1f} mm)")
-    hand = HandMap(e_spec.side, RetargetConfig())
+    if e_spec.hand.source is None:
+        scales = HandMap(e_spec.side, RetargetConfig()).scales
+    else:
+        scales = finger_scales(load_hand(e_spec.hand.source), e_spec.side)
     lower = ik.joints.lower[:n_arm]
     upper = ik.joints.upper[:n_arm]
     return EffectorFacts(
@@ -154,7 +161,9 @@ def _effector_facts(embodiment: Embodiment, index: int) -> EffectorFacts:
         ik_link_pairs=len(ik.self_collision_pairs),
         ik_wall_pairs=len(ik.wall_pairs),
         touching_at_home=tuple(touching),
-        finger_scales={f: round(float(s), 3) for f, s in hand.scales.items()},
+        hand=e_spec.hand.name,
+        hand_joints=len(e_spec.hand.joints),
+        finger_scales={f: round(float(s), 3) for f, s in scales.items()},
         upper_arm_links=e_spec.arm.upper_arm_links,
         forearm_links=e_spec.arm.forearm_links,
     )
@@ -184,7 +193,7 @@ def format_report(report: RobotReport) -> str:
             f"  IK collision pairs: {f.ik_link_pairs} link-link geom pairs, "
             f"{f.ik_wall_pairs} against the guard box's back wall",
             f"  touching at home: {', '.join(f.touching_at_home) or 'nothing'}",
-            "  finger scales (human -> hand): "
+            f"  hand {f.hand}: {f.hand_joints} joints; finger scales (human -> hand): "
             + ", ".join(f"{k} {v}" for k, v in f.finger_scales.items()),
         ]
     lines.append("missing: " + ("nothing" if not report.missing else ""))

@@ -153,11 +153,17 @@ def max_velocity(embodiment: Embodiment, joints: JointIndex, config: GuardConfig
     :class:`~beavr_sim.twin.rate_limit.JointRateLimit` of the guard's velocity rule and of the
     twin's per-tick step limit (with the guard off as well). An arm whose servo has a lower
     speed cap than ``config.arm_max_velocity`` (:class:`~beavr_sim.robots.parts.ArmServo`, a
-    robot file's ``max_velocity_deg_s``) keeps its own."""
+    robot file's ``max_velocity_deg_s``) keeps its own, and so does a hand with a lower cap
+    (``HandModel.max_velocity``: a robot file's hand from a model file)."""
     hand = hand_joints(embodiment, joints)
     caps = np.where(hand, config.hand_max_velocity, config.arm_max_velocity)
     index, v_max, _ = embodiment.servo_joints()
     caps[index] = np.minimum(caps[index], v_max)
+    for e, spec in zip(embodiment.effectors, embodiment.spec.effectors, strict=True):
+        if spec.hand.max_velocity is not None:
+            sl = joints.slices[e.name]
+            fingers = slice(sl.start + len(e.arm_joints), sl.stop)
+            caps[fingers] = np.minimum(caps[fingers], spec.hand.max_velocity)
     return caps
 
 

@@ -48,8 +48,8 @@ class Mirror:
     def of(cls, env) -> Mirror | None:
         """The mirror of ``env``'s two arms (set to home), or None when they are not mirrors."""
         arms = {e.name for e in env.embodiment.effectors}
-        if arms != set(SWAP):
-            return None
+        if arms != set(SWAP) or any(e.hand.source for e in env.embodiment.spec.effectors):
+            return None  # not two arms, or a robot file's hand: which joints flip is unknown
         model, data = env.model, env.data
         data.qpos[env.joints.qpos_adr] = env.joints.home
         mujoco.mj_kinematics(model, data)
