@@ -20,17 +20,32 @@ from beavr_sim.operator.retarget_model import ModelHandRetargeter
 from beavr_sim.robots import make_embodiment
 from beavr_sim.teleop.session import SessionOptions, build_loop
 
-ROBOT = Path(__file__).resolve().parents[1] / "examples" / "robots" / "franka_shadow_right.toml"
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "robots"
+ROBOT = EXAMPLES / "franka_shadow_right.toml"
+#: The other hand on the xArm7 (issue 43's second pairing): our own xArm7 MJCF from a file.
+XARM7_ROBOT = EXAMPLES / "xarm7_shadow_right.toml"
 
 
 @pytest.fixture(scope="module")
-def shadow_robot():
-    """The robot file's path, with gymnasium-robotics importable (not imported)."""
+def wheel_on_path():
+    """gymnasium-robotics importable (not imported) while the module's tests run."""
     folder = unpacked_wheel()
     with pytest.MonkeyPatch.context() as mp:
         if folder is not None:
             mp.syspath_prepend(str(folder))
-        yield str(ROBOT)
+        yield
+
+
+@pytest.fixture(scope="module")
+def shadow_robot(wheel_on_path):
+    """The Franka + Shadow robot file's path."""
+    return str(ROBOT)
+
+
+@pytest.fixture(scope="module", params=[ROBOT, XARM7_ROBOT], ids=["franka", "xarm7"])
+def any_shadow_robot(request, wheel_on_path):
+    """Each robot file with the Shadow hand."""
+    return str(request.param)
 
 
 def test_the_shadow_hand_becomes_a_part_with_servos_on_its_joints(shadow_robot):
@@ -58,17 +73,22 @@ def test_the_shadow_hand_becomes_a_part_with_servos_on_its_joints(shadow_robot):
     assert (R.T @ tip)[2] > 0.15  # the fingers along the hand frame's +z, as LEAP's
 
 
-def test_the_franka_shadow_robot_file_passes_the_check(shadow_robot, capsys):
+def test_the_shadow_robot_files_pass_the_check(any_shadow_robot, capsys):
     from beavr_sim.robots.__main__ import main
 
-    assert main(["check", shadow_robot, "--task", "PickupBox"]) == 0
+    assert main(["check", any_shadow_robot, "--task", "PickupBox"]) == 0
     out = capsys.readouterr().out
     assert "check_env (PickupBox): passed" in out
     assert "hand shadow: 22 joints; finger scales (human -> hand): thumb " in out
     assert "missing: nothing" in out
+    if any_shadow_robot == str(XARM7_ROBOT):
+        # The model's own exclude (its base welded to the world touches link1) is kept.
+        assert "touching at home: nothing" in out
 
 
-def test_a_bundled_trace_drives_the_shadow_hand_with_no_guard_refusal(shadow_robot, monkeypatch):
+def test_a_bundled_trace_drives_the_shadow_hand_with_no_guard_refusal(
+    any_shadow_robot, monkeypatch
+):
     fingers = []  # each retargeted hand command
 
     def retarget(self, keypoints, tracked=None, dt=None):
@@ -80,7 +100,7 @@ def test_a_bundled_trace_drives_the_shadow_hand_with_no_guard_refusal(shadow_rob
     monkeypatch.setattr(ModelHandRetargeter, "retarget", retarget)
     options = SessionOptions(
         task="PickupBox", source="trace", clock="virtual", viser=False, headless=True,
-        progress=False, embodiment=shadow_robot,
+        progress=False, embodiment=any_shadow_robot,
     )  # fmt: skip
     loop = build_loop(options)
     env = loop.twin.env
@@ -91,7 +111,7 @@ def test_a_bundled_trace_drives_the_shadow_hand_with_no_guard_refusal(shadow_rob
         end = env.data.qpos[env.joints.qpos_adr[7:]].copy()
     finally:
         env.close()
-    assert summary.embodiment == "franka_shadow_right"
+    assert summary.embodiment == Path(any_shadow_robot).stem
     assert summary.commands_applied > 200  # the whole trace reached the twin
     assert guard.checks > 200 and guard.refusals == 0, guard.refusals_by_rule
     assert "guard" not in summary.holds.get("right", {}), summary.holds

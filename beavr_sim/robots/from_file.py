@@ -12,6 +12,8 @@ the embodiment attaches like a bundled part. Writing it:
 - adds a ``flange`` site (the hand's mount, +z out of the flange) and one position servo per
   joint (``servo`` gains, critically damped by default; ctrl range = joint range), whose
   damping replaces the model's passive joint damping;
+- keeps the model's contact excludes between links that stay (a base welded to the world and
+  its first link may touch by design), dropping those that name a removed body;
 - reads the joint limits from the model (``limits_deg`` only where the model has none);
 - turns gravity compensation on (arm controllers compensate gravity);
 - moves visual geoms (contype = conaffinity = 0) to the visual group and collision geoms to
@@ -501,9 +503,16 @@ def _strip(spec: mujoco.MjSpec, arm: ArmFile) -> None:
             spec.delete(mesh)
     for geom in list(spec.worldbody.geoms):
         spec.delete(geom)
-    for kind in ("sensors", "tendons", "equalities", "excludes", "keys"):
+    for kind in ("sensors", "tendons", "equalities", "keys"):
         for item in list(getattr(spec, kind)):
             spec.delete(item)
+    # Contact excludes between links that stay are the model's own statement of which links
+    # touch by design (a base welded to the world and its first link, which the parent-child
+    # filter does not cover); those naming a removed body go.
+    kept = {body.name for body in spec.bodies}
+    for exclude in list(spec.excludes):
+        if exclude.bodyname1 not in kept or exclude.bodyname2 not in kept:
+            spec.delete(exclude)
 
 
 def _contains(body, target) -> bool:
