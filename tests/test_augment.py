@@ -121,9 +121,14 @@ def test_segmenter_finds_approach_grasp_transport_release(plan):
     assert all(a.stop == b.start for a, b in pairwise(segments))
 
 
-def test_augmented_episodes_succeed_in_moved_scenes_and_replay(source_root, plan, tmp_path):
+def test_augmented_episodes_succeed_in_moved_scenes_and_replay(
+    source_root, plan, tmp_path, monkeypatch
+):
     from beavr_sim.synthetic.generate import generate
 
+    # Only the source drives the new episodes: with no scripted expert for any task, they are
+    # made all the same (a user's new task has none).
+    monkeypatch.setattr("beavr_sim.experts.registry.EXPERTS", {})
     source, traj, _ = plan
     out = tmp_path / "augmented"
     summary = generate(
