@@ -211,19 +211,25 @@ def arm_links(spec: mujoco.MjSpec, arm: ArmFile) -> tuple[tuple[str, ...], tuple
     return tuple(upper), tuple(forearm)
 
 
+def _freeze_inertia(body, model: mujoco.MjModel) -> None:
+    """Give the spec ``body`` the mass and inertia it compiled to in ``model`` (explicit), so
+    geoms can leave the physics without changing it."""
+    compiled = model.body(body.name)
+    body.explicitinertial = True
+    body.mass = float(compiled.mass[0])
+    body.ipos = compiled.ipos.tolist()
+    body.iquat = compiled.iquat.tolist()
+    body.inertia = compiled.inertia.tolist()
+    body.fullinertia = [math.nan] * 6
+
+
 def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Path) -> None:
     """Write ``arm``'s part (see the module docstring) to ``path`` atomically."""
     where = f"{robot.path}: arms.{arm.name}"
     model = spec.compile()
     for body in spec.bodies:
         if body.name and body is not spec.worldbody:
-            compiled = model.body(body.name)
-            body.explicitinertial = True
-            body.mass = float(compiled.mass[0])
-            body.ipos = compiled.ipos.tolist()
-            body.iquat = compiled.iquat.tolist()
-            body.inertia = compiled.inertia.tolist()
-            body.fullinertia = [math.nan] * 6
+            _freeze_inertia(body, model)
             moving = body.name != arm.base_body
             body.gravcomp = 1.0 if arm.gravity_compensation and moving else 0.0
     for geom in spec.geoms:
@@ -331,13 +337,7 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
     subtree = _subtree_names(root)
     for body in src.bodies:
         if body.name in subtree:
-            c = compiled.body(body.name)
-            body.explicitinertial = True
-            body.mass = float(c.mass[0])
-            body.ipos = c.ipos.tolist()
-            body.iquat = c.iquat.tolist()
-            body.inertia = c.inertia.tolist()
-            body.fullinertia = [math.nan] * 6
+            _freeze_inertia(body, compiled)
             body.gravcomp = 0.0
     for joint in list(root.joints):  # a wrist on the root: the arm moves the hand
         src.delete(joint)
