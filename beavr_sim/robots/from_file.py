@@ -223,6 +223,18 @@ def _freeze_inertia(body, model: mujoco.MjModel) -> None:
     body.fullinertia = [math.nan] * 6
 
 
+def _sort_geoms(spec: mujoco.MjSpec) -> None:
+    """Collision geoms (any contact bit) to the collision group; visual ones to the visual
+    group, massless (the bodies' inertia is frozen first)."""
+    for geom in spec.geoms:
+        if geom.contype or geom.conaffinity:
+            geom.group = COLLISION_GROUP
+        else:
+            geom.group = VISUAL_GROUP
+            geom.mass = 0.0
+            geom.density = 0.0
+
+
 def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Path) -> None:
     """Write ``arm``'s part (see the module docstring) to ``path`` atomically."""
     where = f"{robot.path}: arms.{arm.name}"
@@ -232,13 +244,7 @@ def write_arm_part(spec: mujoco.MjSpec, robot: RobotFile, arm: ArmFile, path: Pa
             _freeze_inertia(body, model)
             moving = body.name != arm.base_body
             body.gravcomp = 1.0 if arm.gravity_compensation and moving else 0.0
-    for geom in spec.geoms:
-        if geom.contype or geom.conaffinity:
-            geom.group = COLLISION_GROUP
-        else:
-            geom.group = VISUAL_GROUP
-            geom.mass = 0.0
-            geom.density = 0.0
+    _sort_geoms(spec)
     if arm.flange.site:
         site = spec.site(arm.flange.site)
         site.name = FLANGE_SITE
@@ -367,13 +373,7 @@ def write_hand_part(robot: RobotFile, hand: ModelHand, path: Path) -> None:
         root.add_site(name=PALM_SITE, pos=centre.tolist(), group=4)
     elif own.parent.name not in subtree:
         raise RobotFileError(f"{where}: the model has a site {PALM_SITE!r} outside the hand")
-    for geom in src.geoms:
-        if geom.contype or geom.conaffinity:
-            geom.group = COLLISION_GROUP
-        else:
-            geom.group = VISUAL_GROUP
-            geom.mass = 0.0
-            geom.density = 0.0
+    _sort_geoms(src)
 
     out = mujoco.MjSpec()
     out.modelname = f"{robot.name}_{spec_file.name}"
