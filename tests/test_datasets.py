@@ -387,3 +387,30 @@ def test_episodes_start_stop_and_discard_on_request(tmp_path):
     for i in range(3):
         first = ds.hf_dataset.filter(lambda r, i=i: r["episode_index"] == i)[0]
         np.testing.assert_allclose(np.asarray(first[STATE]), home, atol=1e-5)
+
+
+def test_a_kill_while_metadata_is_rewritten_leaves_the_previous_file_whole(tmp_path, monkeypatch):
+    """LeRobot rewrites meta/info.json after every episode; a process killed during that write
+    must leave the previous file (an in-place write leaves it empty or cut, and the dataset
+    unreadable)."""
+    from lerobot.datasets import io_utils
+
+    from beavr_sim.datasets.writer import require_lerobot
+
+    require_lerobot()  # what every writer does first
+    info = tmp_path / "meta" / "info.json"
+    io_utils.write_info(type("Info", (), {"to_dict": lambda self: {"total_episodes": 2}})(),
+                        tmp_path)  # fmt: skip
+
+    def killed_midway(data, f, **kwargs):
+        f.write('{"total_episo')
+        raise KeyboardInterrupt  # the kill, halfway through the bytes
+
+    with monkeypatch.context() as m:
+        m.setattr(json, "dump", killed_midway)
+        with pytest.raises(KeyboardInterrupt):
+            io_utils.write_info(
+                type("Info", (), {"to_dict": lambda self: {"total_episodes": 3}})(), tmp_path
+            )
+    assert json.loads(info.read_text()) == {"total_episodes": 2}
+    assert [p.name for p in info.parent.iterdir()] == ["info.json"]  # no temporary left

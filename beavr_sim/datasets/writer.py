@@ -4,7 +4,11 @@ LeRobot keeps its parquet writers open across episodes and writes their footers 
 ``finalize()``: a process killed before that leaves every episode of the session unreadable.
 :class:`EpisodeWriter` therefore finalizes after every saved episode and resumes the dataset
 for the next one (``LeRobotDataset.resume``); each episode lands in files of its own, so a
-crash during episode k loses only episode k. Metadata is flushed per episode as well.
+crash during episode k loses only episode k. Metadata is flushed per episode as well, and
+its JSON files (``meta/info.json``, ``meta/stats.json``), which LeRobot rewrites in place
+after every episode, are written to a temporary file and renamed over the old one
+(:func:`atomic_metadata_writes`): a kill during that rewrite leaves the previous file whole,
+where an in-place write would leave it empty and the whole dataset unreadable.
 
 Every dataset the project opens is opened with the PyAV video backend (:data:`VIDEO_BACKEND`,
 :func:`open_dataset`): LeRobot's default probes torchcodec first, whose libraries need the
@@ -16,7 +20,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -42,7 +48,35 @@ def require_lerobot():
             "recording LeRobot datasets needs lerobot >= 0.5 with its dataset extra "
             "(pip install 'lerobot[training]'; Python 3.12). " + str(exc)
         ) from exc
+    atomic_metadata_writes()
     return LeRobotDataset
+
+
+def write_json_atomically(data, fpath: Path) -> None:
+    """``data`` as JSON at ``fpath`` (LeRobot's format: indent 4, UTF-8), through a temporary
+    file in the same folder renamed over ``fpath``: readers, and a process killed meanwhile,
+    see the old file or the new one, never a part."""
+    fpath = Path(fpath)
+    fpath.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=fpath.parent, prefix=f".{fpath.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=4, ensure_ascii=False)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, fpath)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_metadata_writes() -> None:
+    """Route LeRobot's dataset-metadata JSON writes (``write_info``, ``write_stats``: the
+    module's ``write_json``) through :func:`write_json_atomically`; once per process."""
+    from lerobot.datasets import io_utils
+
+    if io_utils.write_json is not write_json_atomically:
+        io_utils.write_json = write_json_atomically
 
 
 def open_dataset(root: str | Path, repo_id: str | None = None, **kwargs):
