@@ -4,14 +4,77 @@
 from __future__ import annotations
 
 import base64
+import contextlib
+import importlib.util
 import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
 import threading
 import time
+import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import zmq
+
+#: The wheel whose MuJoCo models (Franka Panda, Shadow hand) the robot-file tests read.
+ROBOTICS_PACKAGE, ROBOTICS_VERSION = "gymnasium_robotics", "1.4.2"
+
+
+def unpacked_robotics_wheel() -> Path | None:
+    """A folder holding gymnasium-robotics (to put on ``sys.path``), or None when it is
+    installed. Downloaded once with pip into ``~/.cache/beavr_sim/wheels`` and unpacked there;
+    the calling test skips, saying why, when that fails (no network). Safe when several test
+    processes (pytest-xdist workers) call it at once: each downloads and unpacks into a
+    private folder and renames the result into place."""
+    if importlib.util.find_spec(ROBOTICS_PACKAGE) is not None:
+        return None
+    cache = Path.home() / ".cache" / "beavr_sim" / "wheels"
+    cache.mkdir(parents=True, exist_ok=True)
+    folder = cache / f"{ROBOTICS_PACKAGE}-{ROBOTICS_VERSION}"
+    if (folder / ROBOTICS_PACKAGE / "__init__.py").is_file():
+        return folder
+    wheel = cache / f"{ROBOTICS_PACKAGE}-{ROBOTICS_VERSION}-py3-none-any.whl"
+    if not wheel.is_file():
+        private = Path(tempfile.mkdtemp(dir=cache, prefix="download."))
+        command = [sys.executable, "-m", "pip", "download", "--no-deps", "--quiet", "--retries",
+                   "1", f"gymnasium-robotics=={ROBOTICS_VERSION}", "-d", str(private)]  # fmt: skip
+        try:
+            done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+            if done.returncode != 0 or not (private / wheel.name).is_file():
+                last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+                pytest.skip(
+                    f"gymnasium-robotics {ROBOTICS_VERSION} could not be downloaded: {last}"
+                )
+            os.replace(private / wheel.name, wheel)
+        except (OSError, subprocess.TimeoutExpired) as e:
+            pytest.skip(f"gymnasium-robotics {ROBOTICS_VERSION} could not be downloaded: {e}")
+        finally:
+            shutil.rmtree(private, ignore_errors=True)
+    partial = Path(tempfile.mkdtemp(dir=cache, prefix=folder.name + "."))
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(partial)
+    try:
+        partial.rename(folder)
+    except OSError:  # another process unpacked it meanwhile
+        shutil.rmtree(partial)
+    return folder
+
+
+@contextlib.contextmanager
+def robotics_wheel_on_path() -> Iterator[None]:
+    """gymnasium-robotics importable (not imported) inside the block."""
+    folder = unpacked_robotics_wheel()
+    with pytest.MonkeyPatch.context() as mp:
+        if folder is not None:
+            mp.syspath_prepend(str(folder))
+        yield
 
 
 def cut_bundled_trace(out: Path, seconds: float, task: str = "PickupBox") -> Path:

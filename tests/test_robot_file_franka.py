@@ -10,23 +10,16 @@ trace (cut short) must replay through the full teleop pipeline with no guard ref
 
 from __future__ import annotations
 
-import importlib.util
-import shutil
-import subprocess
-import sys
-import tempfile
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
-from fixtures_shared import cut_bundled_trace
+from fixtures_shared import cut_bundled_trace, robotics_wheel_on_path
 
 from beavr_sim.operator.arm_ik import ArmIK
 from beavr_sim.robots.visuals import VISUAL_GROUP
 from beavr_sim.teleop.session import SessionOptions, build_loop
 
-PACKAGE, VERSION = "gymnasium_robotics", "1.4.2"
 ROBOT = Path(__file__).resolve().parents[1] / "examples" / "robots" / "franka_leap_right.toml"
 #: Trace time kept of the bundled PickupBox trace: the reach down to the box, the grasp and
 #: the lift (the Panda's forearm roll reaches its limit and the IK swings joints 1 and 3 at
@@ -39,42 +32,10 @@ CUT_S = 7.5
 MAX_LAG_M = 0.06
 
 
-def unpacked_wheel() -> Path | None:
-    """A folder holding the package (to put on ``sys.path``), or None when it is installed."""
-    if importlib.util.find_spec(PACKAGE) is not None:
-        return None
-    cache = Path.home() / ".cache" / "beavr_sim" / "wheels"
-    folder = cache / f"{PACKAGE}-{VERSION}"
-    if (folder / PACKAGE / "__init__.py").is_file():
-        return folder
-    wheel = cache / f"{PACKAGE}-{VERSION}-py3-none-any.whl"
-    if not wheel.is_file():
-        command = [sys.executable, "-m", "pip", "download", "--no-deps", "--quiet",
-                   "--retries", "1", f"gymnasium-robotics=={VERSION}", "-d", str(cache)]  # fmt: skip
-        try:
-            done = subprocess.run(command, capture_output=True, text=True, timeout=300)
-        except (OSError, subprocess.TimeoutExpired) as e:
-            pytest.skip(f"gymnasium-robotics {VERSION} could not be downloaded: {e}")
-        if done.returncode != 0 or not wheel.is_file():
-            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-            pytest.skip(f"gymnasium-robotics {VERSION} could not be downloaded: {last}")
-    partial = Path(tempfile.mkdtemp(dir=cache, prefix=folder.name + "."))
-    with zipfile.ZipFile(wheel) as z:
-        z.extractall(partial)
-    try:
-        partial.rename(folder)
-    except OSError:  # another run unpacked it meanwhile
-        shutil.rmtree(partial)
-    return folder
-
-
 @pytest.fixture(scope="module")
 def franka():
     """The robot file's path, with gymnasium-robotics importable (not imported)."""
-    folder = unpacked_wheel()
-    with pytest.MonkeyPatch.context() as mp:
-        if folder is not None:
-            mp.syspath_prepend(str(folder))
+    with robotics_wheel_on_path():
         yield str(ROBOT)
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from test_robot_file_franka import unpacked_wheel
+from fixtures_shared import robotics_wheel_on_path
 
 from beavr_sim.operator.retarget_model import ModelHandRetargeter
 from beavr_sim.robots import make_embodiment
@@ -29,10 +29,7 @@ XARM7_ROBOT = EXAMPLES / "xarm7_shadow_right.toml"
 @pytest.fixture(scope="module")
 def wheel_on_path():
     """gymnasium-robotics importable (not imported) while the module's tests run."""
-    folder = unpacked_wheel()
-    with pytest.MonkeyPatch.context() as mp:
-        if folder is not None:
-            mp.syspath_prepend(str(folder))
+    with robotics_wheel_on_path():
         yield
 
 

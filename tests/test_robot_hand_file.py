@@ -7,13 +7,12 @@ retargeter follows a human pinch without exceeding its speed cap or leaving the 
 
 from __future__ import annotations
 
-import sys
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_robot_file_franka import unpacked_wheel
+from fixtures_shared import robotics_wheel_on_path
 
 from beavr_sim.operator.retarget import human_template
 from beavr_sim.operator.retarget_model import ModelHandRetargeter
@@ -26,13 +25,8 @@ HAND = Path(__file__).resolve().parents[1] / "examples" / "robots" / "shadow_han
 
 @pytest.fixture(scope="module")
 def table():
-    folder = unpacked_wheel()
-    if folder is not None:
-        sys.path.insert(0, str(folder))
-    with HAND.open("rb") as f:
+    with robotics_wheel_on_path(), HAND.open("rb") as f:
         yield tomllib.load(f)["hands"]["shadow"]
-    if folder is not None:
-        sys.path.remove(str(folder))
 
 
 @pytest.fixture(scope="module")
