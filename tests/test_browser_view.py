@@ -193,7 +193,9 @@ def test_browser_view_renders_pauses_resumes_and_resets(monkeypatch):
                 # (b) Pause in the page holds the robot.
                 pause.click()
                 sess.wait_for(lambda: sess.loop.operator.paused, 10, "pause")
-                time.sleep(0.7)  # the held targets settle
+                sess.wait_for(  # the held targets settle
+                    lambda: sess.positions_over(0.2, joints=sess.arm_joints) < 5e-4, 30, "settle"
+                )
                 action, resets = sess.probe.action, sess.probe.resets
                 held = sess.held_over(1.0, joints=sess.arm_joints)
                 # No new command while paused; the arm stands still. (Fingers closed on an

@@ -157,7 +157,7 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
             # motion at scale 1, in the hand frame anchored at the start: the direction in
             # the world depends on the robot hand's pose then), the arm with it, and moving
             # the hand back brings the target back.
-            time.sleep(0.5)
+            _settled(sess, lambda: True)
             target0, q0 = _target(sess), sess.loop.twin.action[arm].copy()
             page.evaluate("window.__moveHand('right', 0, 0.10, 0, 1.5)")  # awaits the move
             _settled(sess, lambda: np.abs(sess.loop.twin.action[arm] - q0).max() > 0.02)
@@ -182,7 +182,11 @@ def test_emulated_quest3_drives_the_twin_and_holds_when_the_page_closes(iwer_bun
             # (e) Closing the page: no frames, the right arm holds (tracking lost).
             lost0 = sess.loop.holds.get("right", {}).get("tracking_lost", 0)
             page.close()
-            time.sleep(1.0)
+            sess.wait_for(  # the right hand's hold has begun
+                lambda: sess.loop.holds.get("right", {}).get("tracking_lost", 0) > lost0 + 2,
+                30,
+                "tracking lost",
+            )
             q_closed = sess.loop.twin.action[arm].copy()
             time.sleep(0.5)
             np.testing.assert_array_equal(sess.loop.twin.action[arm], q_closed)
