@@ -147,3 +147,34 @@ def test_a_multiprocess_quest_session_streams_its_camera_to_the_quest_app_panel(
     assert received is not None, f"no camera panel reached the Quest app's socket: {why}"
     assert received[:2] == b"\xff\xd8"  # a JPEG
     assert session.exits["twin"] == 0, why
+
+
+def test_a_quest_camera_name_only_the_twin_process_can_check_stops_the_start_as_bad_input(
+    quest_options, capsys
+):
+    """``--quest-cameras`` naming no panel under ``--multiprocess``: the twin process refuses
+    it at its start (only it opens the cameras), the supervisor stops every process and the
+    command exits 2 with one line listing the valid panels, as one process does."""
+    import multiprocessing
+
+    from beavr_sim.teleop.__main__ import EXIT_BAD_INPUT, _run
+    from beavr_sim.teleop.interrupt import StopSignal
+
+    camera = ImageServer()
+    opts = quest_options(
+        headless=False,
+        multiprocess=True,
+        camera_stream_hz=10.0,
+        real_cameras=(f"front=zmq:127.0.0.1:{camera.port}",),
+        quest_cameras=("front", "frnot"),
+    )
+    try:
+        code = _run(SimpleNamespace(debug=False), opts, StopSignal())
+    finally:
+        camera.close()
+    assert code == EXIT_BAD_INPUT
+    assert not multiprocessing.active_children(), multiprocessing.active_children()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err  # one line, no traceback
+    assert err[0].startswith("error: ") and "'frnot' (--quest-cameras)" in err[0], err
+    assert "Valid Quest camera panels (--quest-cameras): front" in err[0], err
