@@ -179,22 +179,28 @@ def _depth_cameras() -> RealCameras:
     return real
 
 
-def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
-    """``RealCameras.peek`` gives the depth map too; the Quest panel's one image is the colour
-    panel and the coloured depth panel side by side."""
+def _first_quest_image(config: StreamConfig):
+    """The first image the Quest publisher gets from a stream of :func:`_depth_cameras` under
+    ``config``, and the stream (closed)."""
     from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
 
     real = _depth_cameras()
     quest = _QuestPublisher()
     try:
         assert "wrist_depth" in real.peek().frames
-        stream = start_camera_stream(real, StreamConfig(rate_hz=50.0), CameraViewers(quest=quest))
+        stream = start_camera_stream(real, config, CameraViewers(quest=quest))
         try:
-            image = quest.wait()
+            return quest.wait(), stream
         finally:
             stream.close()
     finally:
         real.close()
+
+
+def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
+    """``RealCameras.peek`` gives the depth map too; the Quest panel's one image is the colour
+    panel and the coloured depth panel side by side."""
+    image, _ = _first_quest_image(StreamConfig(rate_hz=50.0))
     assert image.shape == (H, 2 * W, 3)
     body = slice(H // 2, H)  # below the tiles' labels
     assert abs(float(image[body, 4 : W // 3 - 4].mean()) - 200) < 6  # wrist's colour
@@ -207,19 +213,7 @@ def test_a_depth_cameras_depth_reaches_the_quest_panel_beside_its_colour():
 def test_the_quest_panel_shows_only_the_panels_chosen():
     """--quest-cameras wrist_depth: the Quest image is the depth panel alone (no grid, no
     colour tile), while the stream still composes every panel for the other viewers."""
-    from beavr_sim.teleop.camera_viewers import CameraViewers, start_camera_stream
-
-    real = _depth_cameras()
-    quest = _QuestPublisher()
-    try:
-        config = StreamConfig(rate_hz=50.0, quest_panels=("wrist_depth",))
-        stream = start_camera_stream(real, config, CameraViewers(quest=quest))
-        try:
-            image = quest.wait()
-        finally:
-            stream.close()
-    finally:
-        real.close()
+    image, stream = _first_quest_image(StreamConfig(rate_hz=50.0, quest_panels=("wrist_depth",)))
     assert stream.shapes.keys() == {"wrist", "wrist_depth"}  # both still streamed
     assert image.shape == (H, W, 3)  # one panel: its image, not a grid of two
     assert _close(image[:, 4 : W // 3 - 4], NEAR, 12)  # the depth's colours, not wrist's grey
