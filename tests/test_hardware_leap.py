@@ -390,6 +390,22 @@ def test_vanished_port_raises_device_error_quickly(emu, hand):
     assert not hand.connected
 
 
+def test_drained_says_whether_a_sync_write_has_reached_the_servos(emu, hand):
+    """A sync write gets no reply, so the call returns before the emulator has handled it;
+    ``drained()`` is what a test waits on instead of a fixed sleep. Holding the emulator's
+    lock keeps it mid-handling: unread or read-but-unhandled, it is not drained."""
+    assert _wait_until(emu.drained)
+    n_goals = len(emu.goal_log)
+    with emu.lock:  # the serving thread cannot handle what it reads
+        hand.send_positions(np.full(16, 0.2))
+        for _ in range(50):  # before and after the thread reads the bytes
+            assert not emu.drained()
+            time.sleep(0.002)
+        assert len(emu.goal_log) == n_goals
+    assert _wait_until(emu.drained)
+    assert len(emu.goal_log) == n_goals + 16  # handled: no further wait needed
+
+
 def test_waiting_for_a_reply_sleeps_instead_of_polling_the_port():
     """The SDK polls a non-blocking port until the reply window ends: thousands of reads (a
     core) per silent request, which starve whatever must answer. Ours sleeps until a byte or

@@ -27,6 +27,8 @@ import fcntl
 import os
 import pty
 import select
+import struct
+import termios
 import threading
 import time
 import tty
@@ -170,6 +172,8 @@ class EmulatedBus(ABC):
         self._thread: threading.Thread | None = None
         self._last_advance = time.monotonic()
         self._drop_replies = 0
+        #: Set before the thread reads the port, cleared once what it read is handled.
+        self._busy = False
 
     # -- protocol hooks (called with the lock held) --
 
@@ -237,6 +241,17 @@ class EmulatedBus(ABC):
         with self.lock:
             self._drop_replies = n
 
+    def drained(self) -> bool:
+        """Whether every byte written to the port so far has been handled: a write that gets
+        no reply (a sync write) has reached the servos. A test hook, for waiting on readiness."""
+        pending = bytearray(4)
+        try:
+            fcntl.ioctl(self._master, termios.FIONREAD, pending)
+        except OSError:  # closed: nothing more will be handled
+            return True
+        # Unread bytes first, then the flag: the thread sets it before it reads them.
+        return struct.unpack("i", pending)[0] == 0 and not self._busy and not self.parser.buffer
+
     def advance(self, now: float | None = None) -> None:
         """Advance every servo's model to ``now`` (monotonic seconds)."""
         with self.lock:
@@ -275,6 +290,7 @@ class EmulatedBus(ABC):
                     os.read(self._wake_r, 64)
             data = b""
             if self._master in ready:
+                self._busy = True  # before the read: see drained()
                 try:
                     data = os.read(self._master, 4096)
                 except BlockingIOError:
@@ -285,10 +301,12 @@ class EmulatedBus(ABC):
             if data:
                 idle_since = None
                 if self.fault_state.admit() is not Verdict.SERVE:
+                    self._busy = False
                     continue  # frozen or gone: the bytes are lost
                 with self.lock:
                     self._answer(self.parser.feed(data))
-            elif self.parser.buffer:
+            self._busy = False
+            if not data and self.parser.buffer:
                 now = time.monotonic()
                 idle_since = idle_since or now
                 if now - idle_since > PARTIAL_PACKET_TIMEOUT_S:

@@ -59,6 +59,9 @@ class Link:
         )
         # Writer-thread state.
         self._seq_sent = 0
+        #: The newest dispatch the writer finished with (written whole, held, or judged
+        #: unchanged): what a caller waiting for the writes to settle waits on.
+        self.seq_served = 0
         #: What the device was asked within its lag, and how long it has been away from it.
         self.divergence = DivergenceWatch(
             config.device_lag_s,
@@ -285,6 +288,7 @@ class Link:
                 if orders.stopping:
                     break
                 self._serve(orders)
+                self.seq_served = orders.dispatch.seq
         except Exception as exc:  # a writer never dies silently
             log_error("%s: mirror writer stopped: %s", self.name, one_line(exc))
             self.port.writer_died(one_line(exc))
