@@ -7,6 +7,7 @@ then again from its cache."""
 from __future__ import annotations
 
 import json
+import math
 import sys
 from dataclasses import fields, replace
 from pathlib import Path
@@ -90,6 +91,32 @@ def _checkpoint_at(run: Path, step: int) -> None:
     model = training.checkpoint(run, step)
     model.mkdir(parents=True)
     (model / "config.json").write_text("{}")
+
+
+def _bar(n: int, total: int = 3000) -> str:
+    return f"Training:  {n * 100 // total}%|##  | {n}/{total} [00:10<01:00,  3.5step/s]"
+
+
+def test_the_loss_curve_takes_exact_steps_from_the_progress_bar(tmp_path):
+    """LeRobot prints ``step:1K`` for 1,000-1,999; the step comes from the progress bar's last
+    count before the line, up to the log interval when the bar trails (it redraws at most ten
+    times a second); a resumed run's lines replace the cut run's after its checkpoint."""
+    log = tmp_path / "train.log"
+    line = "INFO 2026-12-04 ot_train.py:641 step:{} smpl:6K ep:2 epch:0.4 loss:{} grdn:3.1"
+    log.write_text(
+        "$ lerobot-train --log_freq=200\n"
+        + _bar(199) + _bar(200) + line.format(200, 2.9) + "\n"
+        + _bar(1199) + line.format("1K", 0.5) + "\n"  # the bar one step behind
+        + _bar(1400) + line.format("1K", 0.4) + "\n"
+        + "$ lerobot-train --resume=true\n"  # resumed from the checkpoint at 1,000
+        + _bar(1150) + _bar(1200) + line.format("1K", 0.45) + "\n"
+    )  # fmt: skip
+    # What the cut run logged after its checkpoint is replaced by the resumed run's.
+    assert training.loss_curve(log, 200) == [(200, 2.9), (1200, 0.45)]
+    # Without a progress bar the lines are counted.
+    log.write_text(line.format(200, 1.0) + "\n" + line.format(400, 0.5) + "\n")
+    assert training.loss_curve(log, 200) == [(200, 1.0), (400, 0.5)]
+    assert training.loss_curve(tmp_path / "missing.log", 200) == []
 
 
 def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
@@ -212,7 +239,8 @@ def test_a_history_policy_gets_its_observations_stacked_in_time_and_padded():
 # ---------------------------------------------------------------------------- end to end
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
-    """``--quick`` into a fresh folder, then the same command again (all cached)."""
+    """``--quick`` into a fresh folder, then the same command again (all cached) with its
+    figure."""
     pytest.importorskip("lerobot", reason="lerobot (>= 0.5) is not installed")
     if not Path(sys.executable).with_name("lerobot-train").exists():
         pytest.skip("lerobot-train is not installed beside this Python")
@@ -221,7 +249,7 @@ def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("policies")
     assert main(["policies", "--quick", "--out", str(out)]) == 0
     first = json.loads((out / "table.json").read_text())
-    assert main(["policies", "--quick", "--out", str(out)]) == 0
+    assert main(["policies", "--quick", "--out", str(out), "--plot", str(out / "plots")]) == 0
     again = json.loads((out / "table.json").read_text())
     return out, first, again
 
@@ -244,6 +272,9 @@ def test_quick_writes_the_table_and_its_json(quick):
     best = max(act["validation"], key=lambda v: (v["successes"], v["step"]))
     assert act["checkpoint_step"] == best["step"]
     assert Path(act["checkpoint"]).is_dir()
+    # The loss as LeRobot logged it (every 10 steps in --quick), at exact steps.
+    assert [c["step"] for c in act["loss"]] == [10, 20]
+    assert all(math.isfinite(c["loss"]) and c["loss"] > 0 for c in act["loss"])
     # Training, validation and test seeds are disjoint.
     (demos,) = (out / "demos").glob("*/stage.json")
     train_seeds = set(json.loads(demos.read_text())["seeds"])
@@ -263,6 +294,13 @@ def test_quick_again_is_read_from_its_cache(quick):
     assert again["rows"] == first["rows"]
     assert again["budget"]["this_run_wall_s"] == 0
     assert again["budget"]["cpu_s"] == first["budget"]["cpu_s"]
+
+
+def test_quick_with_plot_draws_each_task_from_the_cached_stages(quick):
+    out, _, again = quick
+    figure = out / "plots" / "policies_PickupBox.png"
+    assert again["plots"] == [str(figure)]
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 10_000
 
 
 def test_augment_adds_generated_scenes_to_the_demonstrations_and_is_cached(quick, tmp_path):

@@ -1,12 +1,13 @@
 """``python -m beavr_sim.bench policies [--tasks T,...] [--policies act,diffusion] [--demos 50]
-[--episodes 50] [--augment N] [--quick] [--out DIR] [--resume] [--device cpu|cuda]``: the policy
-table.
+[--episodes 50] [--augment N] [--quick] [--out DIR] [--resume] [--device cpu|cuda] [--plot DIR]``:
+the policy table.
 
 Generates seeded demonstrations (and, with ``--augment N``, N episodes made from them by
 ``datasets augment``, trained on with them), trains each policy with ``lerobot-train``, chooses each run's
 checkpoint on validation seeds, evaluates it on the test seeds (sync and think-act) beside the
 scripted expert through the teleop pipeline, and writes ``DIR/table.md`` and
-``DIR/table.json`` (also printed, last, as one JSON line). Every stage is cached in ``DIR`` by
+``DIR/table.json`` (also printed, last, as one JSON line); ``--plot PDIR`` adds a figure per
+task (:mod:`beavr_sim.bench.policies.plot`). Every stage is cached in ``DIR`` by
 its configuration: a re-run skips what is finished; ``--resume`` continues a training run cut
 short from its last checkpoint. ``--quick``: 2 demos, 20 steps of a tiny ACT, 2 episodes of at
 most 1 s, PickupBox (what the tests run). Seeds and stages: ``beavr_sim/bench/policies/``.
@@ -88,6 +89,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="the smoke-test sizes (see above)")
     p.add_argument("--out", type=Path, default=Path("outputs/policy_table"))
     p.add_argument("--resume", action="store_true", help="continue cut training runs")
+    p.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also write one figure per task into DIR: training loss, success per checkpoint, "
+        "the test results (PNG)",
+    )
     p.add_argument("--device", default="cpu", help="torch device for training and evaluation")
     p.add_argument(
         "--eval-device",
@@ -177,6 +186,10 @@ def main(argv: list[str] | None = None) -> int:
             StageFailed, JobFailed) as exc:  # fmt: skip
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.plot is not None:
+        from beavr_sim.bench.policies import plot  # local: matplotlib
+
+        result["plots"] = [str(p) for p in plot.write(result, args.plot)]
     command = "python -m beavr_sim.bench policies " + shlex.join(argv)
     md, js = write(result, args.out, command.strip())
     print(f"table: {md} and {js}", file=sys.stderr)

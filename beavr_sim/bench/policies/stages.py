@@ -314,13 +314,11 @@ def train_policy(
             options.resume,
             options.loader_workers,
         )
-        curve = training.losses(stage / "train.log")
         return {
             "config": asdict(train),
             "device": options.device,
             "steps_saved": training.saved_steps(run),
-            # LeRobot logs steps rounded (1K: 1,000-1,999); the order is the step order.
-            "loss": [{"logged_step": s, "loss": loss} for s, loss in curve],
+            "loss": loss_curve(train, run),
         }
 
     what = f"train {train.policy} on {train.demos.task}: {train.steps} steps"
@@ -421,6 +419,13 @@ def stage_count(config: TableConfig) -> int:
     return total
 
 
+def loss_curve(train: TrainConfig, run: Path) -> list[dict]:
+    """``[{"step", "loss"}, ...]``: the training loss of the run at ``run`` as LeRobot logged
+    it."""
+    curve = training.loss_curve(run.parent / "train.log", training.log_freq(train))
+    return [{"step": step, "loss": loss} for step, loss in curve]
+
+
 def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
     """Every stage of the table, in order; the table's JSON (rows, protocol, budget)."""
     rows: list[dict] = []
@@ -435,6 +440,7 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
             train = train_config(config, policy, demos)
             key, run = train_policy(train, dataset, stages, options)
             step, validation = choose_checkpoint(config, train, key, run, stages, options)
+            curve = loss_curve(train, run)
             for mode in config.modes:
                 evaluation = EvalConfig(
                     task=task, embodiment=config.embodiment, mode=mode, train_key=key,
@@ -453,6 +459,7 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
                         "chosen_on": f"validation seeds {validation_seeds[0]}-"
                         f"{validation_seeds[1]}",
                         "validation": validation,
+                        "loss": curve,
                         "checkpoint": str(training.checkpoint(run, step)),
                     }
                 )

@@ -20,6 +20,8 @@ from beavr_sim.bench.policies.config import TrainConfig
 
 #: LeRobot's training log line: ``step:20 smpl:160 ... loss:72.649 ...`` (steps as 1K, 2M).
 _LOG_LINE = re.compile(r"\bstep:(\S+) .*?\bloss:([-+0-9.eE]+)")
+#: Its progress bar's count, ``| 1600/6000 [``: the exact step, which the log line rounds.
+_PROGRESS = re.compile(r"\| *(\d+)/(\d+) \[")
 
 
 class TrainFailed(RuntimeError):
@@ -83,7 +85,7 @@ def train_command(
         f"--batch_size={config.batch_size}",
         f"--steps={config.steps}",
         f"--save_freq={config.save_freq}",
-        f"--log_freq={max(1, min(200, config.save_freq))}",
+        f"--log_freq={log_freq(config)}",
         f"--num_workers={loader_workers}",
         f"--seed={config.seed}",
         "--wandb.enable=false",
@@ -157,8 +159,33 @@ def train(
     return run
 
 
-def losses(log: Path) -> list[tuple[str, float]]:
-    """``(step as logged, loss)`` of every logged training step in ``log``."""
+def log_freq(config: TrainConfig) -> int:
+    """Steps between LeRobot's log lines (each with the loss): 200, or every checkpoint's."""
+    return max(1, min(200, config.save_freq))
+
+
+def loss_curve(log: Path, every: int) -> list[tuple[int, float]]:
+    """``(step, loss)`` of every logged training step in ``log``, the step exact: LeRobot
+    logs every ``every`` steps and rounds the step it prints (1K: 1,000-1,999), so each line's
+    step is the progress bar's last count before it, up to the next multiple of ``every``
+    (the bar redraws at most ten times a second and may trail). A resumed run (appended to
+    the log) replaces what the cut one logged after its last checkpoint. A log with no
+    progress bar counts the lines (steps ``every``, ``2 every``, ...)."""
     if not log.is_file():
         return []
-    return [(m[1], float(m[2])) for m in _LOG_LINE.finditer(log.read_text(errors="replace"))]
+    text = log.read_text(errors="replace")
+    curve: list[tuple[int, float]] = []
+    bars = list(_PROGRESS.finditer(text))
+    b, count = 0, None
+    for line in _LOG_LINE.finditer(text):
+        while b < len(bars) and bars[b].start() < line.start():
+            count = int(bars[b][1])
+            b += 1
+        if count is None:
+            step = (curve[-1][0] if curve else 0) + every
+        else:
+            step = max(every, -(-count // every) * every)
+        while curve and curve[-1][0] >= step:  # a resumed run: its steps again
+            curve.pop()
+        curve.append((step, float(line[2])))
+    return curve
