@@ -26,7 +26,7 @@ from beavr_sim.bench.policies.config import (
     TrainConfig,
     cache_key,
 )
-from beavr_sim.bench.policies.table import rate_cell
+from beavr_sim.bench.policies.table import markdown, rate_cell
 from beavr_sim.scaling.stats import wilson_interval
 
 DEMOS = DemoConfig(task="PickupBox", episodes=2)
@@ -91,6 +91,29 @@ def _checkpoint_at(run: Path, step: int) -> None:
     model = training.checkpoint(run, step)
     model.mkdir(parents=True)
     (model / "config.json").write_text("{}")
+
+
+def test_the_table_says_what_the_failed_episodes_lacked_at_their_end():
+    from beavr_sim.eval.runner import EpisodeResult, summarize
+
+    results = [
+        EpisodeResult(1000, True, 9.0, 270, final={"lifted": True, "in_area": True}),
+        EpisodeResult(1001, False, 20.0, 600, final={"lifted": True, "in_area": False}),
+        EpisodeResult(1002, False, 20.0, 600, final={"lifted": False, "in_area": False}),
+    ]
+    summary = summarize(results, "PickupBox", "xarm7_leap_right", "act", False, 30.0)
+    assert summary["unmet_at_end"] == {"in_area": 2, "lifted": 1}  # most first
+    assert summary["per_episode"][1] == {
+        "seed": 1001, "success": False, "seconds": 20.0, "final": {"lifted": True, "in_area": False}
+    }  # fmt: skip
+    row = {"task": "PickupBox", "policy": "act", "inputs": "state", "mode": "sync",
+           "episodes": 3, "successes": 1, "mean_success_time_s": 9.0,
+           "unmet_at_end": summary["unmet_at_end"]}  # fmt: skip
+    budget = {"wall_s": 1.0, "cpu_s": 1.0, "stages_cached": 0, "by_stage": {}}
+    protocol = {"embodiment": "e", "train_seeds": "0..", "validation_seeds": "2000-2001",
+                "test_seeds": "1000-1002"}  # fmt: skip
+    text = markdown({"protocol": protocol, "device": "cpu", "budget": budget, "rows": [row]})
+    assert "- PickupBox, ACT, sync: of 2 failed, ended without in_area 2, lifted 1" in text
 
 
 def _bar(n: int, total: int = 3000) -> str:

@@ -244,6 +244,13 @@ def test_eval_runs_a_trained_policy_in_the_env(act_checkpoint, tmp_path, capsys)
     assert result["successes"] == 0 and result["success_rate"] == 0.0  # two training steps
     assert result["mean_time_s"] == pytest.approx(1.0, abs=0.05)
     assert len(list((tmp_path / "v").glob("*.mp4"))) == 2
+    # Why they failed: the checker's conditions at each episode's end (in 1 s, no lift).
+    assert [e["seed"] for e in result["per_episode"]] == [5, 6]
+    for episode in result["per_episode"]:
+        assert set(episode["final"]) == {"lifted", "in_area", "on_table", "released", "at_rest"}
+        assert episode["final"]["lifted"] is False and episode["success"] is False
+    assert result["unmet_at_end"]["lifted"] == 2
+    assert list(result["unmet_at_end"].values()) == sorted(result["unmet_at_end"].values())[::-1]
 
 
 def test_eval_async_think_act_reports_jitter_and_starved_ticks(act_checkpoint, capsys):
@@ -263,6 +270,7 @@ def test_eval_async_think_act_reports_jitter_and_starved_ticks(act_checkpoint, c
         capsys,
     )
     assert result["mode"] == "async" and result["ticks"] == 60
+    assert result["per_episode"][0]["final"]["lifted"] is False  # the think-act loop's end too
     # The first chunk is computed while the loop already runs: at least one tick waits.
     assert 1 <= result["ticks_without_action"] < result["ticks"]
     # The loop keeps its 30 Hz rate: the typical period error is under a period.

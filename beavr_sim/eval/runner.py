@@ -37,6 +37,18 @@ class EpisodeResult:
     ticks: int
     ticks_without_action: int = 0
     periods_ms: list[float] = field(default_factory=list)
+    #: The task checker's conditions at the episode's end (``lifted``, ``in_area``, ...):
+    #: what a failed episode lacked.
+    final: dict[str, bool] = field(default_factory=dict)
+
+
+def checker_conditions(info: dict) -> dict[str, bool]:
+    """The task checker's true/false conditions in an env step's ``info`` (``task/*``)."""
+    return {
+        key.removeprefix("task/"): bool(value)
+        for key, value in info.items()
+        if key.startswith("task/") and isinstance(value, bool | np.bool_)
+    }
 
 
 def _observation(env, cameras: CameraSet) -> dict:
@@ -86,7 +98,9 @@ def run_sync(env, policy, cameras: CameraSet, seed: int, max_seconds: float, vid
         success = success or bool(info["is_success"])
         if terminated or truncated or ticks / env.control_hz >= max_seconds:
             break
-    return EpisodeResult(seed, success, ticks / env.control_hz, ticks)
+    return EpisodeResult(
+        seed, success, ticks / env.control_hz, ticks, final=checker_conditions(info)
+    )
 
 
 class ThinkAct:
@@ -168,6 +182,7 @@ class ThinkAct:
                     video.capture()
                 result.success = result.success or bool(info["is_success"])
                 if terminated or truncated or result.ticks * dt >= max_seconds:
+                    result.final = checker_conditions(info)
                     break
                 delay = t0 + result.ticks * dt - time.perf_counter()
                 if delay > 0:
@@ -241,7 +256,10 @@ def summarize(
     control_hz: float,
 ) -> dict:
     """The summary of one (policy, task): success rate with its Wilson 95 % interval, mean
-    episode time (and over the successful episodes, the mean time to success); with ``asynchronous`` the control loop's jitter and starved ticks."""
+    episode time (and over the successful episodes, the mean time to success), how many failed
+    episodes ended without each of the checker's conditions (``unmet_at_end``, most first) and
+    each episode's seed, outcome, length and end conditions (``per_episode``); with
+    ``asynchronous`` the control loop's jitter and starved ticks."""
     successes = sum(r.success for r in results)
     low, high = wilson_interval(successes, len(results))
     success_times = [r.seconds for r in results if r.success]
@@ -258,6 +276,11 @@ def summarize(
         # An episode ends at success: its length is the time to success (None: no success).
         "mean_success_time_s": (round(float(np.mean(success_times)), 3) if success_times else None),
         "mode": "async" if asynchronous else "sync",
+        "unmet_at_end": unmet_at_end(results),
+        "per_episode": [
+            {"seed": r.seed, "success": r.success, "seconds": round(r.seconds, 3), "final": r.final}
+            for r in results
+        ],
     }
     if robot.is_file:  # which file: its label alone does not say
         summary["robot_file"] = {"path": robot.path, "sha256": robot.sha256}
@@ -273,3 +296,15 @@ def summarize(
         summary["ticks_without_action"] = int(sum(r.ticks_without_action for r in results))
         summary["ticks"] = int(sum(r.ticks for r in results))
     return summary
+
+
+def unmet_at_end(results: list[EpisodeResult]) -> dict[str, int]:
+    """Per checker condition, the failed episodes that ended without it, most first (an
+    episode lacking two counts in both)."""
+    counts: dict[str, int] = {}
+    for r in results:
+        if not r.success:
+            for name, met in r.final.items():
+                if not met:
+                    counts[name] = counts.get(name, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: -kv[1]))

@@ -492,5 +492,7 @@ def _row(summary: dict, policy: str, inputs: str, mode: str) -> dict:
         "success_rate": summary["success_rate"],
         "success_ci95": summary["success_ci95"],
         "mean_success_time_s": summary.get("mean_success_time_s"),
+        # (absent from evaluations cached before it was recorded)
+        "unmet_at_end": summary.get("unmet_at_end", {}),
         "note": "",
     }

@@ -52,6 +52,25 @@ def _cells(row: dict) -> list[str]:
     ]
 
 
+def _failures(rows: list[dict]) -> list[str]:
+    """What the failed episodes lacked at their end, per row that has failures."""
+    lines = []
+    for row in rows:
+        unmet = row.get("unmet_at_end")
+        if not unmet:
+            continue
+        failed = row["episodes"] - row["successes"]
+        loop = LOOPS.get(row["mode"], row["mode"])
+        counts = ", ".join(f"{name} {n}" for name, n in unmet.items())
+        lines.append(
+            f"- {row['task']}, {POLICY_NAMES.get(row['policy'], row['policy'])}, {loop}: "
+            f"of {failed} failed, ended without {counts}"
+        )
+    if lines:
+        lines = ["Failed episodes, the checker's conditions unmet at their end:", "", *lines, ""]
+    return lines
+
+
 def markdown(result: dict, command: str = "") -> str:
     """The table with its protocol, the command and the budget above it."""
     protocol = result["protocol"]
@@ -71,6 +90,7 @@ def markdown(result: dict, command: str = "") -> str:
         "|" + "---|" * len(COLUMNS),
         *("| " + " | ".join(_cells(row)) + " |" for row in result["rows"]),
         "",
+        *_failures(result["rows"]),
         f"Budget: {budget['wall_s']:.1f} s wall, {budget['cpu_s']:.1f} s CPU over all stages "
         f"({budget['stages_cached']} of them cached from an earlier run)"
         + "".join(
