@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import fields, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import pytest
@@ -168,6 +168,57 @@ def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
     # Finished: nothing runs again.
     assert training.train(TRAIN, tmp_path / "data", "r/d", stage) == stage / "run"
     assert len(commands) == 1
+
+
+def test_extend_continues_the_finished_shorter_run_and_leaves_it_as_it_was(tmp_path, monkeypatch):
+    from beavr_sim.bench.policies.stages import RunOptions, Stages, train_policy
+
+    short = replace(TRAIN, steps=10)
+    other = replace(TRAIN, steps=5, batch_size=4)  # another configuration: never a source
+    for config, key in ((short, "short"), (other, "other")):
+        source = tmp_path / "train" / f"act-PickupBox-{key}"
+        _checkpoint_at(source / "run", config.steps)
+        (source / "train.log").write_text(f"{_bar(10)}step:10 smpl:80 loss:0.5\n")
+        (source / "stage.json").write_text(json.dumps({"config": asdict(config)}))
+    commands = []
+
+    def fake_run(command, **kwargs):
+        commands.append(command)
+        run = Path(next(c for c in command if c.startswith("--output_dir=")).split("=", 1)[1])
+        _checkpoint_at(run, 20)
+        return type("Done", (), {"returncode": 0})()
+
+    monkeypatch.setattr(training.subprocess, "run", fake_run)
+    monkeypatch.setattr(training, "executable", lambda: "lerobot-train")
+    assert training.shorter_run(tmp_path / "train", TRAIN) == (
+        tmp_path / "train" / "act-PickupBox-short",
+        10,
+    )
+    options = RunOptions(out=tmp_path, extend=True)
+    key, run = train_policy(TRAIN, tmp_path / "data", Stages(1, echo=lambda _: None), options)
+    (command,) = commands
+    assert "--resume=true" in command and "--steps=20" in command
+    assert f"--config_path={training.checkpoint(run, 10) / 'train_config.json'}" in command
+    assert training.saved_steps(run) == [10, 20]  # the source's checkpoint kept
+    assert training.saved_steps(tmp_path / "train" / "act-PickupBox-short" / "run") == [10]
+    record = json.loads((run.parent / "stage.json").read_text())
+    assert record["extended_from"]["steps"] == 10
+    assert record["loss"] == [{"step": 10, "loss": 0.5}]  # the source's log came along
+    # Nothing shorter of this configuration: a fresh run, from step 0.
+    commands.clear()
+    fresh = replace(TRAIN, batch_size=2)
+    train_policy(fresh, tmp_path / "data", Stages(1, echo=lambda _: None), options)
+    (command,) = commands
+    assert "--resume=true" not in command
+
+
+def test_extend_refuses_diffusion_naming_what_it_takes(capsys):
+    from beavr_sim.bench.__main__ import main
+
+    assert main(["policies", "--policies", "diffusion", "--extend", "--quick"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: Unknown policy 'diffusion' for --extend.") and "act" in err
+    assert len(err.splitlines()) == 1
 
 
 def test_a_fresh_run_loads_data_with_the_workers_asked_for(tmp_path, monkeypatch):

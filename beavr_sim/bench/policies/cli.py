@@ -21,7 +21,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from beavr_sim.bench.policies.config import TRAINED_POLICIES, Protocol
+from beavr_sim.bench.policies.config import EXTENDABLE_POLICIES, TRAINED_POLICIES, Protocol
 from beavr_sim.bench.policies.stages import (
     RunOptions,
     StageFailed,
@@ -89,6 +89,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="the smoke-test sizes (see above)")
     p.add_argument("--out", type=Path, default=Path("outputs/policy_table"))
     p.add_argument("--resume", action="store_true", help="continue cut training runs")
+    p.add_argument(
+        "--extend",
+        action="store_true",
+        help="train to --steps by continuing the finished run of the same configuration with "
+        "the most steps short of it (its checkpoints kept), not from step 0; "
+        f"{', '.join(EXTENDABLE_POLICIES)} only (a constant learning rate)",
+    )
     p.add_argument(
         "--plot",
         type=Path,
@@ -168,8 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         config = table_config(args)
+        if args.extend:
+            for policy in config.policies:
+                # Diffusion's learning-rate schedule spans its total steps: no extending.
+                check_name("policy", policy, EXTENDABLE_POLICIES, "for --extend")
         options = RunOptions(
             out=args.out,
+            extend=args.extend,
             device=args.device,
             workers=args.workers,
             resume=args.resume,

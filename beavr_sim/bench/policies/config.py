@@ -31,6 +31,10 @@ VALIDATION_SEED = 2000
 AUGMENT_SEED = 3000
 #: Policies trained here (LeRobot ``--policy.type``).
 TRAINED_POLICIES = ("act", "diffusion")
+#: Policies whose finished run can be continued to more steps as if it had been asked for them
+#: from the start (``--extend``): ACT's learning rate is constant. Diffusion's cosine schedule
+#: spans the run's total steps, so a longer run is a different run from its first step.
+EXTENDABLE_POLICIES = ("act",)
 #: Rows that need pretrained weights from a hub, which an offline machine does not have.
 HUB_POLICIES = ("smolvla", "pi0")
 NOT_RUN_OFFLINE = "needs pretrained weights from a hub: not run offline"

@@ -92,6 +92,10 @@ class RunOptions:
     #: often the faster choice: every evaluation stage starts fresh worker processes, and each
     #: would set up CUDA for a policy of a few million parameters.
     eval_device: str | None = None
+    #: Continue a finished run of the same training configuration with fewer steps (ACT
+    #: only: :data:`~beavr_sim.bench.policies.config.EXTENDABLE_POLICIES`) instead of
+    #: starting from step 0.
+    extend: bool = False
 
 
 def _cpu_seconds() -> float:
@@ -305,13 +309,21 @@ def train_policy(
     stage = options.out / "train" / f"{train.policy}-{train.demos.task}-{key}"
 
     def work() -> dict:
+        extended = None
+        if options.extend and not training.saved_steps(stage / "run"):
+            found = training.shorter_run(options.out / "train", train)
+            if found is not None:
+                source, steps = found
+                print(f"extending {source} from step {steps} to {train.steps}", file=sys.stderr)
+                training.extend_from(source, stage)
+                extended = {"stage": str(source), "steps": steps}
         run = training.train(
             train,
             dataset,
             repo_id(train.demos),
             stage,
             options.device,
-            options.resume,
+            options.resume or extended is not None,
             options.loader_workers,
         )
         return {
@@ -319,6 +331,8 @@ def train_policy(
             "device": options.device,
             "steps_saved": training.saved_steps(run),
             "loss": loss_curve(train, run),
+            # Continued from that run's last checkpoint (LeRobot's resume), not from step 0.
+            "extended_from": extended,
         }
 
     what = f"train {train.policy} on {train.demos.task}: {train.steps} steps"

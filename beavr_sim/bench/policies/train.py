@@ -9,11 +9,13 @@ A run lives in ``<stage dir>/run`` (LeRobot's ``output_dir``), its output in
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
 import subprocess
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 from beavr_sim.bench.policies.config import TrainConfig
@@ -157,6 +159,41 @@ def train(
             f"({config.policy} on {config.demos.task}); its log: {log}"
         )
     return run
+
+
+def shorter_run(train_root: Path, config: TrainConfig) -> tuple[Path, int] | None:
+    """The finished training stage under ``train_root`` whose configuration is ``config``'s
+    but for fewer steps (the most of them, if several), and its steps; None if there is none."""
+    want = json.loads(json.dumps(asdict(config)))
+    best: tuple[Path, int] | None = None
+    for marker in train_root.glob(f"{config.policy}-{config.demos.task}-*/stage.json"):
+        try:
+            other = json.loads(marker.read_text()).get("config", {})
+        except (OSError, ValueError):
+            continue
+        steps = other.get("steps")
+        if not isinstance(steps, int) or steps >= config.steps:
+            continue
+        if {**other, "steps": config.steps} == want and (best is None or steps > best[1]):
+            best = (marker.parent, steps)
+    return best
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)  # LeRobot never rewrites a checkpoint's files: share them
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def extend_from(source: Path, stage: Path) -> None:
+    """Start ``stage``'s run as the finished run of the training stage ``source`` (its
+    checkpoints and log): :func:`train` with ``resume`` then continues it from its last
+    checkpoint to ``stage``'s steps."""
+    stage.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(source / "run", stage / "run", symlinks=True, copy_function=_link_or_copy)
+    if (source / "train.log").is_file():
+        shutil.copy2(source / "train.log", stage / "train.log")
 
 
 def log_freq(config: TrainConfig) -> int:
