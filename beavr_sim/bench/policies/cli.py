@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.plot is not None:
-        from beavr_sim.bench.policies import plot  # local: matplotlib
+        from beavr_sim.bench.policies import plot  # local: heavy (matplotlib)
 
         result["plots"] = [str(p) for p in plot.write(result, args.plot)]
     command = "python -m beavr_sim.bench policies " + shlex.join(argv)
