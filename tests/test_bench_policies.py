@@ -131,11 +131,14 @@ def test_the_loss_curve_takes_exact_steps_from_the_progress_bar(tmp_path):
         + _bar(199) + _bar(200) + line.format(200, 2.9) + "\n"
         + _bar(1199) + line.format("1K", 0.5) + "\n"  # the bar one step behind
         + _bar(1400) + line.format("1K", 0.4) + "\n"
-        + "$ lerobot-train --resume=true\n"  # resumed from the checkpoint at 1,000
-        + _bar(1150) + _bar(1200) + line.format("1K", 0.45) + "\n"
+        # Resumed from the checkpoint at 1,000: its bar counts the steps since.
+        + "$ lerobot-train --config_path=run/checkpoints/001000/pretrained_model/"
+        "train_config.json --resume=true --steps=3000\n"
+        + _bar(150, 2000) + _bar(200, 2000) + line.format("1K", 0.45) + "\n"
+        + _bar(400, 2000) + line.format("1K", 0.44) + "\n"
     )  # fmt: skip
     # What the cut run logged after its checkpoint is replaced by the resumed run's.
-    assert training.loss_curve(log, 200) == [(200, 2.9), (1200, 0.45)]
+    assert training.loss_curve(log, 200) == [(200, 2.9), (1200, 0.45), (1400, 0.44)]
     # Without a progress bar the lines are counted.
     log.write_text(line.format(200, 1.0) + "\n" + line.format(400, 0.5) + "\n")
     assert training.loss_curve(log, 200) == [(200, 1.0), (400, 0.5)]

@@ -20,10 +20,13 @@ from pathlib import Path
 
 from beavr_sim.bench.policies.config import TrainConfig
 
-#: LeRobot's training log line: ``step:20 smpl:160 ... loss:72.649 ...`` (steps as 1K, 2M).
-_LOG_LINE = re.compile(r"\bstep:(\S+) .*?\bloss:([-+0-9.eE]+)")
-#: Its progress bar's count, ``| 1600/6000 [``: the exact step, which the log line rounds.
-_PROGRESS = re.compile(r"\| *(\d+)/(\d+) \[")
+#: In order: our ``$ lerobot-train ...`` line before each (re)start, the progress bar's count
+#: (``| 1600/6000 [``: the step, counted from the run's start or its checkpoint), and
+#: LeRobot's log lines (``step:2K smpl:51K ... loss:0.227 ...``: the step rounded, 1K, 2M).
+_LOG_EVENT = re.compile(
+    r"(?m)^\$ (?P<command>.*)$|\| *(?P<count>\d+)/\d+ \[|\bstep:\S+ .*?\bloss:(?P<loss>[-+0-9.eE]+)"
+)
+_CHECKPOINT = re.compile(r"checkpoints/(\d+)/")
 
 
 class TrainFailed(RuntimeError):
@@ -206,23 +209,27 @@ def loss_curve(log: Path, every: int) -> list[tuple[int, float]]:
     logs every ``every`` steps and rounds the step it prints (1K: 1,000-1,999), so each line's
     step is the progress bar's last count before it, up to the next multiple of ``every``
     (the bar redraws at most ten times a second and may trail). A resumed run (appended to
-    the log) replaces what the cut one logged after its last checkpoint. A log with no
-    progress bar counts the lines (steps ``every``, ``2 every``, ...)."""
+    the log after its ``$ ... --resume=true`` line) counts its bar from its checkpoint, and
+    replaces what the cut one logged after that checkpoint. A log with no progress bar counts
+    the lines (steps ``every``, ``2 every``, ...)."""
     if not log.is_file():
         return []
-    text = log.read_text(errors="replace")
     curve: list[tuple[int, float]] = []
-    bars = list(_PROGRESS.finditer(text))
-    b, count = 0, None
-    for line in _LOG_LINE.finditer(text):
-        while b < len(bars) and bars[b].start() < line.start():
-            count = int(bars[b][1])
-            b += 1
-        if count is None:
-            step = (curve[-1][0] if curve else 0) + every
+    offset, count, last = 0, None, 0
+    for m in _LOG_EVENT.finditer(log.read_text(errors="replace")):
+        if m["command"] is not None:  # a (re)start: its bar counts from its checkpoint
+            resumed = "--resume=true" in m["command"] and _CHECKPOINT.search(m["command"])
+            offset = int(resumed[1]) if resumed else 0
+            count, last = None, offset
+        elif m["count"] is not None:
+            count = int(m["count"])
         else:
-            step = max(every, -(-count // every) * every)
-        while curve and curve[-1][0] >= step:  # a resumed run: its steps again
-            curve.pop()
-        curve.append((step, float(line[2])))
+            if count is None:
+                step = last + every
+            else:
+                step = offset + max(every, -(-count // every) * every)
+            while curve and curve[-1][0] >= step:  # a resumed run: its steps again
+                curve.pop()
+            curve.append((step, float(m["loss"])))
+            last = step
     return curve
