@@ -4,7 +4,9 @@ LeRobot keeps its parquet writers open across episodes and writes their footers 
 ``finalize()``: a process killed before that leaves every episode of the session unreadable.
 :class:`EpisodeWriter` therefore finalizes after every saved episode and resumes the dataset
 for the next one (``LeRobotDataset.resume``); each episode lands in files of its own, so a
-crash during episode k loses only episode k. Metadata is flushed per episode as well, and
+crash during episode k loses only episode k, except a kill inside the save itself (the data
+file open, no footer yet): that leaves LeRobot unable to load the dataset (docs/formats.md,
+"Known gap"). Metadata is flushed per episode as well, and
 its JSON files (``meta/info.json``, ``meta/stats.json``), which LeRobot rewrites in place
 after every episode, are written to a temporary file and renamed over the old one
 (:func:`atomic_metadata_writes`): a kill during that rewrite leaves the previous file whole,
