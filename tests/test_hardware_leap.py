@@ -390,20 +390,36 @@ def test_vanished_port_raises_device_error_quickly(emu, hand):
     assert not hand.connected
 
 
-def test_drained_says_whether_a_sync_write_has_reached_the_servos(emu, hand):
+def test_caught_up_says_whether_a_sync_write_has_reached_the_servos(emu, hand):
     """A sync write gets no reply, so the call returns before the emulator has handled it;
-    ``drained()`` is what a test waits on instead of a fixed sleep. Holding the emulator's
-    lock keeps it mid-handling: unread or read-but-unhandled, it is not drained."""
-    assert _wait_until(emu.drained)
+    ``caught_up(hand.bytes_sent)`` is what a test waits on instead of a fixed sleep. Holding
+    the emulator's lock keeps it mid-handling: whether the bytes are still in the pty or
+    already read, they are not handled."""
+    assert _wait_until(lambda: emu.caught_up(hand.bytes_sent))
     n_goals = len(emu.goal_log)
+    sent_before = hand.bytes_sent
     with emu.lock:  # the serving thread cannot handle what it reads
         hand.send_positions(np.full(16, 0.2))
+        assert hand.bytes_sent > sent_before
         for _ in range(50):  # before and after the thread reads the bytes
-            assert not emu.drained()
+            assert not emu.caught_up(hand.bytes_sent)
             time.sleep(0.002)
         assert len(emu.goal_log) == n_goals
-    assert _wait_until(emu.drained)
+    assert _wait_until(lambda: emu.caught_up(hand.bytes_sent))
     assert len(emu.goal_log) == n_goals + 16  # handled: no further wait needed
+
+
+def test_bytes_sent_counts_over_a_reconnect(emu, hand):
+    """The writer's count survives the port being closed and opened again, so a wait on
+    ``caught_up`` stays true to what was written."""
+    hand.send_positions(np.full(16, 0.1))
+    before = hand.bytes_sent
+    hand.disconnect()
+    assert hand.bytes_sent == before
+    hand.connect()
+    hand.send_positions(np.full(16, 0.1))
+    assert hand.bytes_sent > before
+    assert _wait_until(lambda: emu.caught_up(hand.bytes_sent))
 
 
 def test_waiting_for_a_reply_sleeps_instead_of_polling_the_port():

@@ -124,9 +124,11 @@ class Bench:
         it was sent (a sync write has no reply). A readiness wait: ``timeout`` is a hang
         guard."""
         m = self.mirror
+        hand = next(link.device for link in m.links if link.device.name == "right_hand")
         wait_for(
             lambda: (
-                all(link.seq_served == m.dispatched.seq for link in m.links) and self.hand.drained()
+                all(link.seq_served == m.dispatched.seq for link in m.links)
+                and self.hand.caught_up(hand.bytes_sent)
             ),
             timeout,
             poll_s=0.002,

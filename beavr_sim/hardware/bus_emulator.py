@@ -27,8 +27,6 @@ import fcntl
 import os
 import pty
 import select
-import struct
-import termios
 import threading
 import time
 import tty
@@ -172,8 +170,8 @@ class EmulatedBus(ABC):
         self._thread: threading.Thread | None = None
         self._last_advance = time.monotonic()
         self._drop_replies = 0
-        #: Set before the thread reads the port, cleared once what it read is handled.
-        self._busy = False
+        #: Bytes read from the port and done with (handled, or lost to a fault).
+        self.bytes_handled = 0
 
     # -- protocol hooks (called with the lock held) --
 
@@ -241,16 +239,13 @@ class EmulatedBus(ABC):
         with self.lock:
             self._drop_replies = n
 
-    def drained(self) -> bool:
-        """Whether every byte written to the port so far has been handled: a write that gets
-        no reply (a sync write) has reached the servos. A test hook, for waiting on readiness."""
-        pending = bytearray(4)
-        try:
-            fcntl.ioctl(self._master, termios.FIONREAD, pending)
-        except OSError:  # closed: nothing more will be handled
-            return True
-        # Unread bytes first, then the flag: the thread sets it before it reads them.
-        return struct.unpack("i", pending)[0] == 0 and not self._busy and not self.parser.buffer
+    def caught_up(self, bytes_sent: int) -> bool:
+        """Whether the first ``bytes_sent`` bytes written to the port have been handled (or
+        the port is gone): a write that gets no reply (a sync write) has reached the servos.
+        A test hook for waiting on readiness; the writer's count is
+        :attr:`~beavr_sim.hardware.serial_bus.SerialBus.bytes_sent`. A count, not "nothing is
+        pending": a pty delivers what was written a moment after the write returns."""
+        return self.bytes_handled >= bytes_sent or self._vanished.is_set()
 
     def advance(self, now: float | None = None) -> None:
         """Advance every servo's model to ``now`` (monotonic seconds)."""
@@ -290,7 +285,6 @@ class EmulatedBus(ABC):
                     os.read(self._wake_r, 64)
             data = b""
             if self._master in ready:
-                self._busy = True  # before the read: see drained()
                 try:
                     data = os.read(self._master, 4096)
                 except BlockingIOError:
@@ -301,11 +295,11 @@ class EmulatedBus(ABC):
             if data:
                 idle_since = None
                 if self.fault_state.admit() is not Verdict.SERVE:
-                    self._busy = False
+                    self.bytes_handled += len(data)
                     continue  # frozen or gone: the bytes are lost
                 with self.lock:
                     self._answer(self.parser.feed(data))
-            self._busy = False
+                self.bytes_handled += len(data)
             if not data and self.parser.buffer:
                 now = time.monotonic()
                 idle_since = idle_since or now

@@ -98,6 +98,13 @@ class ReplyTimeoutPort:
     def __init__(self, port_name: str, reply_timeout_s: float | None) -> None:
         super().__init__(port_name)  # type: ignore[call-arg]
         self.reply_timeout_ms = None if reply_timeout_s is None else 1000.0 * reply_timeout_s
+        #: Bytes the SDK has written to this port.
+        self.bytes_written = 0
+
+    def writePort(self, packet) -> int:
+        written = super().writePort(packet)  # type: ignore[misc]
+        self.bytes_written += int(written or 0)
+        return written
 
     def setPacketTimeout(self, packet_length: int) -> None:
         if self.reply_timeout_ms is None:
@@ -155,10 +162,17 @@ class SerialBus(Device):
         self._ph: Any = None
         self._writer: Any = None
         self._reader: Any = None
+        self._bytes_on_closed_ports = 0
 
     @property
     def connected(self) -> bool:
         return self._port is not None
+
+    @property
+    def bytes_sent(self) -> int:
+        """Bytes written to the serial port since this bus was made, over every reconnect."""
+        live = self._port.bytes_written if self._port is not None else 0
+        return self._bytes_on_closed_ports + live
 
     # -- what a subclass provides --
 
@@ -307,6 +321,7 @@ class SerialBus(Device):
         port, self._port = self._port, None
         self._writer = self._reader = None
         if port is not None:
+            self._bytes_on_closed_ports += port.bytes_written
             _close(port)
 
     def _require_connected(self) -> Any:
