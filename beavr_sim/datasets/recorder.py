@@ -27,13 +27,11 @@ A twin camera with a real camera of its name is written as ``observation.images.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -50,7 +48,7 @@ from beavr_sim.datasets.features import (
     RecordingConfig,
     hand_sides,
 )
-from beavr_sim.datasets.writer import EpisodeWriter
+from beavr_sim.datasets.writer import EpisodeWriter, append_log_line
 from beavr_sim.envs.cameras import OffscreenCameras
 from beavr_sim.robots.identity import embodiment_label
 from beavr_sim.wire.hand import N_JOINTS, HandFrame
@@ -261,12 +259,9 @@ class EpisodeRecorder:
     def end(self, keep: bool, **info) -> bool:
         """End the episode: write it (``keep``) or drop it. Returns whether it was written."""
         self.recording = False
-        written = keep and self.writer.save_episode()
-        if not written:
-            self.writer.discard_episode()
         record = {
-            "episode_index": self.writer.num_episodes - 1 if written else None,
-            "kept": bool(written),
+            "episode_index": None,
+            "kept": bool(keep),
             "frames": self.frames,
             "seconds": round(self.frames / self.config.fps, 3),
             "task": self.env.task.name,
@@ -279,10 +274,11 @@ class EpisodeRecorder:
         if self.real_cameras is not None:
             record["hardware_fault"] = self.fault or None
             record["cameras"] = self.real_cameras.summary()
-        log_path = Path(self.writer.root) / "meta" / "beavr_episodes.jsonl"
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        with log_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
+        # A kept episode's line is written in its save's transaction: both or neither.
+        written = keep and self.writer.save_episode(log_record=record)
+        if not written:
+            self.writer.discard_episode()
+            append_log_line(self.writer.root, {**record, "kept": False})
         return bool(written)
 
     def close(self) -> None:

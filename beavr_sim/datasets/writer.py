@@ -3,14 +3,12 @@
 LeRobot keeps its parquet writers open across episodes and writes their footers only in
 ``finalize()``: a process killed before that leaves every episode of the session unreadable.
 :class:`EpisodeWriter` therefore finalizes after every saved episode and resumes the dataset
-for the next one (``LeRobotDataset.resume``); each episode lands in files of its own, so a
-crash during episode k loses only episode k, except a kill inside the save itself (the data
-file open, no footer yet): that leaves LeRobot unable to load the dataset (docs/formats.md,
-"Known gap"). Metadata is flushed per episode as well, and
-its JSON files (``meta/info.json``, ``meta/stats.json``), which LeRobot rewrites in place
-after every episode, are written to a temporary file and renamed over the old one
-(:func:`atomic_metadata_writes`): a kill during that rewrite leaves the previous file whole,
-where an in-place write would leave it empty and the whole dataset unreadable.
+for the next one (``LeRobotDataset.resume``); each episode lands in files of its own. Each save
+is a transaction (:mod:`beavr_sim.datasets.save_journal`): a process killed inside it leaves a
+journal, and the next open puts the dataset back as it was before that episode. A crash
+therefore loses only the episode in progress. LeRobot's JSON metadata (``meta/info.json``,
+``meta/stats.json``), rewritten in place after every episode, goes through a temporary file
+and a rename (:func:`atomic_metadata_writes`), so a reader never sees half a file.
 
 Every dataset the project opens is opened with the PyAV video backend (:data:`VIDEO_BACKEND`,
 :func:`open_dataset`): LeRobot's default probes torchcodec first, whose libraries need the
@@ -32,6 +30,7 @@ import numpy as np
 
 from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.robot_meta import write_robot_meta
+from beavr_sim.datasets.save_journal import APPENDED, episode_save, undo_interrupted_save
 from beavr_sim.robots.identity import robot_identity
 
 log = logging.getLogger("beavr_sim.datasets")
@@ -84,8 +83,10 @@ def atomic_metadata_writes() -> None:
 def open_dataset(root: str | Path, repo_id: str | None = None, **kwargs):
     """A recorded dataset, read back with the PyAV video backend (no torchcodec probe);
     ``kwargs`` go to ``LeRobotDataset`` (``episodes``, ``delta_timestamps``, ...). The repo
-    id defaults to the one the dataset was written with."""
+    id defaults to the one the dataset was written with. A save a killed process left half
+    done is undone first (:func:`~beavr_sim.datasets.save_journal.undo_interrupted_save`)."""
     root = Path(root)
+    undo_interrupted_save(root)
     if not dataset_exists(root):
         raise FileNotFoundError(f"no LeRobot dataset in {root} (meta/info.json is missing)")
     dataset_cls = require_lerobot()
@@ -95,6 +96,14 @@ def open_dataset(root: str | Path, repo_id: str | None = None, **kwargs):
 
 def dataset_exists(root: Path) -> bool:
     return (Path(root) / "meta" / "info.json").is_file()
+
+
+def append_log_line(root: str | Path, record: Mapping) -> None:
+    """One episode's line in ``meta/beavr_episodes.jsonl``."""
+    path = Path(root) / APPENDED
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as f:
+        f.write(json.dumps(dict(record)) + "\n")
 
 
 class EpisodeWriter:
@@ -121,6 +130,7 @@ class EpisodeWriter:
         self.fps = int(fps)
         self._dataset_cls = require_lerobot()
         identity = robot_identity(robot_type)
+        undo_interrupted_save(self.root)
         if dataset_exists(self.root):
             if overwrite:
                 shutil.rmtree(self.root)
@@ -181,16 +191,24 @@ class EpisodeWriter:
         self._open().add_frame({**frame, "task": task})
         self.frames_in_episode += 1
 
-    def save_episode(self) -> bool:
-        """Write the episode's frames; on disk and loadable when this returns. False if the
-        episode was empty (nothing written)."""
+    def save_episode(self, log_record: dict | None = None) -> bool:
+        """Write the episode's frames; on disk and loadable when this returns, or (killed
+        inside) undone at the next open. ``log_record``, given its ``episode_index``, is the
+        episode's line in ``meta/beavr_episodes.jsonl``, written in the same transaction.
+        False if the episode was empty (nothing written)."""
         if self.frames_in_episode == 0:
             return False
         dataset = self._open()
-        dataset.save_episode()
-        dataset.finalize()  # parquet footers and metadata: the episode is now durable
-        self._dataset = None
-        self.frames_in_episode = 0
+        try:
+            with episode_save(self.root):
+                dataset.save_episode()
+                dataset.finalize()  # parquet footers and metadata
+                if log_record is not None:
+                    log_record = {**log_record, "episode_index": self.num_episodes - 1}
+                    append_log_line(self.root, log_record)
+        finally:  # saved, or undone on disk: the next episode resumes from there
+            self._dataset = None
+            self.frames_in_episode = 0
         self.episodes_saved += 1
         return True
 

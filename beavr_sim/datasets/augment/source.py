@@ -19,6 +19,7 @@ import numpy as np
 from beavr_sim.datasets.augment.recover import recover
 from beavr_sim.datasets.features import ACTION, ENV_STATE, IMAGE_PREFIX, KEYPOINTS, RecordingConfig
 from beavr_sim.datasets.robot_meta import dataset_embodiment
+from beavr_sim.datasets.save_journal import undo_interrupted_save
 from beavr_sim.datasets.shards import EPISODE_LOG, read_log
 from beavr_sim.datasets.writer import dataset_exists
 
@@ -73,6 +74,7 @@ class Source:
 def open_source(root: str | Path) -> Source:
     """The source at ``root``; raises ValueError / FileNotFoundError with what is missing."""
     root = Path(root)
+    undo_interrupted_save(root)
     if not dataset_exists(root):
         raise FileNotFoundError(f"no LeRobot dataset in {root} (meta/info.json is missing)")
     info = json.loads((root / "meta" / "info.json").read_text())
