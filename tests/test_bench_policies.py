@@ -22,6 +22,7 @@ from beavr_sim.bench.policies.config import (
     AugmentConfig,
     DemoConfig,
     EvalConfig,
+    FitConfig,
     Protocol,
     TrainConfig,
     cache_key,
@@ -59,7 +60,10 @@ def _changed(value):
     return {"PickupBox": "PickPlace", "act": "diffusion", "sync": "async"}.get(value, value + "x")
 
 
-@pytest.mark.parametrize(("stage", "config"), [("demos", DEMOS), ("train", TRAIN), ("eval", EVAL)])
+@pytest.mark.parametrize(
+    ("stage", "config"),
+    [("demos", DEMOS), ("train", TRAIN), ("eval", EVAL), ("fit", FitConfig("abc", 10, "0123"))],
+)
 def test_cache_key_changes_with_every_config_field_and_only_then(stage, config):
     key = cache_key(stage, config)
     assert cache_key(stage, replace(config)) == key  # an equal config: the same key
@@ -114,6 +118,15 @@ def test_the_table_says_what_the_failed_episodes_lacked_at_their_end():
                 "test_seeds": "1000-1002"}  # fmt: skip
     text = markdown({"protocol": protocol, "device": "cpu", "budget": budget, "rows": [row]})
     assert "- PickupBox, ACT, sync: of 2 failed, ended without in_area 2, lifted 1" in text
+    assert "Open-loop fit" not in text  # a row without one (a table made before it)
+    fit = {"episodes": [0, 1], "mean_abs": 0.14161, "relative": 0.5198}
+    rows = [row | {"fit": fit, "checkpoint_step": 6000, "train_steps": 6000, "chosen_on": "v"},
+            row | {"mode": "async", "fit": fit, "checkpoint_step": 6000, "train_steps": 6000,
+                   "chosen_on": "v"}]  # fmt: skip
+    text = markdown({"protocol": protocol, "device": "cpu", "budget": budget, "rows": rows})
+    assert "on training episodes 0, 1, fed their recorded observations" in text
+    line = "- PickupBox, ACT (step 6000): mean |action error| 0.1416, 0.52 of the recorded"
+    assert text.count(line) == 1  # once per policy, not per loop
 
 
 def _bar(n: int, total: int = 3000) -> str:
@@ -352,6 +365,9 @@ def test_quick_writes_the_table_and_its_json(quick):
     # The loss as LeRobot logged it (every 10 steps in --quick), at exact steps.
     assert [c["step"] for c in act["loss"]] == [10, 20]
     assert all(math.isfinite(c["loss"]) and c["loss"] > 0 for c in act["loss"])
+    # Its open-loop fit on the training episodes: 20 steps leave it far from exact.
+    assert act["fit"]["episodes"] == [0, 1] and act["fit"]["mean_abs"] > 0
+    assert rows[("act", "async")]["fit"] == act["fit"]
     # Training, validation and test seeds are disjoint.
     (demos,) = (out / "demos").glob("*/stage.json")
     train_seeds = set(json.loads(demos.read_text())["seeds"])
@@ -362,12 +378,13 @@ def test_quick_writes_the_table_and_its_json(quick):
     assert "| PickupBox | ACT | state + object poses | think-act |" in table
     assert f"| PickupBox | SmolVLA |  |  | - | {NOT_RUN_OFFLINE} |" in table
     assert "checkpoints chosen on seeds 2000-2001; tested on seeds 1000-1001" in table
+    assert "- PickupBox, ACT (step " in table and "of the recorded actions' spread" in table
     assert result["budget"]["stages_cached"] == 0
 
 
 def test_quick_again_is_read_from_its_cache(quick):
     _, first, again = quick
-    assert all(r["cached"] for r in again["stages"]) and len(again["stages"]) == 7
+    assert all(r["cached"] for r in again["stages"]) and len(again["stages"]) == 8
     assert again["rows"] == first["rows"]
     assert again["budget"]["this_run_wall_s"] == 0
     assert again["budget"]["cpu_s"] == first["budget"]["cpu_s"]

@@ -51,6 +51,25 @@ def test_recording_config_rejects_bad_values():
         RecordingConfig(fps=0)
     with pytest.raises(ValueError, match="image size"):
         RecordingConfig(image_height=0)
+    # Too small for the video encoder, which would kill the process rather than raise.
+    with pytest.raises(ValueError, match=r"16x16 \(HxW\) is too small to record as video"):
+        RecordingConfig(cameras=("front",), image_height=16, image_width=16)
+    RecordingConfig(cameras=("front",), image_height=16, image_width=16, use_videos=False)
+    RecordingConfig(cameras=(), image_height=16, image_width=16)  # no camera: nothing encoded
+    RecordingConfig(cameras=("front",), image_height=24, image_width=32)  # the tests' size
+
+
+def test_the_writer_refuses_a_video_the_encoder_would_crash_on(tmp_path):
+    """A video feature 16 wide (a real camera's, the robot plugin's) is refused with one line
+    before anything is written; SVT-AV1 kills the process with SIGFPE on it."""
+    from beavr_sim.datasets.writer import EpisodeWriter
+
+    video = {"dtype": "video", "shape": (32, 16, 3), "names": ["height", "width", "channels"]}
+    features = {"action": {"dtype": "float32", "shape": (2,), "names": ["a", "b"]},
+                "observation.images.top": video}  # fmt: skip
+    with pytest.raises(ValueError, match=r"32x16 \(HxW\) is too small .* --no-videos"):
+        EpisodeWriter(tmp_path / "d", "local/d", features, 10, "xarm7_leap_right")
+    assert not (tmp_path / "d").exists()
 
 
 def _generate(out: Path, episodes: int, config: RecordingConfig, **kwargs):
@@ -251,6 +270,57 @@ def test_eval_runs_a_trained_policy_in_the_env(act_checkpoint, tmp_path, capsys)
         assert episode["final"]["lifted"] is False and episode["success"] is False
     assert result["unmet_at_end"]["lifted"] == 2
     assert list(result["unmet_at_end"].values()) == sorted(result["unmet_at_end"].values())[::-1]
+
+
+class _ConstantPolicy:
+    """Always the same action: its open-loop error is known from the recordings alone."""
+
+    def __init__(self, action: np.ndarray):
+        self.action = action
+        self.resets = 0
+
+    def reset(self) -> None:
+        self.resets += 1
+
+    def act(self, observation: dict, task: str) -> np.ndarray:
+        assert observation["agent_pos"].dtype == np.float32
+        assert task.startswith("Pick up the box")
+        return self.action
+
+
+def test_open_loop_fit_measures_the_error_against_the_recorded_actions(dataset_root):
+    from beavr_sim.datasets.writer import open_dataset
+    from beavr_sim.eval.fit import open_loop_fit
+
+    ds = open_dataset(dataset_root)
+    actions = np.stack([np.asarray(ds[i]["action"], dtype=np.float64) for i in range(len(ds))])
+    constant = actions.mean(axis=0) + 0.05
+    policy = _ConstantPolicy(constant)
+    fit = open_loop_fit(policy, ds, (0, 1))
+    assert policy.resets == 2 and fit.frames == len(ds)
+    err = np.abs(actions - constant)
+    assert fit.mean_abs == pytest.approx(err.mean())
+    names = ds.meta.features["action"]["names"]
+    assert list(fit.per_dimension) == names
+    assert fit.per_dimension[names[0]] == pytest.approx(err[:, 0].mean())
+    moving = actions.std(axis=0) > 1e-9
+    expected = np.mean(err.mean(axis=0)[moving] / actions.std(axis=0)[moving])
+    assert fit.relative == pytest.approx(expected) and fit.relative > 0.5  # a constant
+    with pytest.raises(ValueError, match=r"episodes \[2\] are not in the dataset"):
+        open_loop_fit(policy, ds, (0, 2))
+
+
+def test_fit_cli_prints_its_json_for_a_trained_policy(act_checkpoint, dataset_root, capsys):
+    from beavr_sim.eval.fit import main
+
+    assert main(["--policy", str(act_checkpoint), "--dataset", str(dataset_root)]) == 0
+    captured = capsys.readouterr()
+    result = json.loads(captured.out.strip().splitlines()[-1])
+    assert result["episodes"] == [0] and result["frames"] > 0
+    assert result["mean_abs"] > 0 and result["relative"] > 0  # two training steps
+    assert "open-loop fit on" in captured.err
+    assert main(["--policy", str(act_checkpoint), "--dataset", str(dataset_root / "x")]) == 2
+    assert "no LeRobot dataset" in capsys.readouterr().err
 
 
 def test_eval_async_think_act_reports_jitter_and_starved_ticks(act_checkpoint, capsys):

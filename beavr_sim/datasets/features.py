@@ -46,6 +46,25 @@ KEYPOINTS = "hand.keypoints"
 TRACKED = "hand.tracked"
 
 
+#: The smallest image width and height LeRobot's video encoder (SVT-AV1, as LeRobot configures
+#: it) is given here. Measured on 2026-12-05: widths of 24 and below kill the process (SIGFPE,
+#: no exception), 25 and up encode; heights of 2 and below raise, 4 encodes. The width keeps a
+#: margin above what was seen to work.
+MIN_VIDEO_WIDTH = 32
+MIN_VIDEO_HEIGHT = 8
+
+
+def check_video_size(height: int, width: int) -> None:
+    """Raise ValueError for an image size the video encoder cannot take (one it would crash
+    on, not raise)."""
+    if width < MIN_VIDEO_WIDTH or height < MIN_VIDEO_HEIGHT:
+        raise ValueError(
+            f"image size {height}x{width} (HxW) is too small to record as video: LeRobot's AV1 "
+            f"encoder needs a width of at least {MIN_VIDEO_WIDTH} and a height of at least "
+            f"{MIN_VIDEO_HEIGHT}; pass a larger --image-size, or --no-videos to store PNG frames"
+        )
+
+
 @dataclass(frozen=True)
 class RecordingConfig:
     """How episodes are recorded (one per dataset; validated here)."""
@@ -88,6 +107,8 @@ class RecordingConfig:
             raise ValueError(
                 f"image size must be positive, got {self.image_height}x{self.image_width}"
             )
+        if self.use_videos and (self.cameras or self.depth_cameras):
+            check_video_size(self.image_height, self.image_width)
         if self.episode_seconds is not None and not self.episode_seconds > 0:
             raise ValueError(f"episode_seconds must be positive, got {self.episode_seconds!r}")
         if not self.tail_seconds >= 0:

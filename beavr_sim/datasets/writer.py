@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from beavr_sim.datasets.features import check_video_size
 from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.robot_meta import write_robot_meta
 from beavr_sim.datasets.save_journal import APPENDED, episode_save, undo_interrupted_save
@@ -125,6 +126,10 @@ class EpisodeWriter:
         overwrite: bool = False,
     ):
         quiet_dataset_writes()  # before LeRobot loads ``datasets``: no encoder banners, bars
+        if use_videos:
+            for ft in features.values():
+                if ft.get("dtype") == "video":
+                    check_video_size(int(ft["shape"][0]), int(ft["shape"][1]))
         self.root = Path(root)
         self.repo_id = repo_id
         self.fps = int(fps)

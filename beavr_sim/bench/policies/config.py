@@ -158,6 +158,22 @@ class EvalConfig:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
 
 
+#: The training episodes a checkpoint's open-loop fit is measured on.
+FIT_EPISODES = (0, 1)
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """The open-loop fit of one checkpoint (``python -m beavr_sim.eval.fit``): its actions on
+    recorded training episodes against the recorded ones, the check that tells a policy that
+    never learned its data from one that drifts in the env."""
+
+    train_key: str
+    step: int
+    weights: str
+    episodes: tuple[int, ...] = FIT_EPISODES
+
+
 @dataclass(frozen=True)
 class Protocol:
     """The seeds of one table: demonstrations, validation, test (disjoint, checked)."""

@@ -5,9 +5,10 @@ Stages, per task: demonstrations (``demos/<task>-<key>/``, a LeRobot dataset, re
 generator itself), with ``augment`` the episodes generated from them and merged with them
 (``augment/<task>-<key>/``: ``generated/dataset`` and the merged ``dataset``), per policy a training run (``train/<policy>-<task>-<key>/``: LeRobot's
 ``run/``, ``train.log``), the checkpoint choice (every saved checkpoint on the validation seeds,
-sync; the most successes wins, the later step on a tie), the test episodes of the chosen one
-(sync and think-act), and the scripted expert through the teleop pipeline on the test seeds
-(the "human" row). Evaluations are ``eval/<name>-<key>.json``. A stage is finished when its
+sync; the most successes wins, the later step on a tie), the chosen one's open-loop fit on
+the first training episodes (``fit/<name>-<key>.json``, :mod:`beavr_sim.eval.fit`), its test
+episodes (sync and think-act), and the scripted expert through the teleop pipeline on the test
+seeds (the "human" row). Evaluations are ``eval/<name>-<key>.json``. A stage is finished when its
 ``stage.json`` (or its eval JSON) is written, last: a re-run skips it and reports it cached.
 
 Each stage prints one line on stderr when it ends: what it did, wall and CPU time (this
@@ -37,6 +38,7 @@ from beavr_sim.bench.policies.config import (
     AugmentConfig,
     DemoConfig,
     EvalConfig,
+    FitConfig,
     Protocol,
     TrainConfig,
     cache_key,
@@ -372,6 +374,31 @@ def evaluate(
     return stages.run("eval", what, key, marker, work)
 
 
+def fit(
+    train: TrainConfig, key: str, run: Path, step: int, dataset: Path, stages: Stages,
+    options: RunOptions,
+) -> dict:  # fmt: skip
+    """The open-loop fit of the checkpoint at ``step`` on the first training episodes
+    (:data:`~beavr_sim.bench.policies.config.FIT_EPISODES`)."""
+    config = FitConfig(train_key=key, step=step, weights=_weights(run, step))
+    fit_key = cache_key("fit", config)
+    name = f"{train.policy}-{train.demos.task}-step{step}"
+    marker = options.out / "fit" / f"{name}-{fit_key}.json"
+
+    def work() -> dict:
+        from beavr_sim.datasets.writer import open_dataset  # local: heavy (LeRobot datasets)
+        from beavr_sim.eval.fit import open_loop_fit  # local: heavy (torch)
+        from beavr_sim.eval.policy import LoadedPolicy  # local: heavy (torch)
+
+        data = open_dataset(dataset)
+        episodes = tuple(e for e in config.episodes if e < data.meta.total_episodes)
+        policy = LoadedPolicy(training.checkpoint(run, step), options.eval_device or options.device)
+        return {"config": asdict(config), **open_loop_fit(policy, data, episodes).as_dict()}
+
+    episodes = ", ".join(map(str, config.episodes))
+    return stages.run("fit", f"fit {name} on training episodes {episodes}", fit_key, marker, work)
+
+
 def _expert_episodes(evaluation: EvalConfig) -> dict:
     """The scripted expert driving synthetic VR hands through the teleop pipeline (operator,
     guard, twin), one episode per seed: the table's "human" row."""
@@ -429,7 +456,7 @@ def stage_count(config: TableConfig) -> int:
         for policy in config.policies:
             train = train_config(config, policy, demos)
             checkpoints = -(-train.steps // train.save_freq)  # every save_freq and the last
-            total += 1 + checkpoints + len(config.modes)
+            total += 2 + checkpoints + len(config.modes)  # train, validations, fit, tests
     return total
 
 
@@ -454,6 +481,7 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
             train = train_config(config, policy, demos)
             key, run = train_policy(train, dataset, stages, options)
             step, validation = choose_checkpoint(config, train, key, run, stages, options)
+            fitted = fit(train, key, run, step, dataset, stages, options)
             curve = loss_curve(train, run)
             for mode in config.modes:
                 evaluation = EvalConfig(
@@ -474,6 +502,7 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
                         f"{validation_seeds[1]}",
                         "validation": validation,
                         "loss": curve,
+                        "fit": {k: fitted[k] for k in ("episodes", "mean_abs", "relative")},
                         "checkpoint": str(training.checkpoint(run, step)),
                     }
                 )

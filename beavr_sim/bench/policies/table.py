@@ -71,6 +71,33 @@ def _failures(rows: list[dict]) -> list[str]:
     return lines
 
 
+def _fits(rows: list[dict]) -> list[str]:
+    """Each trained policy's open-loop fit at its chosen checkpoint (once per policy)."""
+    lines, seen = [], set()
+    for row in rows:
+        fit = row.get("fit")  # (absent from tables made before it was measured)
+        if not fit or (row["task"], row["policy"]) in seen:
+            continue
+        seen.add((row["task"], row["policy"]))
+        lines.append(
+            f"- {row['task']}, {POLICY_NAMES.get(row['policy'], row['policy'])} (step "
+            f"{row['checkpoint_step']}): mean |action error| {fit['mean_abs']:.4f}, "
+            f"{fit['relative']:.2f} of the recorded actions' spread"
+        )
+    if lines:
+        first = next(r["fit"] for r in rows if r.get("fit"))
+        episodes = ", ".join(map(str, first["episodes"]))
+        lines = [
+            f"Open-loop fit: each policy's actions on training episodes {episodes}, fed their "
+            "recorded observations, against the recorded actions (`python -m "
+            "beavr_sim.eval.fit`; 0 is exact, about 1 no better than a constant):",
+            "",
+            *lines,
+            "",
+        ]
+    return lines
+
+
 def markdown(result: dict, command: str = "") -> str:
     """The table with its protocol, the command and the budget above it."""
     protocol = result["protocol"]
@@ -91,6 +118,7 @@ def markdown(result: dict, command: str = "") -> str:
         *("| " + " | ".join(_cells(row)) + " |" for row in result["rows"]),
         "",
         *_failures(result["rows"]),
+        *_fits(result["rows"]),
         f"Budget: {budget['wall_s']:.1f} s wall, {budget['cpu_s']:.1f} s CPU over all stages "
         f"({budget['stages_cached']} of them cached from an earlier run)"
         + "".join(
