@@ -419,3 +419,22 @@ def test_augment_adds_generated_scenes_to_the_demonstrations_and_is_cached(quick
     assert record["stage"] == "augment" and not record["cached"]
     assert make_augmented(augment, demos, stages, options) == merged
     assert stages.records[-1]["cached"]
+
+
+def test_diffusion_learns_its_actions_in_the_range_its_sampler_clips_to():
+    """LeRobot's Diffusion clips each denoised sample to [-1, 1] (``clip_sample``): its
+    actions must be normalised into that range (MIN_MAX), not to unit variance, where a third
+    of the PickupBox demonstrations' values lie outside it and would be cut off."""
+    pytest.importorskip("lerobot", reason="lerobot (>= 0.5) is not installed")
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    from beavr_sim.bench.policies.config import PRESETS, QUICK_PRESETS
+
+    default = DiffusionConfig()
+    assert default.clip_sample and default.clip_sample_range == 1.0
+    for presets in (PRESETS, QUICK_PRESETS):
+        flags = dict(flag.split("=", 1) for flag in presets["diffusion"].flags)
+        assert "clip_sample" not in flags
+        mapping = json.loads(flags["normalization_mapping"])
+        assert mapping["ACTION"] == "MIN_MAX" and mapping["STATE"] == "MIN_MAX"
+        assert mapping["ENV"] == "MIN_MAX"  # the object poses are normalised too

@@ -227,6 +227,14 @@ _NORMALISE_ALL = (
     'normalization_mapping={"VISUAL":"MEAN_STD","STATE":"MEAN_STD","ENV":"MEAN_STD",'
     '"ACTION":"MEAN_STD"}'
 )
+#: Diffusion's: actions and states to [-1, 1] (LeRobot's default for it, object poses added).
+#: Its sampler clips every denoised sample to [-1, 1] (``clip_sample``); with MEAN_STD a third
+#: of the PickupBox demonstrations' action values lie beyond one standard deviation, and the
+#: clip cut them off.
+_MIN_MAX_ALL = (
+    'normalization_mapping={"VISUAL":"MEAN_STD","STATE":"MIN_MAX","ENV":"MIN_MAX",'
+    '"ACTION":"MIN_MAX"}'
+)
 _NO_HUB = ("pretrained_backbone_weights=null",)  # offline: ResNet from scratch
 
 #: The table's settings: ACT as in docs/benchmarks.md (4.3 M parameters, chunk 30, 10 actions
@@ -260,7 +268,7 @@ PRESETS: dict[str, PolicyPreset] = {
             "down_dims=[128,256,512]",
             "noise_scheduler_type=DDIM",
             "num_inference_steps=10",
-            _NORMALISE_ALL,
+            _MIN_MAX_ALL,
         ),
     ),
 }
@@ -297,7 +305,7 @@ QUICK_PRESETS: dict[str, PolicyPreset] = {
             "noise_scheduler_type=DDIM",
             "num_train_timesteps=10",
             "num_inference_steps=2",
-            _NORMALISE_ALL,
+            _MIN_MAX_ALL,
         ),
     ),
 }
