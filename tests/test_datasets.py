@@ -310,6 +310,25 @@ def test_open_loop_fit_measures_the_error_against_the_recorded_actions(dataset_r
         open_loop_fit(policy, ds, (0, 2))
 
 
+def test_a_recorded_frame_becomes_the_observation_the_env_gives():
+    """Images come back from LeRobot as C x H x W floats in [0, 1]; the env gives H x W x C
+    uint8 under ``pixels`` (what the policy's preprocessing expects)."""
+    from beavr_sim.eval.fit import env_observation
+
+    image = np.random.default_rng(0).integers(0, 256, size=(24, 32, 3), dtype=np.uint8)
+    frame = {
+        "observation.state": np.arange(3, dtype=np.float64),
+        "observation.environment_state": np.ones(2),
+        "observation.images.front": image.transpose(2, 0, 1).astype(np.float32) / 255.0,
+        "action": np.zeros(3),
+    }
+    obs = env_observation(frame)
+    assert obs["agent_pos"].dtype == np.float32 and obs["environment_state"].shape == (2,)
+    assert obs["pixels"]["front"].dtype == np.uint8
+    np.testing.assert_array_equal(obs["pixels"]["front"], image)
+    assert "pixels" not in env_observation({"observation.state": np.zeros(3)})
+
+
 def test_fit_cli_prints_its_json_for_a_trained_policy(act_checkpoint, dataset_root, capsys):
     from beavr_sim.eval.fit import main
 
