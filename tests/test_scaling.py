@@ -218,6 +218,38 @@ def test_merge_appends_to_an_existing_dataset(serial_root, tmp_path):
                                   serial[len(serial) - 1]["observation.images.front"].numpy())  # fmt: skip
 
 
+def test_a_merge_killed_between_its_renames_is_finished_by_the_next_run(
+    serial_root, tmp_path, monkeypatch
+):
+    """The appending merge moves the old dataset aside, then the merged one into place; a
+    kill between the two leaves no dataset at ``out``. The next run puts the merged one there
+    (it was whole before the first rename) and drops the old copy."""
+    from beavr_sim.datasets.shards import Shard, finish_interrupted_swap, merge_shards
+
+    out = tmp_path / "ds"
+    shutil.copytree(serial_root, out)
+    shard = Shard(tmp_path / "shard")
+    shutil.copytree(serial_root, shard.dataset)
+    rename = Path.rename
+
+    def killed_before_the_second(self, target):
+        if self.name.endswith(".merging"):
+            raise SystemExit("killed")
+        return rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", killed_before_the_second)
+    with pytest.raises(SystemExit):
+        merge_shards([shard], out, REPO_ID)
+    monkeypatch.setattr(Path, "rename", rename)
+    assert not out.exists() and (tmp_path / "ds.replaced").is_dir()
+
+    assert finish_interrupted_swap(out)
+    assert not (tmp_path / "ds.replaced").exists() and not (tmp_path / "ds.merging").exists()
+    assert LeRobotDataset(REPO_ID, root=out, video_backend="pyav").num_episodes == 2 * EPISODES
+    assert [r["episode_index"] for r in _log(out)] == list(range(2 * EPISODES))
+    assert not finish_interrupted_swap(out)  # nothing left to finish
+
+
 def test_a_restarted_run_resumes_only_finished_shards_of_the_same_job(tmp_path):
     from beavr_sim.synthetic.generate import EpisodeOutcome, _resume
 

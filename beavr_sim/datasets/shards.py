@@ -108,6 +108,7 @@ def merge_shards(shards: Sequence[Shard], out: Path, repo_id: str) -> int:
     from lerobot.datasets.aggregate import aggregate_datasets
 
     out = Path(out)
+    finish_interrupted_swap(out)
     existing = dataset_exists(out)
     if out.exists() and not existing and any(out.iterdir()):
         raise FileExistsError(f"{out} exists and is not a LeRobot dataset")
@@ -119,7 +120,7 @@ def merge_shards(shards: Sequence[Shard], out: Path, repo_id: str) -> int:
     if existing:
         offset = int(json.loads((out / "meta" / "info.json").read_text())["total_episodes"])
     swap = existing and bool(sources)  # appended episodes: build beside, swap in at the end
-    target = out.with_name(out.name + ".merging") if swap else out
+    target = _merging(out) if swap else out
     if swap and target.exists():
         shutil.rmtree(target)
     if sources:
@@ -154,9 +155,32 @@ def merge_shards(shards: Sequence[Shard], out: Path, repo_id: str) -> int:
         for trace in shard.traces:
             traces.mkdir(parents=True, exist_ok=True)
             shutil.copy2(trace, traces / trace.name)
-    if swap:
-        backup = out.with_name(out.name + ".replaced")
+    if swap:  # a kill from here on is finished by finish_interrupted_swap
+        backup = _replaced(out)
         out.rename(backup)
         target.rename(out)
         shutil.rmtree(backup)
     return index
+
+
+def _merging(out: Path) -> Path:
+    return out.with_name(out.name + ".merging")
+
+
+def _replaced(out: Path) -> Path:
+    return out.with_name(out.name + ".replaced")
+
+
+def finish_interrupted_swap(out: Path) -> bool:
+    """Finish the swap of an appending merge that a killed process left half done; whether
+    there was one. The merged dataset is whole before the old one is moved aside, so with
+    ``out`` gone and ``<out>.replaced`` there, ``<out>.merging`` goes into place."""
+    out = Path(out)
+    backup, merged = _replaced(out), _merging(out)
+    if not backup.exists():
+        return False
+    if not out.exists():
+        (merged if merged.exists() else backup).rename(out)
+    if backup.exists():  # the old dataset, now replaced (or killed while deleting it)
+        shutil.rmtree(backup)
+    return True

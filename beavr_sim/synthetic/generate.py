@@ -53,7 +53,7 @@ from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.recorder import EpisodeRecorder, run_recorded_episode
 from beavr_sim.datasets.resume import plan_output
 from beavr_sim.datasets.save_journal import undo_interrupted_save
-from beavr_sim.datasets.shards import TRACES, Shard, merge_shards
+from beavr_sim.datasets.shards import TRACES, Shard, finish_interrupted_swap, merge_shards
 from beavr_sim.datasets.writer import EpisodeWriter, dataset_exists
 from beavr_sim.experts.base import check_expert_embodiment
 from beavr_sim.scaling.executors import ScaleConfig, make_executor
@@ -343,7 +343,9 @@ def generate(
     repo_id = repo_id or f"beavr_sim/{task.lower()}"
     if not source:  # the scripted experts make the demonstrations
         check_expert_embodiment(embodiment)
-    undone = undo_interrupted_save(out, warn=False)  # before counting what is there
+    if finish_interrupted_swap(out):  # before counting what is there
+        print(f"{out}: finished the merge a killed run left half swapped in", file=sys.stderr)
+    undone = undo_interrupted_save(out, warn=False)
     if undone is not None:
         print(undone.describe(), file=sys.stderr)
     plan = plan_output(out, task, embodiment, overwrite)
