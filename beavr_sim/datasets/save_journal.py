@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import shutil
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -70,13 +71,22 @@ def _files_under(root: Path) -> set[str]:
     }
 
 
-def _write_json_by_rename(data: dict, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", encoding="utf-8") as f:
-        json.dump(data, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def write_json_atomically(data, fpath: Path) -> None:
+    """``data`` as JSON at ``fpath`` (LeRobot's format: indent 4, UTF-8), through a temporary
+    file in the same folder renamed over ``fpath``: readers, and a process killed meanwhile,
+    see the old file or the new one, never a part."""
+    fpath = Path(fpath)
+    fpath.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=fpath.parent, prefix=f".{fpath.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=4, ensure_ascii=False)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, fpath)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def _copy_by_rename(source: Path, path: Path) -> None:
@@ -105,7 +115,7 @@ def begin(root: Path) -> None:
         "log_bytes": appended.stat().st_size if appended.is_file() else None,
         "files": sorted(_files_under(root)),
     }
-    _write_json_by_rename(journal, root / JOURNAL)
+    write_json_atomically(journal, root / JOURNAL)
 
 
 def commit(root: Path) -> None:

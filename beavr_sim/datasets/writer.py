@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -31,7 +29,12 @@ import numpy as np
 from beavr_sim.datasets.features import check_video_size
 from beavr_sim.datasets.quiet import quiet_dataset_writes
 from beavr_sim.datasets.robot_meta import write_robot_meta
-from beavr_sim.datasets.save_journal import APPENDED, episode_save, undo_interrupted_save
+from beavr_sim.datasets.save_journal import (
+    APPENDED,
+    episode_save,
+    undo_interrupted_save,
+    write_json_atomically,
+)
 from beavr_sim.robots.identity import robot_identity
 
 log = logging.getLogger("beavr_sim.datasets")
@@ -52,24 +55,6 @@ def require_lerobot():
         ) from exc
     atomic_metadata_writes()
     return LeRobotDataset
-
-
-def write_json_atomically(data, fpath: Path) -> None:
-    """``data`` as JSON at ``fpath`` (LeRobot's format: indent 4, UTF-8), through a temporary
-    file in the same folder renamed over ``fpath``: readers, and a process killed meanwhile,
-    see the old file or the new one, never a part."""
-    fpath = Path(fpath)
-    fpath.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=fpath.parent, prefix=f".{fpath.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=4, ensure_ascii=False)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, fpath)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def atomic_metadata_writes() -> None:
