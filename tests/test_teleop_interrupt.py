@@ -42,9 +42,16 @@ class Session:
             cwd=ROOT,
         )
         self.err = ""
+        self.out: list[str] = []
         self._changed = threading.Condition()
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
+        # stdout in a thread of its own, so that a session that never exits fails the test
+        # (bounded waits below) instead of blocking a read forever
+        self._out_reader = threading.Thread(
+            target=lambda: self.out.append(self.proc.stdout.read()), daemon=True
+        )
+        self._out_reader.start()
 
     def _read(self) -> None:
         while chunk := self.proc.stderr.read(1):
@@ -63,11 +70,14 @@ class Session:
             pytest.fail(f"the session never printed {text!r}; stderr:\n{self.err[-2000:]}")
 
     def finish(self) -> tuple[int, dict]:
-        # stdout only: communicate() would also read stderr, racing the reader thread for it
-        out = self.proc.stdout.read()
-        self.proc.wait(timeout=HANG_S)
+        try:
+            self.proc.wait(timeout=HANG_S)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            pytest.fail(f"the session did not exit within {HANG_S} s; stderr:\n{self.err[-2000:]}")
+        self._out_reader.join(HANG_S)
         self._reader.join(HANG_S)
-        lines = out.strip().splitlines()
+        lines = "".join(self.out).strip().splitlines()
         assert lines, f"no summary on stdout; stderr:\n{self.err[-2000:]}"
         return self.proc.returncode, json.loads(lines[-1])
 
