@@ -99,8 +99,11 @@ def test_a_signal_ends_the_session_with_its_summary(tmp_path, sig, code):
 
 def test_an_interrupted_recording_keeps_finished_episodes_only(tmp_path):
     dataset = tmp_path / "ds"
+    # paced: episode 2 lasts the trace's real length, so the signal sent once it started lands
+    # inside it however late it is delivered (the virtual clock could finish it first)
     session = Session(
-        *TRACE_SESSION, "--record", str(dataset), "--episodes", "3", "--cameras", "none"
+        *TRACE_SESSION,
+        *("--clock", "paced", "--record", str(dataset), "--episodes", "3", "--cameras", "none"),
     )
     session.wait_for("episode 2/3: REC")  # episode 1 saved, episode 2 recording
     session.proc.send_signal(signal.SIGINT)
