@@ -97,6 +97,31 @@ def _checkpoint_at(run: Path, step: int) -> None:
     (model / "config.json").write_text("{}")
 
 
+def _stand_in_lerobot_train(tmp_path: Path, monkeypatch, last_step: int = 20) -> Path:
+    """A ``lerobot-train`` that appends its arguments (a JSON line) to the returned file,
+    prints a progress bar and saves a checkpoint at ``last_step`` in its ``--output_dir``."""
+    calls = tmp_path / "lerobot-train-calls.jsonl"
+    script = tmp_path / "lerobot-train"
+    script.write_text(
+        f"#!{sys.executable}\n"
+        "import json, pathlib, sys\n"
+        f"with open({str(calls)!r}, 'a') as f:\n"
+        "    f.write(json.dumps(sys.argv[1:]) + '\\n')\n"
+        "out = next(a for a in sys.argv if a.startswith('--output_dir=')).split('=', 1)[1]\n"
+        f"print('Training: 100%|##| {last_step}/{last_step} [00:01<00:00, 9.0step/s]')\n"
+        f"model = pathlib.Path(out, 'checkpoints', '{last_step:06d}', 'pretrained_model')\n"
+        "model.mkdir(parents=True)\n"
+        "(model / 'config.json').write_text('{}')\n"
+    )
+    script.chmod(0o755)
+    monkeypatch.setattr(training, "executable", lambda: str(script))
+    return calls
+
+
+def _calls(calls: Path) -> list[list[str]]:
+    return [json.loads(line) for line in calls.read_text().splitlines()] if calls.exists() else []
+
+
 def test_the_table_says_what_the_failed_episodes_lacked_at_their_end():
     from beavr_sim.eval.runner import EpisodeResult, summarize
 
@@ -158,6 +183,43 @@ def test_the_loss_curve_takes_exact_steps_from_the_progress_bar(tmp_path):
     assert training.loss_curve(tmp_path / "missing.log", 200) == []
 
 
+def test_training_progress_is_read_from_the_log_as_it_grows():
+    from beavr_sim.bench.policies.train_progress import TrainProgress, TrainStatus
+
+    now = [0.0]
+    progress = TrainProgress(6000, first_step=0, clock=lambda: now[0])
+    assert progress.status == TrainStatus(0, 6000)
+    now[0] = 10.0
+    # a redraw not yet ended by its \r waits; LeRobot's line brings the loss
+    status = progress.feed(_bar(30, 6000) + "\r" + _bar(40, 6000))
+    assert (status.step, status.loss, status.rate) == (30, None, 3.0)
+    status = progress.feed("\rINFO step:200 smpl:6K loss:1.034 grdn:0.7\n")
+    assert (status.step, status.loss, status.rate) == (40, 1.034, 4.0)
+    assert status.line("train act on PickupBox") == (
+        "train act on PickupBox: step 40/6000 (0 %), 4.00 step/s, ~25 min left, loss 1.034"
+    )
+    # resumed at the checkpoint at 20,000 of 40,000: its bar counts the steps since
+    resumed = TrainProgress(40000, first_step=20000, clock=lambda: now[0])
+    assert resumed.status.line("x") == "x: step 20000/40000 (50 %)"
+    now[0] = 20.0
+    status = resumed.feed(_bar(5000, 20000) + "\r")
+    assert status.step == 25000 and status.rate == 500.0
+    assert status.line("x") == "x: step 25000/40000 (62 %), 500.00 step/s, ~30 s left"
+    assert TrainStatus(0, 100, rate=0.01).line("x").endswith("~2 h 47 min left")
+
+
+def test_a_training_run_reports_its_progress_where_stderr_is_a_log(tmp_path, monkeypatch, capsys):
+    """Not a terminal (nohup, a CI log): a status line every LINE_EVERY_S, the last one at the
+    end of the run."""
+    from beavr_sim.bench.policies import train_progress
+
+    monkeypatch.setattr(train_progress, "LINE_EVERY_S", 0.0)
+    _stand_in_lerobot_train(tmp_path, monkeypatch)
+    training.train(TRAIN, tmp_path / "data", "r/d", tmp_path / "stage")
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines and lines[-1].startswith("train act on PickupBox: step 20/20 (100 %)"), lines
+
+
 def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
     tmp_path, monkeypatch
 ):
@@ -165,25 +227,17 @@ def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
     _checkpoint_at(stage / "run", 10)  # cut at step 10 of 20
     with pytest.raises(training.TrainUnfinished, match=r"step 10 of 20.*--resume"):
         training.train(TRAIN, tmp_path / "data", "r/d", stage)
-    commands = []
-
-    def fake_run(command, **kwargs):
-        commands.append(command)
-        _checkpoint_at(stage / "run", 20)
-        return type("Done", (), {"returncode": 0})()
-
-    monkeypatch.setattr(training.subprocess, "run", fake_run)
-    monkeypatch.setattr(training, "executable", lambda: "lerobot-train")
+    calls = _stand_in_lerobot_train(tmp_path, monkeypatch)
     run = training.train(TRAIN, tmp_path / "data", "r/d", stage, resume=True, loader_workers=3)
     assert run == stage / "run"
-    (command,) = commands
+    (command,) = _calls(calls)
     last = training.checkpoint(stage / "run", 10) / "train_config.json"
     assert f"--config_path={last}" in command and "--resume=true" in command
     assert "--steps=20" in command
     assert "--num_workers=3" in command  # the resumed run loads as the fresh one did
     # Finished: nothing runs again.
     assert training.train(TRAIN, tmp_path / "data", "r/d", stage) == stage / "run"
-    assert len(commands) == 1
+    assert len(_calls(calls)) == 1
 
 
 def test_extend_continues_the_finished_shorter_run_and_leaves_it_as_it_was(tmp_path, monkeypatch):
@@ -196,23 +250,14 @@ def test_extend_continues_the_finished_shorter_run_and_leaves_it_as_it_was(tmp_p
         _checkpoint_at(source / "run", config.steps)
         (source / "train.log").write_text(f"{_bar(10)}step:10 smpl:80 loss:0.5\n")
         (source / "stage.json").write_text(json.dumps({"config": asdict(config)}))
-    commands = []
-
-    def fake_run(command, **kwargs):
-        commands.append(command)
-        run = Path(next(c for c in command if c.startswith("--output_dir=")).split("=", 1)[1])
-        _checkpoint_at(run, 20)
-        return type("Done", (), {"returncode": 0})()
-
-    monkeypatch.setattr(training.subprocess, "run", fake_run)
-    monkeypatch.setattr(training, "executable", lambda: "lerobot-train")
+    calls = _stand_in_lerobot_train(tmp_path, monkeypatch)
     assert training.shorter_run(tmp_path / "train", TRAIN) == (
         tmp_path / "train" / "act-PickupBox-short",
         10,
     )
     options = RunOptions(out=tmp_path, extend=True)
     key, run = train_policy(TRAIN, tmp_path / "data", Stages(1, echo=lambda _: None), options)
-    (command,) = commands
+    (command,) = _calls(calls)
     assert "--resume=true" in command and "--steps=20" in command
     assert f"--config_path={training.checkpoint(run, 10) / 'train_config.json'}" in command
     assert training.saved_steps(run) == [10, 20]  # the source's checkpoint kept
@@ -221,10 +266,10 @@ def test_extend_continues_the_finished_shorter_run_and_leaves_it_as_it_was(tmp_p
     assert record["extended_from"]["steps"] == 10
     assert record["loss"] == [{"step": 10, "loss": 0.5}]  # the source's log came along
     # Nothing shorter of this configuration: a fresh run, from step 0.
-    commands.clear()
+    calls.unlink()
     fresh = replace(TRAIN, batch_size=2)
     train_policy(fresh, tmp_path / "data", Stages(1, echo=lambda _: None), options)
-    (command,) = commands
+    (command,) = _calls(calls)
     assert "--resume=true" not in command
 
 

@@ -19,6 +19,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from beavr_sim.bench.policies.config import TrainConfig
+from beavr_sim.bench.policies.train_progress import TrainProgress, follow
 
 #: In order: our ``$ lerobot-train ...`` line before each (re)start, the progress bar's count
 #: (``| 1600/6000 [``: the step, counted from the run's start or its checkpoint), and
@@ -146,10 +147,22 @@ def train(
         command = train_command(config, dataset, repo_id, run, device, loader_workers)
     stage.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+    progress = TrainProgress(config.steps, first_step=steps[-1] if steps else 0)
+    label = f"train {config.policy} on {config.demos.task}"
     with log.open("a") as out:
         out.write("$ " + " ".join(command) + "\n")
         out.flush()
-        code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env).returncode
+        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, env=env)
+        try:
+            code = follow(process, log, progress, label)
+        finally:
+            if process.poll() is None:  # interrupted here: the run stops with us
+                process.terminate()
+                try:
+                    process.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
     if code != 0:
         raise TrainFailed(
             f"lerobot-train failed (exit {code}) training {config.policy} on "
