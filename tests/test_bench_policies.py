@@ -152,6 +152,14 @@ def test_the_table_says_what_the_failed_episodes_lacked_at_their_end():
     assert "on training episodes 0, 1, fed their recorded observations" in text
     line = "- PickupBox, ACT (step 6000): mean |action error| 0.1416, 0.52 of the recorded"
     assert text.count(line) == 1  # once per policy, not per loop
+    assert "at each checkpoint" not in text  # validation made before the fit was per checkpoint
+    validation = [{"step": 3000, "successes": 0, "episodes": 2, "fit": 0.2, "fit_relative": 0.7},
+                  {"step": 6000, "successes": 1, "episodes": 2, "fit": 0.14161,
+                   "fit_relative": 0.5198}]  # fmt: skip
+    rows = [r | {"validation": validation} for r in rows]
+    text = markdown({"protocol": protocol, "device": "cpu", "budget": budget, "rows": rows})
+    assert text.count(line) == 1
+    assert "spread; at each checkpoint: 3000 0.2000, 6000 0.1416\n" in text
 
 
 def _bar(n: int, total: int = 3000) -> str:
@@ -413,6 +421,10 @@ def test_quick_writes_the_table_and_its_json(quick):
     # Its open-loop fit on the training episodes: 20 steps leave it far from exact.
     assert act["fit"]["episodes"] == [0, 1] and act["fit"]["mean_abs"] > 0
     assert rows[("act", "async")]["fit"] == act["fit"]
+    # ... and every checkpoint's, the chosen one's among them.
+    assert all(v["fit"] > 0 and v["fit_relative"] > 0 for v in act["validation"])
+    assert {v["step"]: v["fit"] for v in act["validation"]}[best["step"]] == act["fit"]["mean_abs"]
+    assert len(list((out / "fit").glob("*.json"))) == 2
     # Training, validation and test seeds are disjoint.
     (demos,) = (out / "demos").glob("*/stage.json")
     train_seeds = set(json.loads(demos.read_text())["seeds"])
@@ -429,7 +441,7 @@ def test_quick_writes_the_table_and_its_json(quick):
 
 def test_quick_again_is_read_from_its_cache(quick):
     _, first, again = quick
-    assert all(r["cached"] for r in again["stages"]) and len(again["stages"]) == 8
+    assert all(r["cached"] for r in again["stages"]) and len(again["stages"]) == 9
     assert again["rows"] == first["rows"]
     assert again["budget"]["this_run_wall_s"] == 0
     assert again["budget"]["cpu_s"] == first["budget"]["cpu_s"]
@@ -440,6 +452,8 @@ def test_quick_with_plot_draws_each_task_from_the_cached_stages(quick):
     figure = out / "plots" / "policies_PickupBox.png"
     assert again["plots"] == [str(figure)]
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 10_000
+    width = int.from_bytes(figure.read_bytes()[16:20], "big")  # the PNG header's IHDR width
+    assert width == 1700  # three panels at 100 dpi: the loss, the success, the checkpoints' fit
 
 
 def test_augment_adds_generated_scenes_to_the_demonstrations_and_is_cached(quick, tmp_path):

@@ -4,7 +4,9 @@ trained and where its checkpoint was chosen.
 Left, the training loss against the step (log scale), the chosen checkpoint marked. Right, the
 success rate on the validation seeds at every checkpoint, and the test results (sync and
 think-act) at the chosen one, each with its Wilson 95 % interval; the scripted expert's test
-rate as a dashed line. Matplotlib's Agg backend: no display needed.
+rate as a dashed line. Where the checkpoints' open-loop fits were measured, a third panel: each
+checkpoint's mean action error on its training episodes (has the run learned its own data?).
+Matplotlib's Agg backend: no display needed.
 """
 
 from __future__ import annotations
@@ -37,8 +39,10 @@ def task_figure(task: str, rows: Sequence[dict], path: Path) -> Path:
     from matplotlib.ticker import FuncFormatter
 
     trained = [r for r in rows if r.get("validation")]
-    fig = Figure(figsize=(11.5, 4.4), dpi=100, layout="constrained")
-    ax_loss, ax_rate = fig.subplots(1, 2)
+    # (validation made before every checkpoint's fit was measured has none)
+    fits = any("fit" in v for r in trained for v in r["validation"])
+    fig = Figure(figsize=(17.0 if fits else 11.5, 4.4), dpi=100, layout="constrained")
+    ax_loss, ax_rate, *ax_fit = fig.subplots(1, 3 if fits else 2)
     last_step = 1
     seen: set[str] = set()
     for row in trained:
@@ -67,6 +71,11 @@ def task_figure(task: str, rows: Sequence[dict], path: Path) -> Path:
                 capsize=3,
                 label=f"{name}, validation ({row['chosen_on'].removeprefix('validation ')})",
             )
+            fitted = [v for v in validation if "fit" in v]
+            if ax_fit and fitted:
+                ax_fit[0].plot([v["step"] for v in fitted], [v["fit"] for v in fitted],
+                               color=color, marker="o", ms=4, label=name)  # fmt: skip
+                ax_fit[0].axvline(step, color=color, ls=":", lw=1.0)
         rate, error = _rate_and_error(row["successes"], row["episodes"])
         nudge = 0.012 * last_step * (1 if row["mode"] == "async" else -1)
         ax_rate.errorbar(
@@ -109,6 +118,17 @@ def task_figure(task: str, rows: Sequence[dict], path: Path) -> Path:
     ax_rate.set_title("success per checkpoint; test at the chosen one", fontsize=10)
     ax_rate.grid(alpha=0.3)
     ax_rate.legend(fontsize=7, loc="best")
+    if ax_fit:
+        episodes = next((r["fit"]["episodes"] for r in trained if r.get("fit")), [])
+        ax_fit[0].set_xlim(0, last_step * 1.06)
+        ax_fit[0].set_ylim(bottom=0)
+        ax_fit[0].set_xlabel("training step (checkpoint)")
+        ax_fit[0].set_ylabel("mean |action error| (rad)")
+        ax_fit[0].set_title(
+            "open-loop fit on training episodes " + ", ".join(map(str, episodes)), fontsize=10
+        )
+        ax_fit[0].grid(alpha=0.3)
+        ax_fit[0].legend(fontsize=8)
     inputs = trained[0]["inputs"] if trained else ""
     demos = f", {trained[0]['demos']} demonstrations" if trained else ""
     fig.suptitle(f"{task}{demos}" + (f" ({inputs})" if inputs else ""))

@@ -5,8 +5,9 @@ Stages, per task: demonstrations (``demos/<task>-<key>/``, a LeRobot dataset, re
 generator itself), with ``augment`` the episodes generated from them and merged with them
 (``augment/<task>-<key>/``: ``generated/dataset`` and the merged ``dataset``), per policy a training run (``train/<policy>-<task>-<key>/``: LeRobot's
 ``run/``, ``train.log``), the checkpoint choice (every saved checkpoint on the validation seeds,
-sync; the most successes wins, the later step on a tie), the chosen one's open-loop fit on
-the first training episodes (``fit/<name>-<key>.json``, :mod:`beavr_sim.eval.fit`), its test
+sync; the most successes wins, the later step on a tie), every checkpoint's open-loop fit on
+the first training episodes (``fit/<name>-<key>.json``, :mod:`beavr_sim.eval.fit`: a few
+seconds each, it says whether the run learned its own data before a test does), its test
 episodes (sync and think-act), and the scripted expert through the teleop pipeline on the test
 seeds (the "human" row). Evaluations are ``eval/<name>-<key>.json``. A stage is finished when its
 ``stage.json`` (or its eval JSON) is written, last: a re-run skips it and reports it cached.
@@ -421,13 +422,16 @@ def _weights(run: Path, step: int) -> str:
 
 
 def choose_checkpoint(
-    config: TableConfig, train: TrainConfig, key: str, run: Path, stages: Stages,
+    config: TableConfig, train: TrainConfig, key: str, run: Path, dataset: Path, stages: Stages,
     options: RunOptions,
-) -> tuple[int, list[dict]]:  # fmt: skip
+) -> tuple[int, list[dict], dict]:  # fmt: skip
     """The step whose checkpoint succeeds most on the validation seeds (sync; the later step
-    on a tie), and every checkpoint's validation summary."""
-    validation = []
+    on a tie), every checkpoint's validation summary with its open-loop fit (``fit``: mean
+    absolute action error, ``fit_relative``: that over the recorded actions' spread), and the
+    chosen checkpoint's fit summary."""
+    validation, fits = [], {}
     for step in training.saved_steps(run):
+        fitted = fits[step] = fit(train, key, run, step, dataset, stages, options)
         evaluation = EvalConfig(
             task=train.demos.task,
             embodiment=train.demos.embodiment,
@@ -442,9 +446,10 @@ def choose_checkpoint(
         name = f"{train.policy}-{train.demos.task}-step{step}-validation"
         row = evaluate(evaluation, training.checkpoint(run, step), stages, options, name)
         validation.append({"step": step, "successes": row["successes"],
-                           "episodes": row["episodes"]})  # fmt: skip
+                           "episodes": row["episodes"], "fit": fitted["mean_abs"],
+                           "fit_relative": fitted["relative"]})  # fmt: skip
     best = max(validation, key=lambda v: (v["successes"], v["step"]))
-    return best["step"], validation
+    return best["step"], validation, fits[best["step"]]
 
 
 def stage_count(config: TableConfig) -> int:
@@ -456,7 +461,7 @@ def stage_count(config: TableConfig) -> int:
         for policy in config.policies:
             train = train_config(config, policy, demos)
             checkpoints = -(-train.steps // train.save_freq)  # every save_freq and the last
-            total += 2 + checkpoints + len(config.modes)  # train, validations, fit, tests
+            total += 1 + 2 * checkpoints + len(config.modes)  # train, fits, validations, tests
     return total
 
 
@@ -480,8 +485,9 @@ def run_table(config: TableConfig, options: RunOptions, stages: Stages) -> dict:
         for policy in config.policies:
             train = train_config(config, policy, demos)
             key, run = train_policy(train, dataset, stages, options)
-            step, validation = choose_checkpoint(config, train, key, run, stages, options)
-            fitted = fit(train, key, run, step, dataset, stages, options)
+            step, validation, fitted = choose_checkpoint(
+                config, train, key, run, dataset, stages, options
+            )
             curve = loss_curve(train, run)
             for mode in config.modes:
                 evaluation = EvalConfig(

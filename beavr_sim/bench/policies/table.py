@@ -72,7 +72,8 @@ def _failures(rows: list[dict]) -> list[str]:
 
 
 def _fits(rows: list[dict]) -> list[str]:
-    """Each trained policy's open-loop fit at its chosen checkpoint (once per policy)."""
+    """Each trained policy's open-loop fit at its chosen checkpoint, and at every checkpoint
+    where they were measured (once per policy)."""
     lines, seen = [], set()
     for row in rows:
         fit = row.get("fit")  # (absent from tables made before it was measured)
@@ -84,6 +85,12 @@ def _fits(rows: list[dict]) -> list[str]:
             f"{row['checkpoint_step']}): mean |action error| {fit['mean_abs']:.4f}, "
             f"{fit['relative']:.2f} of the recorded actions' spread"
         )
+        # (validation entries made before every checkpoint's fit was measured have none)
+        each = [v for v in row.get("validation", []) if "fit" in v]
+        if len(each) > 1:
+            lines[-1] += "; at each checkpoint: " + ", ".join(
+                f"{v['step']} {v['fit']:.4f}" for v in each
+            )
     if lines:
         first = next(r["fit"] for r in rows if r.get("fit"))
         episodes = ", ".join(map(str, first["episodes"]))
