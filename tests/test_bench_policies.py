@@ -192,27 +192,38 @@ def test_the_loss_curve_takes_exact_steps_from_the_progress_bar(tmp_path):
 
 
 def test_training_progress_is_read_from_the_log_as_it_grows():
-    from beavr_sim.bench.policies.train_progress import TrainProgress, TrainStatus
+    from beavr_sim.bench.policies.train_progress import RATE_WINDOW_S, TrainProgress, TrainStatus
 
     now = [0.0]
     progress = TrainProgress(6000, first_step=0, clock=lambda: now[0])
     assert progress.status == TrainStatus(0, 6000)
     now[0] = 10.0
-    # a redraw not yet ended by its \r waits; LeRobot's line brings the loss
+    # a redraw not yet ended by its \r waits; no rate from one step (the start-up before it
+    # never counts)
     status = progress.feed(_bar(30, 6000) + "\r" + _bar(40, 6000))
-    assert (status.step, status.loss, status.rate) == (30, None, 3.0)
+    assert (status.step, status.loss, status.rate) == (30, None, None)
+    now[0] = 20.0  # LeRobot's line ends the redraw and brings the loss
     status = progress.feed("\rINFO step:200 smpl:6K loss:1.034 grdn:0.7\n")
-    assert (status.step, status.loss, status.rate) == (40, 1.034, 4.0)
+    assert (status.step, status.loss, status.rate) == (40, 1.034, 1.0)
     assert status.line("train act on PickupBox") == (
-        "train act on PickupBox: step 40/6000 (0 %), 4.00 step/s, ~25 min left, loss 1.034"
+        "train act on PickupBox: step 40/6000 (0 %), 1.00 step/s, ~1 h 39 min left, loss 1.034"
     )
+    # the rate is the recent one: a slow start is forgotten after a window
+    now[0] = 20.0 + RATE_WINDOW_S + 80.0
+    assert progress.feed(_bar(1000, 6000) + "\r").rate == pytest.approx(960 / 380)
+    now[0] += RATE_WINDOW_S
+    assert progress.feed(_bar(2500, 6000) + "\r").rate == pytest.approx(1500 / RATE_WINDOW_S)
+    now[0] += 100.0  # a stall shows: no new step, the rate falls
+    assert progress.feed("").rate == pytest.approx(1500 / (RATE_WINDOW_S + 100.0))
     # resumed at the checkpoint at 20,000 of 40,000: its bar counts the steps since
     resumed = TrainProgress(40000, first_step=20000, clock=lambda: now[0])
     assert resumed.status.line("x") == "x: step 20000/40000 (50 %)"
-    now[0] = 20.0
-    status = resumed.feed(_bar(5000, 20000) + "\r")
-    assert status.step == 25000 and status.rate == 500.0
-    assert status.line("x") == "x: step 25000/40000 (62 %), 500.00 step/s, ~30 s left"
+    status = resumed.feed(_bar(1000, 20000) + "\r")
+    assert status.step == 21000 and status.rate is None
+    now[0] += 10.0
+    status = resumed.feed(_bar(6000, 20000) + "\r")
+    assert status.step == 26000 and status.rate == 500.0
+    assert status.line("x") == "x: step 26000/40000 (65 %), 500.00 step/s, ~28 s left"
     assert TrainStatus(0, 100, rate=0.01).line("x").endswith("~2 h 47 min left")
 
 

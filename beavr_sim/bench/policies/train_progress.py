@@ -13,6 +13,7 @@ import re
 import subprocess
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,9 @@ from tqdm import tqdm
 LINE_EVERY_S = 60.0
 #: Seconds between looks at the log.
 POLL_S = 1.0
+#: The step rate (and so the time left) is measured over about the last this many seconds:
+#: a machine that got busier or freer shows in it, the start-up before the first step never.
+RATE_WINDOW_S = 300.0
 
 _BAR = re.compile(r"\| *(\d+)/\d+ \[")
 _LOSS = re.compile(r"\bstep:\S+ .*?\bloss:([-+0-9.eE]+)")
@@ -32,7 +36,8 @@ _LOSS = re.compile(r"\bstep:\S+ .*?\bloss:([-+0-9.eE]+)")
 @dataclass(frozen=True)
 class TrainStatus:
     """Where a run stands: ``step`` of ``total``, the last logged ``loss`` (None before the
-    first), ``rate`` in steps per second since this process started it (None before a step)."""
+    first), ``rate`` in steps per second over about the last :data:`RATE_WINDOW_S` (None until
+    two steps were seen apart in time)."""
 
     step: int
     total: int
@@ -69,7 +74,8 @@ class TrainProgress:
     ):
         self.first_step = first_step
         self._clock = clock
-        self._started = clock()
+        #: (time, step) whenever the step changed; the oldest one at least a window old kept.
+        self._seen: deque[tuple[float, int]] = deque()
         self._pending = ""
         self.status = TrainStatus(first_step, total)
 
@@ -86,9 +92,16 @@ class TrainProgress:
         losses = _LOSS.findall(done)
         if losses:
             loss = float(losses[-1])
-        elapsed = self._clock() - self._started
-        done_here = step - self.first_step
-        rate = done_here / elapsed if done_here > 0 and elapsed > 0 else None
+        now = self._clock()
+        if counts and (not self._seen or self._seen[-1][1] != step):
+            self._seen.append((now, step))
+        while len(self._seen) > 2 and now - self._seen[1][0] >= RATE_WINDOW_S:
+            self._seen.popleft()
+        rate = None
+        if self._seen:
+            since, from_step = self._seen[0]
+            if now > since and step > from_step:
+                rate = (step - from_step) / (now - since)
         self.status = TrainStatus(step, self.status.total, loss, rate)
         return self.status
 
