@@ -6,6 +6,8 @@ hardware outcome. The whole sessions on the emulated rig are in ``test_rig_sessi
 from __future__ import annotations
 
 import enum
+import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,7 +15,7 @@ import pytest
 
 from beavr_sim.bench.soak import rss_mb, status_fields
 from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
-from beavr_sim.hardware.mirror import WriteLog
+from beavr_sim.hardware.mirror import Reading, WriteLog
 from beavr_sim.teleop.__main__ import hardware_outcome
 from beavr_sim.teleop.mirroring import RigSync
 from beavr_sim.teleop.pipeline import LatencyLog, RunRecord, RunTally, TeleopSummary
@@ -77,8 +79,17 @@ class FakeMirror:
 LIMITS = FollowLimits(np.array([0.3, 0.3, 0.8, np.inf]), 0.5, ("j1", "j2", "leap_0", "body"))
 
 
+def _fresh() -> Reading:
+    """A reading taken just now (the watch's checks here pass the state themselves)."""
+    return Reading(np.zeros(4), time.monotonic(), "arm")
+
+
+def _watch(health: Health) -> HardwareWatch:
+    return HardwareWatch(_fresh, lambda: health, LIMITS, fps=30)
+
+
 def test_watch_passes_a_state_that_follows():
-    watch = HardwareWatch(lambda: Health(True, ()), LIMITS, fps=30)
+    watch = _watch(Health(True, ()))
     watch.begin()
     for k in range(60):
         action = np.array([0.05 * k, -0.05 * k, 0.02 * k, 9.0])
@@ -89,7 +100,7 @@ def test_watch_passes_a_state_that_follows():
 
 def test_watch_finds_a_frozen_state_after_the_window():
     """The bug of issue 38 item 1: the measured arm holds while the action moves on."""
-    watch = HardwareWatch(lambda: Health(True, ()), LIMITS, fps=30)
+    watch = _watch(Health(True, ()))
     watch.begin()
     frozen = np.zeros(4)
     faults = [watch.check(frozen, np.array([0.1 * k, 0.0, 0.0, 0.0])) for k in range(40)]
@@ -103,14 +114,43 @@ def test_watch_finds_a_frozen_state_after_the_window():
 
 def test_watch_reports_a_device_that_is_not_live():
     health = Health(False, (Device("right_hand", State.HOLDING, detail="no fresh command"),))
-    watch = HardwareWatch(lambda: health, LIMITS, fps=30)
+    watch = _watch(health)
     watch.begin()
     fault = watch.check(np.zeros(4), np.zeros(4))
     assert fault == "right_hand holding (no fresh command)" == watch.fault
     faulted = Health(True, (), episode_faults=("right_arm diverged 0.4 rad", "later"))
-    watch = HardwareWatch(lambda: faulted, LIMITS, fps=30)
+    watch = _watch(faulted)
     watch.begin()
     assert watch.check(np.zeros(4), np.zeros(4)) == "right_arm diverged 0.4 rad"
+
+
+def test_watch_finds_a_stale_reading():
+    """A writer that stopped reading: the state it last read is older than the rig's window
+    when a frame observes it, so the frame is untrue (whatever the joints say); a device never
+    read is too. The reading's time is the oldest device's, and the age is kept."""
+    t_read = 100.0
+    reading = Reading(np.array([0.1, 0.2, 0.3, 0.0]), t_read, "right_hand")
+    watch = HardwareWatch(lambda: reading, lambda: Health(True, ()), LIMITS, fps=30)
+    watch.begin()
+    state = watch.observe(now=t_read + 0.45)  # within the 0.5 s window
+    np.testing.assert_array_equal(state, reading.q)
+    assert watch.check(state, state) == "" and watch.max_reading_age_s == pytest.approx(0.45)
+    state = watch.observe(now=t_read + 0.75)
+    fault = watch.check(state, state)
+    assert (
+        fault == "measured state stale: right_hand last read 0.75 s before the frame (limit 0.5 s)"
+    )
+    assert watch.fault == fault and watch.max_reading_age_s == pytest.approx(0.75)
+    watch.begin()  # a new episode starts fresh
+    assert watch.fault == "" and watch.max_reading_age_s == 0.0
+    state = watch.observe(now=t_read + 0.1)
+    assert watch.check(state, state) == ""
+    never = HardwareWatch(
+        lambda: Reading(np.zeros(4), -math.inf, "right_arm"), lambda: Health(True, ()), LIMITS, 30
+    )
+    never.begin()
+    state = never.observe()
+    assert never.check(state, state) == "measured state stale: right_arm not read yet"
 
 
 def test_follow_limits_are_checked():
@@ -298,11 +338,11 @@ def test_watch_allows_the_devices_lag_but_not_a_frozen_state():
     """Within ``lag_s`` a device may trail its commands (judged against the commands of that
     stretch, as the mirror judges what it sent); a frozen one still fails."""
     limits = FollowLimits(np.array([0.3]), 0.5, ("j1",), lag_s=0.25)
-    lagging = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
+    lagging = HardwareWatch(_fresh, lambda: Health(True, ()), limits, fps=30)
     lagging.begin()
     ramp = [np.array([0.1 * k]) for k in range(60)]
     assert not any(lagging.check(ramp[max(0, k - 5)], ramp[k]) for k in range(60))
-    frozen = HardwareWatch(lambda: Health(True, ()), limits, fps=30)
+    frozen = HardwareWatch(_fresh, lambda: Health(True, ()), limits, fps=30)
     frozen.begin()
     assert any(frozen.check(np.zeros(1), ramp[k]) for k in range(60))
 

@@ -11,8 +11,9 @@ keep or drop. A summary line per episode goes to ``meta/beavr_episodes.jsonl`` b
 metadata (seed, success, duration, source): LeRobot has no field for them.
 
 Mirrored hardware (``observation.state`` measured by the devices): a :class:`HardwareWatch`
-checks every frame that every device is live and that the measured joints follow the command
-(within the rig's divergence limits for no longer than its window). The first fault is kept in
+checks every frame that every device is live, that its reading is no older than the rig's
+divergence window, and that the measured joints follow the command (within the rig's divergence
+limits for no longer than that window). The first fault is kept in
 :attr:`EpisodeRecorder.fault` (the session ends the episode on it) and written as the episode's
 ``hardware_fault`` in ``meta/beavr_episodes.jsonl``: an episode whose state was frozen or stale
 is never recorded as if it were live.
@@ -138,26 +139,63 @@ def _not_live(devices: Sequence) -> str:
 class HardwareWatch:
     """Per recorded frame: is the measured state true? (See the module docstring.)
 
+    ``reading``: the devices' measured joints and when the oldest of them was read
+    (``HardwareMirror.latest_reading``: ``.q``, ``.t_oldest``, ``.oldest``); :meth:`observe`
+    takes one as a frame's ``observation.state``. A reading older than the rig's window
+    (``limits.window_s``) when it is observed is stale (a writer that stopped reading while
+    its device went on: the state could be anywhere by then): the frame is untrue.
+
     ``health``: the mirror's cheap snapshot (``HardwareMirror.health``: ``.live``,
     ``.devices``: each ``.name``, ``.state`` (an enum: ``FOLLOWING``, ``CATCHING_UP``, ...),
     ``.detail``; ``.episode_faults``). The measured state of a frame
     (read before the tick) is compared with the commands in force when it was read (the
     previous frames' actions within the lag; the first frame's own)."""
 
-    def __init__(self, health: Callable[[], object], limits: FollowLimits, fps: float):
+    def __init__(
+        self,
+        reading: Callable[[], object],
+        health: Callable[[], object],
+        limits: FollowLimits,
+        fps: float,
+    ):
+        self.reading = reading
         self.health = health
         self.limits = limits
         self.fps = float(fps)
         self.fault = ""
         self.max_gap_rad = 0.0
+        #: The oldest reading's age (s) behind the episode's frames so far.
+        self.max_reading_age_s = 0.0
         self._recent: deque[np.ndarray] = deque(maxlen=max(1, math.ceil(limits.lag_s * fps)))
         self._diverged_frames = 0
+        #: The last observed state's stale reading as one line ("" fresh).
+        self._stale = ""
+
+    def observe(self, now: float | None = None) -> np.ndarray:
+        """The measured joints for a frame's ``observation.state`` (their reading's age is
+        judged by the next :meth:`check`)."""
+        reading = self.reading()
+        now = time.monotonic() if now is None else now
+        age = float(reading.age_s(now))
+        self.max_reading_age_s = max(self.max_reading_age_s, age)
+        self._stale = ""
+        if not age <= self.limits.window_s:
+            name = reading.oldest or "a device"
+            self._stale = (
+                f"measured state stale: {name} last read {age:.2f} s before the frame "
+                f"(limit {self.limits.window_s:g} s)"
+                if math.isfinite(age)
+                else f"measured state stale: {name} not read yet"
+            )
+        return np.asarray(reading.q, dtype=np.float64)
 
     def begin(self) -> None:
         self.fault = ""
         self.max_gap_rad = 0.0
+        self.max_reading_age_s = 0.0
         self._recent.clear()
         self._diverged_frames = 0
+        self._stale = ""
 
     def check(self, state: np.ndarray, action: np.ndarray) -> str:
         """The frame's fault ("" when it is true); the first one is kept in :attr:`fault`."""
@@ -174,6 +212,8 @@ class HardwareWatch:
             fault = faults[0] if faults else _not_live(health.devices)
         elif faults:
             fault = faults[0]
+        elif self._stale:
+            fault = self._stale
         measured = np.asarray(state, dtype=np.float64)
         gap = np.maximum(np.maximum(low - measured, measured - high), 0.0)
         over = gap > self.limits.limit_rad
@@ -201,17 +241,15 @@ class EpisodeRecorder:
         writer: EpisodeWriter,
         env,
         config: RecordingConfig,
-        state_source: Callable[[], np.ndarray] | None = None,
         watch: HardwareWatch | None = None,
         real_cameras=None,
     ):
         self.writer = writer
         self.env = env
         self.config = config
-        #: Where ``observation.state`` comes from: the twin's joints by default; the measured
-        #: hardware joints when mirroring (``HardwareMirror.latest_measured``).
-        self.state_source = state_source
-        #: Mirrored hardware: the per-frame check that the measured state is true.
+        #: Mirrored hardware: ``observation.state`` is the devices' measured joints
+        #: (:meth:`HardwareWatch.observe`) and every frame is checked true; without it, the
+        #: twin's joints.
         self.watch = watch
         #: Real cameras (:class:`~beavr_sim.cameras.RealCameras`), already connected, or None.
         self.real_cameras = real_cameras
@@ -271,6 +309,8 @@ class EpisodeRecorder:
         if self.watch is not None:
             record["hardware_fault"] = self.watch.fault or None
             record["max_state_gap_rad"] = round(self.watch.max_gap_rad, 4)
+            age = self.watch.max_reading_age_s
+            record["max_state_age_s"] = round(age, 3) if math.isfinite(age) else None
         if self.real_cameras is not None:
             record["hardware_fault"] = self.fault or None
             record["cameras"] = self.real_cameras.summary()
@@ -289,7 +329,7 @@ class EpisodeRecorder:
 
     # ------------------------------------------------------------------ frames
     def _observe(self) -> dict[str, np.ndarray]:
-        state = self.env.agent_pos if self.state_source is None else self.state_source()
+        state = self.env.agent_pos if self.watch is None else self.watch.observe()
         obs = {STATE: np.asarray(state, dtype=np.float32)}
         if self.config.environment_state:
             obs[ENV_STATE] = self.env.environment_state

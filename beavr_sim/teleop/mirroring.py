@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from beavr_sim.datasets.recorder import FollowLimits
+from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
 from beavr_sim.hardware.faults import parse_fault_specs
 from beavr_sim.wire.records import Tick, TwinState
 
@@ -330,3 +330,8 @@ def follow_limits(mirror, env):
         joint_names=tuple(env.joints.names),
         lag_s=float(mirror.rig.mirror.device_lag_s),
     )
+
+
+def hardware_watch(mirror, env, fps: float) -> HardwareWatch:
+    """The recorder's per-frame check of a mirrored rig's measured state (both layouts')."""
+    return HardwareWatch(mirror.latest_reading, mirror.health, follow_limits(mirror, env), fps)

@@ -30,7 +30,6 @@ from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
 from beavr_sim.datasets.recorder import (
     EpisodeRecorder,
-    HardwareWatch,
     run_recorded_episode,
 )
 from beavr_sim.datasets.writer import EpisodeWriter
@@ -75,8 +74,8 @@ from beavr_sim.teleop.mirroring import (
     connect_mirror,
     episode_fault,
     failed_for_good,
-    follow_limits,
     hardware_summary,
+    hardware_watch,
 )
 from beavr_sim.teleop.pipeline import (
     TeleopLoop,
@@ -742,7 +741,6 @@ def run_session(
                 loop,
                 progress,
                 control,
-                state_source=mirror.latest_measured if mirror is not None else None,
                 mirror=mirror,
                 sync=sync,
                 viewers=CameraViewers(**viewers),
@@ -857,13 +855,12 @@ def record_episodes(
     loop: TeleopLoop,
     progress: ProgressLine,
     control=None,
-    state_source=None,
     mirror=None,
     sync: HardwareSync | None = None,
     viewers: CameraViewers | None = None,
 ) -> TeleopSummary:
-    """``--record``: episodes saved to the dataset each as soon as it ends. ``state_source``:
-    where ``observation.state`` comes from (the mirrored hardware's measured joints).
+    """``--record``: episodes saved to the dataset each as soon as it ends; mirrored,
+    ``observation.state`` is the hardware's measured joints.
 
     Mirrored (``mirror``, ``sync``): each episode starts from a synced rig, and every frame is
     checked (:class:`~beavr_sim.datasets.recorder.HardwareWatch`); an episode the hardware
@@ -924,10 +921,8 @@ def record_episodes(
         )
     watch = None
     if mirror is not None:
-        watch = HardwareWatch(mirror.health, follow_limits(mirror, env), config.fps)
-    recorder = EpisodeRecorder(
-        writer, env, config, state_source=state_source, watch=watch, real_cameras=real
-    )
+        watch = hardware_watch(mirror, env, config.fps)
+    recorder = EpisodeRecorder(writer, env, config, watch=watch, real_cameras=real)
     summary = None
     runs = SessionRuns(RunPlan.of(options))
 

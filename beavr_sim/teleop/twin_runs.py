@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 from beavr_sim.datasets.episode_end import EpisodeEnd, end_recorded_episode
 from beavr_sim.datasets.features import RecordingConfig, lerobot_features
-from beavr_sim.datasets.recorder import EpisodeRecorder, HardwareWatch
+from beavr_sim.datasets.recorder import EpisodeRecorder
 from beavr_sim.datasets.writer import EpisodeWriter
 from beavr_sim.teleop.episodes import (
     STARTS,
@@ -51,7 +51,7 @@ from beavr_sim.teleop.episodes import (
     EpisodeRequests,
     episode_label,
 )
-from beavr_sim.teleop.mirroring import episode_fault, failed_for_good, follow_limits
+from beavr_sim.teleop.mirroring import episode_fault, failed_for_good, hardware_watch
 from beavr_sim.teleop.runs import RunPlan, SessionRuns, episode_seeds
 from beavr_sim.wire.hand import HandFrame
 from beavr_sim.wire.records import TwinState
@@ -218,12 +218,11 @@ class TwinRuns:
             )
         watch = None
         if self.mirror is not None:
-            watch = HardwareWatch(self.mirror.health, follow_limits(self.mirror, env), config.fps)
+            watch = hardware_watch(self.mirror, env, config.fps)
         self.recorder = EpisodeRecorder(
             self.writer,
             env,
             config,
-            state_source=self.mirror.latest_measured if self.mirror is not None else None,
             watch=watch,
             real_cameras=real,
         )

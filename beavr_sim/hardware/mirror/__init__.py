@@ -4,7 +4,8 @@
 and thread contract are in that module's docstring. The package, one concept a module:
 
 - :mod:`.state`: a device's :class:`LinkState` and :class:`HoldReason`, the frozen
-  :class:`DeviceHealth` / :class:`MirrorHealth` snapshots, an episode's :class:`Fixtures`;
+  :class:`DeviceHealth` / :class:`MirrorHealth` snapshots, a
+  :class:`Reading` of the measured joints, an episode's :class:`Fixtures`;
 - :mod:`.dispatch`: the frozen records the twin's thread hands the writer threads;
 - :mod:`.board`: the one lock and what is shared under it, and each writer's narrow port to it;
 - :mod:`.link`: one device and its writer thread (hold, stream, read back, outage, re-arm);
@@ -26,6 +27,7 @@ from beavr_sim.hardware.mirror.state import (
     HoldReason,
     LinkState,
     MirrorHealth,
+    Reading,
 )
 from beavr_sim.hardware.mirror.stats import WRITE_LOG_SIZE, DeviceStats, WriteLog
 
@@ -42,6 +44,7 @@ __all__ = [
     "HoldReason",
     "LinkState",
     "MirrorHealth",
+    "Reading",
     "WriteLog",
     "one_line",
 ]

@@ -16,6 +16,7 @@ dispatch half written (it gets frozen snapshots).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -47,9 +48,11 @@ class DeviceShared:
     #: Where the device stands while it does not follow the dispatched stream (held,
     #: reconnected): the next submit starts from here. None while it follows.
     anchor: np.ndarray | None = None
-    #: The device's joints as last read, and the dispatch its writer had taken then.
+    #: The device's joints as last read, the dispatch its writer had taken then, and when
+    #: (``time.monotonic()``).
     measured: np.ndarray | None = None
     measured_seq: int = -1
+    measured_t: float = -math.inf
     #: A divergence hold ("" none), until a release or an episode's start.
     latched: str = ""
     rearm_requested: bool = False
@@ -209,11 +212,12 @@ class LinkPort:
         with self._board.cond:
             self._dev.stats.unchanged += 1
 
-    def read(self, q: np.ndarray, seq: int) -> None:
-        """The device's joints were read (``q``), with dispatch ``seq`` taken."""
+    def read(self, q: np.ndarray, seq: int, now: float) -> None:
+        """The device's joints were read (``q``) at ``now``, with dispatch ``seq`` taken."""
         with self._board.cond:
             self._dev.measured = q
             self._dev.measured_seq = seq
+            self._dev.measured_t = now
 
     def judged(self, judged: Judgement, releases: int) -> None:
         """A reading judged (:class:`~beavr_sim.hardware.mirror.divergence.Judgement`) by a

@@ -78,6 +78,7 @@ from beavr_sim.hardware.mirror.state import (
     HoldReason,
     LinkState,
     MirrorHealth,
+    Reading,
 )
 from beavr_sim.hardware.rig import BODY, RigConfig, build_device, joint_names_of
 from beavr_sim.robots.embodiment import Embodiment, JointIndex
@@ -179,20 +180,31 @@ class HardwareMirror:
         q = self.joints.home.astype(np.float64).copy()
         for link in self.links:
             measured = np.asarray(link.device.read_positions(), dtype=np.float64)
+            now = time.monotonic()
             with self._board.cond:
                 link.shared.measured = measured
+                link.shared.measured_t = now
             q[link.index] = measured
         return q
 
     def latest_measured(self) -> np.ndarray:
         """The devices' joints as their writer threads last read them (action order; the
         last dispatched target where a device has not been read yet)."""
+        return self.latest_reading().q
+
+    def latest_reading(self) -> Reading:
+        """:meth:`latest_measured`, and when its oldest device reading was taken (one lock:
+        the joints and their time belong together)."""
         with self._board.cond:
             q = self._board.dispatch.target.copy()
+            t_oldest, oldest = math.inf, ""
             for link in self.links:
-                if link.shared.measured is not None:
-                    q[link.index] = link.shared.measured
-        return q
+                shared = link.shared
+                if shared.measured is not None:
+                    q[link.index] = shared.measured
+                if shared.measured_t < t_oldest:
+                    t_oldest, oldest = shared.measured_t, shared.name
+        return Reading(q, t_oldest if self.links else time.monotonic(), oldest)
 
     def start(self, q_start: np.ndarray) -> None:
         """Start following from ``q_start`` (the measured pose the twin was reset to)."""

@@ -197,7 +197,7 @@ class Link:
     def _read(self) -> np.ndarray:
         q = np.asarray(self.device.read_positions(), dtype=np.float64)
         self._t_read = time.monotonic()
-        self.port.read(q, self._seq_sent)
+        self.port.read(q, self._seq_sent, self._t_read)
         return q
 
     # ------------------------------------------------------------ outage and re-arm

@@ -86,6 +86,24 @@ class MirrorHealth:
 
 
 @dataclass(frozen=True)
+class Reading:
+    """The devices' measured joints as their writers last read them
+    (:meth:`HardwareMirror.latest_reading`), and when the oldest of those readings was taken."""
+
+    #: Every joint, in action order (the last dispatched target where no device measures it).
+    q: np.ndarray
+    #: ``time.monotonic()`` of the oldest device reading in :attr:`q` (``-inf``: a device not
+    #: read yet).
+    t_oldest: float
+    #: That device's name ("" without devices).
+    oldest: str
+
+    def age_s(self, now: float) -> float:
+        """How old (s) the oldest reading is at ``now``."""
+        return now - self.t_oldest
+
+
+@dataclass(frozen=True)
 class Fixtures:
     """Where an episode's fixtures (the twin's mocap bodies) stand after its reset."""
 
