@@ -570,8 +570,13 @@ def test_a_mirrored_rig_files_camera_is_recorded(tmp_path, server):
     finally:
         rig.close()
     lines = (tmp_path / "rec" / "meta" / "beavr_episodes.jsonl").read_text().splitlines()
-    record = json.loads(lines[0])
-    assert record["kept"] and record["hardware_fault"] is None
+    records = [json.loads(line) for line in lines]
+    # A busy machine can spoil a run (a device reply missed, a stale reading): that run is
+    # a hardware fault, never kept, and the trace is played again.
+    assert [r["kept"] for r in records] == [False] * (len(records) - 1) + [True], records
+    assert all(r["hardware_fault"] for r in records[:-1]), records
+    record = records[-1]
+    assert record["hardware_fault"] is None
     assert record["cameras"]["front"]["frames"] >= record["frames"] > 0
     info = json.loads((tmp_path / "rec" / "meta" / "info.json").read_text())
     assert info["features"]["observation.images.front"]["shape"] == [24, 32, 3]

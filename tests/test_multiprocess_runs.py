@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fixtures_shared import cut_bundled_trace, trace_session_options
+from recorded_state import check_follows, read_episodes
 from websockets.sync.client import connect
 
 import beavr_sim
@@ -231,23 +232,16 @@ def test_a_frozen_rig_spoils_the_episode_it_records_and_the_next_starts_synced(t
     assert released and proc.returncode == 0, text[-3000:]
     summary = json.loads(out.decode().strip().splitlines()[-1])
     log = episode_log(root)
-    assert [(r["kept"], bool(r["hardware_fault"])) for r in log] == [(False, True), (True, False)]
-    assert log[1]["frames"] == 2 * 30, log[1]  # the episode only: nothing of the sync
+    # The frozen run, then the true one (a busy machine may spoil a run more: retried too).
+    spoilt = [(False, True)] * (len(log) - 1)
+    assert [(r["kept"], bool(r["hardware_fault"])) for r in log] == [*spoilt, (True, False)], log
+    assert len(log) >= 2 and log[-1]["frames"] == 2 * 30, log  # the episode only: no sync
     runs = summary["per_run"]
-    assert [(r["saved"], bool(r["hardware_fault"])) for r in runs] == [(False, True), (True, False)]
+    assert [(r["saved"], bool(r["hardware_fault"])) for r in runs] == [*spoilt, (True, False)]
     assert all(r["sync_s"] >= 0 for r in runs), runs  # each run started from a synced rig
     assert summary["failed_devices"] == [] and summary["stopped_early"] == ""
-    state, action = recorded_state_and_action(root, "test/frozen")
-    gap = np.abs(state - action)
-    assert np.ptp(action, axis=0).max() > 0.3, "the episode should move the robot"
-    assert gap[:, :7].max() < 0.5, gap[:, :7].max()  # the arm followed (its limit 0.3 rad)
-
-
-def recorded_state_and_action(root, repo_id: str) -> tuple[np.ndarray, np.ndarray]:
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    ds = LeRobotDataset(repo_id, root=root, video_backend="pyav")
-    return np.array(ds.hf_dataset[STATE]), np.array(ds.hf_dataset[ACTION])
+    ((state, action, names),) = read_episodes(root, "test/frozen").values()
+    check_follows(state, action, names, 1)  # the arm followed, by the rig's own rule
 
 
 def _rerun_rows(path) -> tuple[dict[str, int], dict[str, list]]:

@@ -19,8 +19,8 @@ import sys
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 import pytest
+from recorded_state import check_follows, read_episodes
 
 import beavr_sim
 from beavr_sim.assets import bundled_trace
@@ -36,16 +36,6 @@ REPO = Path(beavr_sim.__file__).resolve().parents[1]
 EXIT_DEVICE_FAILED = 4
 RX1_TRACE = bundled_trace("PickupBox", "rx1")
 MIRRORED = ["--mirror-hardware", "--hardware-config", "emulated", "--no-viser", "--headless"]
-#: How far the measured joints may be from the commands in a true episode (rad), and for how
-#: many frames in a row: the rig's own limits (``MirrorConfig``: arm 0.3, hand 0.8 rad, for at
-#: most its 0.5 s divergence window, 15 frames at 30 fps). A device may trail further for less
-#: than the window (a busy machine delays a writer; the arm then catches up at its speed cap);
-#: a frozen or stale state stays away (and fails the "moving with them" check).
-ARM_GAP_RAD = 0.3
-HAND_GAP_RAD = 0.8
-WINDOW_FRAMES = 15
-#: ... from the commands of the last quarter second (MirrorConfig.device_lag_s) at 30 fps.
-LAG_FRAMES = 8
 #: ``--max-seconds`` of the ``--repeat 3`` session: two whole PickupBox traces (9.0 s each at
 #: 30 Hz) and a third run cut after about half a second.
 REPEAT_SECONDS = 18.5
@@ -55,59 +45,14 @@ def _summary(capsys) -> dict:
     return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
 
 
-def _episodes(root: Path, repo_id: str) -> dict[int, tuple[np.ndarray, np.ndarray, list[str]]]:
-    """Per saved episode: (observation.state, action, joint names), read back from disk."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    ds = LeRobotDataset(repo_id, root=root, video_backend="pyav")
-    names = list(ds.features["action"]["names"] or [])
-    state = np.array(ds.hf_dataset["observation.state"])
-    action = np.array(ds.hf_dataset["action"])
-    index = np.array(ds.hf_dataset["episode_index"])
-    return {int(e): (state[index == e], action[index == e], names) for e in np.unique(index)}
-
-
-def _longest_run(over: np.ndarray) -> tuple[int, int]:
-    """The longest stretch of consecutive True frames: (its length, its first frame)."""
-    best, start, run = 0, 0, 0
-    for k, flag in enumerate(over):
-        run = run + 1 if flag else 0
-        if run > best:
-            best, start = run, k - run + 1
-    return best, start
-
-
-def _check_true(state: np.ndarray, action: np.ndarray, names: list[str], episode: int) -> None:
-    """The measured state follows the command: never further than the rig's limit from the
-    commands of the last ``LAG_FRAMES`` (a device trails its commands by a few periods) for
-    longer than its window, and moving with them."""
-    hand = np.array(["leap" in n for n in names]) if names else np.zeros(action.shape[1], bool)
-    gap = np.zeros_like(state)
-    for k in range(len(state)):
-        recent = action[max(0, k - LAG_FRAMES) : k + 1]
-        gap[k] = np.maximum(np.maximum(recent.min(0) - state[k], state[k] - recent.max(0)), 0)
-    for part, limit in ((~hand, ARM_GAP_RAD), (hand, HAND_GAP_RAD)):
-        if not part.any():
-            continue
-        frames, first = _longest_run(gap[:, part].max(axis=1) > limit)
-        assert frames <= WINDOW_FRAMES, (
-            f"episode {episode}: measured joints over {limit} rad from the commands for "
-            f"{frames} frames from frame {first} (largest gap {gap[:, part].max():.3f} rad)"
-        )
-    # Not frozen: the joint the command moves most moves about as much measured.
-    j = int(np.argmax(np.ptp(action, axis=0)))
-    assert np.ptp(action[:, j]) > 0.3, "the episode should move the robot"
-    assert np.ptp(state[:, j]) >= 0.7 * np.ptp(action[:, j]), (episode, names[j] if names else j)
-
-
 def _check_recording(root: Path, repo_id: str, episodes: int, summary: dict) -> None:
     """Every saved episode true, and ``episodes`` of them. On a busy machine an emulated device
     can miss a reply (an outage it recovers from): that episode must then be reported as a
     hardware fault and not saved, and the trace is played again."""
-    saved = _episodes(root, repo_id)
+    saved = read_episodes(root, repo_id)
     assert len(saved) == episodes
     for e, (state, action, names) in saved.items():
-        _check_true(state, action, names, e)
+        check_follows(state, action, names, e)
     log = [json.loads(line) for line in (root / "meta" / "beavr_episodes.jsonl").open()]
     assert [r["hardware_fault"] is None for r in log] == [r["kept"] for r in log], log
     for r in log:  # no kept episode recorded a reading older than the rig's window
