@@ -182,9 +182,16 @@ def test_the_loss_curve_takes_exact_steps_from_the_progress_bar(tmp_path):
         "train_config.json --resume=true --steps=3000\n"
         + _bar(150, 2000) + _bar(200, 2000) + line.format("1K", 0.45) + "\n"
         + _bar(400, 2000) + line.format("1K", 0.44) + "\n"
+        # Killed mid-bar (no newline; logs of older versions) and resumed from 1,400.
+        + _bar(500, 2000)
+        + "$ lerobot-train --config_path=run/checkpoints/001400/pretrained_model/"
+        "train_config.json --resume=true --steps=3000\n"
+        + _bar(200, 1600) + line.format("1K", 0.43) + "\n"
     )  # fmt: skip
-    # What the cut run logged after its checkpoint is replaced by the resumed run's.
-    assert training.loss_curve(log, 200) == [(200, 2.9), (1200, 0.45), (1400, 0.44)]
+    # What a cut run logged after its checkpoint is replaced by the resumed run's.
+    assert training.loss_curve(log, 200) == [
+        (200, 2.9), (1200, 0.45), (1400, 0.44), (1600, 0.43)
+    ]  # fmt: skip
     # Without a progress bar the lines are counted.
     log.write_text(line.format(200, 1.0) + "\n" + line.format(400, 0.5) + "\n")
     assert training.loss_curve(log, 200) == [(200, 1.0), (400, 0.5)]
@@ -246,9 +253,13 @@ def test_a_cut_training_run_needs_resume_and_continues_from_its_last_checkpoint(
     _checkpoint_at(stage / "run", 10)  # cut at step 10 of 20
     with pytest.raises(training.TrainUnfinished, match=r"step 10 of 20.*--resume"):
         training.train(TRAIN, tmp_path / "data", "r/d", stage)
+    (stage / "train.log").write_text("$ lerobot-train\n" + _bar(12, 20))  # killed mid-bar
     calls = _stand_in_lerobot_train(tmp_path, monkeypatch)
     run = training.train(TRAIN, tmp_path / "data", "r/d", stage, resume=True, loader_workers=3)
     assert run == stage / "run"
+    # The resumed run's command starts its own line after the cut bar.
+    starts = [ln for ln in (stage / "train.log").read_text().splitlines() if ln.startswith("$ ")]
+    assert len(starts) == 2 and "--resume=true" in starts[1], starts
     (command,) = _calls(calls)
     last = training.checkpoint(stage / "run", 10) / "train_config.json"
     assert f"--config_path={last}" in command and "--resume=true" in command

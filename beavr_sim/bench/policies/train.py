@@ -24,8 +24,11 @@ from beavr_sim.bench.policies.train_progress import TrainProgress, follow
 #: In order: our ``$ lerobot-train ...`` line before each (re)start, the progress bar's count
 #: (``| 1600/6000 [``: the step, counted from the run's start or its checkpoint), and
 #: LeRobot's log lines (``step:2K smpl:51K ... loss:0.227 ...``: the step rounded, 1K, 2M).
+#: A command line (at a line's start, or right after the progress bar of a run killed mid-line,
+#: in logs written before each command started a line), a progress bar's count, a loss line.
 _LOG_EVENT = re.compile(
-    r"(?m)^\$ (?P<command>.*)$|\| *(?P<count>\d+)/\d+ \[|\bstep:\S+ .*?\bloss:(?P<loss>[-+0-9.eE]+)"
+    r"(?m)(?:^|(?<=\]))\$ (?P<command>.*)$|\| *(?P<count>\d+)/\d+ \["
+    r"|\bstep:\S+ .*?\bloss:(?P<loss>[-+0-9.eE]+)"
 )
 _CHECKPOINT = re.compile(r"checkpoints/(\d+)/")
 
@@ -149,8 +152,10 @@ def train(
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
     progress = TrainProgress(config.steps, first_step=steps[-1] if steps else 0)
     label = f"train {config.policy} on {config.demos.task}"
+    cut_mid_line = log.is_file() and log.stat().st_size > 0 and not _ends_a_line(log)
     with log.open("a") as out:
-        out.write("$ " + " ".join(command) + "\n")
+        # A killed run's progress bar ends without a newline: the command starts its own line.
+        out.write(("\n" if cut_mid_line else "") + "$ " + " ".join(command) + "\n")
         out.flush()
         process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, env=env)
         try:
@@ -210,6 +215,12 @@ def extend_from(source: Path, stage: Path) -> None:
     shutil.copytree(source / "run", stage / "run", symlinks=True, copy_function=_link_or_copy)
     if (source / "train.log").is_file():
         shutil.copy2(source / "train.log", stage / "train.log")
+
+
+def _ends_a_line(log: Path) -> bool:
+    with log.open("rb") as f:
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) == b"\n"
 
 
 def log_freq(config: TrainConfig) -> int:
