@@ -163,6 +163,37 @@ def test_a_freeze_shorter_than_the_retries_is_ridden_out(bus):
     np.testing.assert_allclose(q, _true_pose(emulator, device))
 
 
+def test_an_empty_read_is_retried_and_one_that_persists_fails_in_one_line(bus, monkeypatch):
+    """pyserial's "ready to read but returned no data" (a pty can wake a reader before its
+    bytes arrive; CI met it once at connect): asked again; an unplugged port keeps raising it,
+    and that fails as a port failure in one line once the retries are spent."""
+    import serial
+
+    _, device = bus
+    port = device._port
+    real_read = port.readPort
+    empty = serial.SerialException(
+        "device reports readiness to read but returned no data "
+        "(device disconnected or multiple access on port?)"
+    )
+    left = [1]
+
+    def read(length):
+        if left[0] > 0:
+            left[0] -= 1
+            raise empty
+        return real_read(length)
+
+    monkeypatch.setattr(port, "readPort", read)
+    servo = device._ids[0]
+    torque = device._read_register(servo, device.torque_address, 1, "torque enable")
+    assert torque == b"\x01" and device.retries == 1 and device.errors == 0 and left == [0]
+    left[0] = 1000  # every read: the port is gone
+    with pytest.raises(DeviceError, match="failed while reading torque enable: device reports"):
+        device._read_register(servo, device.torque_address, 1, "torque enable")
+    assert device.retries == 1 + device.config.retries and device.errors == 1
+
+
 def test_a_long_freeze_fails_in_one_line_then_reconnect_reads_the_pose(bus):
     emulator, device = bus
     target = device.read_positions() + 0.05

@@ -15,7 +15,9 @@ The two SDKs are one design (ROBOTIS's, forked by Feetech): a ``PortHandler`` ov
   has been silent for one reply window per retry;
 * bounded retries: a register read or write, or a sync read, whose reply did not come or came
   corrupt is asked again up to ``retries`` times (each counted in :attr:`SerialBus.retries`);
-  only then :class:`DeviceError`. Port failures and the servos' own error bytes are not retried;
+  only then :class:`DeviceError`. Port failures and the servos' own error bytes are not retried,
+  except pyserial's "returned no data" on a register request (a reply woken for before it came,
+  as a loaded pty can; an unplugged port keeps raising it and fails when the retries are spent);
 * the ``readRx`` workaround: both SDKs' ``GroupSyncRead.rxPacket`` drop each status packet's
   error byte, so a sync read is sent through the group and its replies are read back through
   ``PacketHandler.readRx``, which keeps it; input is discarded before every sync read (the SDKs
@@ -46,6 +48,12 @@ from beavr_sim.hardware.device import Device, DeviceError
 
 #: What a failing serial port raises inside the SDKs.
 PORT_ERRORS = (OSError, serial.SerialException, termios.error)
+
+
+def _empty_read(exc: BaseException) -> bool:
+    """pyserial's "ready to read but returned no data": an unplugged port, or (once) a read
+    woken before its bytes came. pyserial gives it no type of its own, only this text."""
+    return isinstance(exc, serial.SerialException) and "returned no data" in str(exc)
 
 
 def check_bus_settings(owner: str, config: Any, baudrates: tuple[int, ...], note: str = "") -> None:
@@ -393,7 +401,14 @@ class SerialBus(Device):
             try:
                 reply = request()
             except PORT_ERRORS as exc:
-                raise self._port_failed(exc, what) from exc
+                if not (_empty_read(exc) and attempt < self.config.retries):
+                    raise self._port_failed(exc, what) from exc
+                # One empty read is a reply not there yet (a pty under load can wake a
+                # reader before its bytes arrive); an unplugged port keeps failing.
+                self.retries += 1
+                self._port.is_using = False  # the SDKs leave it set when a serial call raises
+                self._discard_input()
+                continue
             if reply[0] == self.sdk.COMM_SUCCESS:
                 return reply
             if attempt < self.config.retries:
