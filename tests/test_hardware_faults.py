@@ -164,27 +164,26 @@ def test_a_freeze_shorter_than_the_retries_is_ridden_out(bus):
 
 
 def test_an_empty_read_is_retried_and_one_that_persists_fails_in_one_line(bus, monkeypatch):
-    """pyserial's "ready to read but returned no data" (a pty can wake a reader before its
-    bytes arrive; CI met it once at connect): asked again; an unplugged port keeps raising it,
-    and that fails as a port failure in one line once the retries are spent."""
+    """pyserial's "ready to read but returned no data" (CI met it once at a LEAP's connect, on
+    the emulator's pty): a register request and a ping ask again; an unplugged port keeps
+    raising it, and that fails as a port failure in one line once the retries are spent."""
     import serial
 
     _, device = bus
-    port = device._port
-    real_read = port.readPort
-    empty = serial.SerialException(
-        "device reports readiness to read but returned no data "
-        "(device disconnected or multiple access on port?)"
-    )
+    handler = type(device._port)
+    real_read = handler.readPort
     left = [1]
 
-    def read(length):
+    def read(self, length):
         if left[0] > 0:
             left[0] -= 1
-            raise empty
-        return real_read(length)
+            raise serial.SerialException(
+                "device reports readiness to read but returned no data "
+                "(device disconnected or multiple access on port?)"
+            )
+        return real_read(self, length)
 
-    monkeypatch.setattr(port, "readPort", read)
+    monkeypatch.setattr(handler, "readPort", read)
     servo = device._ids[0]
     torque = device._read_register(servo, device.torque_address, 1, "torque enable")
     assert torque == b"\x01" and device.retries == 1 and device.errors == 0 and left == [0]
@@ -192,6 +191,9 @@ def test_an_empty_read_is_retried_and_one_that_persists_fails_in_one_line(bus, m
     with pytest.raises(DeviceError, match="failed while reading torque enable: device reports"):
         device._read_register(servo, device.torque_address, 1, "torque enable")
     assert device.retries == 1 + device.config.retries and device.errors == 1
+    left[0] = 1  # a ping that meets one (connect, reconnect) pings again
+    device.reconnect()
+    assert device.connected and left == [0] and device.errors == 1
 
 
 def test_a_long_freeze_fails_in_one_line_then_reconnect_reads_the_pose(bus):

@@ -378,7 +378,12 @@ class SerialBus(Device):
                 try:
                     model, result, _ = self._ph.ping(port, i)
                 except PORT_ERRORS as exc:
-                    raise self._port_failed(exc, "pinging") from exc
+                    if not _empty_read(exc):
+                        raise self._port_failed(exc, "pinging") from exc
+                    # No answer yet (as in _retried): pinged again within the patience.
+                    model, result = 0, self.sdk.COMM_RX_TIMEOUT
+                    port.is_using = False
+                    self._discard_input()
                 results[i] = result
                 if result == self.sdk.COMM_SUCCESS:
                     missing.remove(i)
