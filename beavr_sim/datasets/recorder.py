@@ -11,9 +11,9 @@ keep or drop. A summary line per episode goes to ``meta/beavr_episodes.jsonl`` b
 metadata (seed, success, duration, source): LeRobot has no field for them.
 
 Mirrored hardware (``observation.state`` measured by the devices): a :class:`HardwareWatch`
-checks every frame that every device is live, that its reading is no older than the rig's
-divergence window, and that the measured joints follow the command (within the rig's divergence
-limits for no longer than that window). The first fault is kept in
+checks every frame that every device is live and that the measured joints follow the command
+(within the rig's divergence limits for no longer than its window); the age of the oldest
+device reading behind each frame's state is kept (``max_state_age_s``). The first fault is kept in
 :attr:`EpisodeRecorder.fault` (the session ends the episode on it) and written as the episode's
 ``hardware_fault`` in ``meta/beavr_episodes.jsonl``: an episode whose state was frozen or stale
 is never recorded as if it were live.
@@ -141,9 +141,9 @@ class HardwareWatch:
 
     ``reading``: the devices' measured joints and when the oldest of them was read
     (``HardwareMirror.latest_reading``: ``.q``, ``.t_oldest``, ``.oldest``); :meth:`observe`
-    takes one as a frame's ``observation.state``. A reading older than the rig's window
-    (``limits.window_s``) when it is observed is stale (a writer that stopped reading while
-    its device went on: the state could be anywhere by then): the frame is untrue.
+    takes one as a frame's ``observation.state`` and keeps the oldest reading's age over the
+    episode (:attr:`max_reading_age_s`: reported, not judged; a device in a command-timeout
+    hold is not read, so a loaded machine's stalls age its reading while it stands still).
 
     ``health``: the mirror's cheap snapshot (``HardwareMirror.health``: ``.live``,
     ``.devices``: each ``.name``, ``.state`` (an enum: ``FOLLOWING``, ``CATCHING_UP``, ...),
@@ -168,25 +168,13 @@ class HardwareWatch:
         self.max_reading_age_s = 0.0
         self._recent: deque[np.ndarray] = deque(maxlen=max(1, math.ceil(limits.lag_s * fps)))
         self._diverged_frames = 0
-        #: The last observed state's stale reading as one line ("" fresh).
-        self._stale = ""
 
     def observe(self, now: float | None = None) -> np.ndarray:
-        """The measured joints for a frame's ``observation.state`` (their reading's age is
-        judged by the next :meth:`check`)."""
+        """The measured joints for a frame's ``observation.state`` (their reading's age
+        kept)."""
         reading = self.reading()
         now = time.monotonic() if now is None else now
-        age = float(reading.age_s(now))
-        self.max_reading_age_s = max(self.max_reading_age_s, age)
-        self._stale = ""
-        if not age <= self.limits.window_s:
-            name = reading.oldest or "a device"
-            self._stale = (
-                f"measured state stale: {name} last read {age:.2f} s before the frame "
-                f"(limit {self.limits.window_s:g} s)"
-                if math.isfinite(age)
-                else f"measured state stale: {name} not read yet"
-            )
+        self.max_reading_age_s = max(self.max_reading_age_s, float(reading.age_s(now)))
         return np.asarray(reading.q, dtype=np.float64)
 
     def begin(self) -> None:
@@ -195,7 +183,6 @@ class HardwareWatch:
         self.max_reading_age_s = 0.0
         self._recent.clear()
         self._diverged_frames = 0
-        self._stale = ""
 
     def check(self, state: np.ndarray, action: np.ndarray) -> str:
         """The frame's fault ("" when it is true); the first one is kept in :attr:`fault`."""
@@ -212,8 +199,6 @@ class HardwareWatch:
             fault = faults[0] if faults else _not_live(health.devices)
         elif faults:
             fault = faults[0]
-        elif self._stale:
-            fault = self._stale
         measured = np.asarray(state, dtype=np.float64)
         gap = np.maximum(np.maximum(low - measured, measured - high), 0.0)
         over = gap > self.limits.limit_rad
