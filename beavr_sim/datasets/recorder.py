@@ -15,8 +15,8 @@ checks every frame that every device is live and that the measured joints follow
 (within the rig's divergence limits for no longer than its window); the age of the oldest
 device reading behind each frame's state is kept (``max_state_age_s``). The first fault is kept in
 :attr:`EpisodeRecorder.fault` (the session ends the episode on it) and written as the episode's
-``hardware_fault`` in ``meta/beavr_episodes.jsonl``: an episode whose state was frozen or stale
-is never recorded as if it were live.
+``hardware_fault`` in ``meta/beavr_episodes.jsonl``: an episode whose measured state froze or
+stayed away from the commands beyond the window is never recorded as if it were live.
 
 Real cameras (:class:`~beavr_sim.cameras.RealCameras`, capturing on LeRobot's read threads):
 each observation takes every camera's newest frame as ``observation.images.NAME``; frames older
