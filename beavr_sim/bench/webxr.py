@@ -53,15 +53,22 @@ IWER_SETUP = """
   device.installRuntime({ forceInstall: true });
   device.primaryInputMode = "hand";
   window.__iwer = device;
-  // Move a hand by (dx, dy, dz) metres (WebXR axes) over `seconds`, one step per animation frame.
-  window.__moveHand = (side, dx, dy, dz, seconds) => new Promise((resolve) => {
+  // Move a hand by (dx, dy, dz) metres (WebXR axes) over `seconds`, one step per animation
+  // frame. Rejects, naming how many frames came, if the page's animation frames stop for
+  // 30 s beyond the move (page.evaluate has no timeout of its own).
+  window.__moveHand = (side, dx, dy, dz, seconds) => new Promise((resolve, reject) => {
     const hand = device.hands[side];
     const p0 = [hand.position.x, hand.position.y, hand.position.z];
     const t0 = performance.now();
+    let frames = 0;
+    const guard = setTimeout(() => reject(new Error(
+      `__moveHand: ${frames} animation frames in ${((performance.now() - t0) / 1000).toFixed(1)} s, ` +
+      `the move not finished (the page stopped drawing)`)), (seconds + 30) * 1000);
     const step = () => {
+      frames += 1;
       const a = Math.min(1, (performance.now() - t0) / (seconds * 1000));
       hand.position.set(p0[0] + a * dx, p0[1] + a * dy, p0[2] + a * dz);
-      if (a < 1) requestAnimationFrame(step); else resolve();
+      if (a < 1) requestAnimationFrame(step); else { clearTimeout(guard); resolve(); }
     };
     step();
   });
