@@ -647,3 +647,108 @@ def test_lerobot_replay_plays_the_episode_on_the_sim_robot(recorded, workdir, mo
         np.testing.assert_allclose(replayed, recorded_actions, atol=1e-5)
     else:
         assert np.isfinite(replayed).all()
+
+
+def test_lerobot_record_on_an_emulated_rig_keeps_its_true_episodes_and_ends_at_a_dead_device(
+    tmp_path,
+):
+    """A whole ``lerobot-record`` session on the emulated rig (the xArm SDK and the Dynamixel
+    SDK against our emulators), the bundled PickupBox trace driving it, episodes of 1 s until
+    the LEAP hand stops answering for good (20 s after the emulators start): the session ends
+    on one line naming the hand, the episodes saved before it are kept and their measured
+    state follows their commands by the rig's rule, and the episode in progress is not saved
+    (no frozen measured state recorded as live)."""
+    from recorded_state import check_within_rule, read_episodes
+
+    exe = BIN / "lerobot-record"
+    if not exe.exists():
+        pytest.skip("lerobot-record is not installed beside this Python")
+    root, repo_id, episodes = tmp_path / "rig_ds", "local/emulated_rig", 60
+    args = [
+        "--robot.type=beavr_sim",
+        "--robot.task=PickupBox",
+        "--robot.hardware=emulated",
+        "--robot.emulate_faults=right_hand:disconnect@20",
+        "--robot.camera_names=[]",
+        "--teleop.type=beavr_quest",
+        "--teleop.source=trace",
+        "--teleop.task=PickupBox",
+        f"--dataset.repo_id={repo_id}",
+        f"--dataset.root={root}",
+        f"--dataset.num_episodes={episodes}",
+        "--dataset.episode_time_s=1",
+        "--dataset.reset_time_s=0",
+        "--dataset.fps=30",
+        "--dataset.single_task=Pick up the box and put it down in the green area.",
+        "--dataset.push_to_hub=false",
+        "--dataset.video=false",
+        "--play_sounds=false",
+    ]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_LEROBOT_HOME": str(tmp_path)}
+    result = subprocess.run(
+        [str(exe), *args], capture_output=True, text=True, timeout=240, env=env, cwd=tmp_path
+    )
+    output = result.stdout + result.stderr
+    assert result.returncode != 0, f"the session outlived its dead hand:\n{output[-3000:]}"
+    errors = [line for line in output.splitlines() if "MeasuredStateError:" in line]
+    assert errors, f"no MeasuredStateError:\n{output[-3000:]}"
+    assert "right_hand" in errors[-1] and "check the rig" in errors[-1], errors[-1]
+
+    saved = read_episodes(root, repo_id)
+    assert 1 <= len(saved) < episodes, len(saved)
+    for episode, (state, action, names) in saved.items():
+        assert len(state) >= 20, (episode, len(state))  # whole episodes of 1 s, none cut
+        check_within_rule(state, action, names, episode)
+        assert np.isfinite(state).all()
+
+
+def test_robot_refuses_a_measured_state_that_stays_away_or_a_device_not_live(tmp_path):
+    """The robot judges its measured joints by the rig's rule (the teleop recorder's watch):
+    a reading frozen while the commands move on passes for less than the window, then
+    ``send_action`` raises one line naming the joint; a device not live fails
+    ``get_observation`` before any state is handed out. (A sim robot given a watch over a
+    frozen reading: the rule, not the devices, is under test here.)"""
+    import time
+
+    from beavr_sim.datasets.recorder import FollowLimits, HardwareWatch
+    from beavr_sim.hardware.device import MeasuredStateError
+    from beavr_sim.hardware.mirror import Reading
+    from beavr_sim.integrations.robot import BeavrSimRobot
+
+    class Health:
+        def __init__(self, live: bool, faults: tuple[str, ...] = ()):
+            self.live, self.devices, self.episode_faults = live, (), faults
+
+    robot = BeavrSimRobot(
+        BeavrSimRobotConfig(task="PickupBox", camera_names=[], calibration_dir=tmp_path)
+    )
+    robot.connect()
+    try:
+        names = robot.joint_names
+        frozen = robot.measured_positions()
+        limits = FollowLimits(np.full(len(names), 0.3), 0.5, names, lag_s=0.25)
+        health = Health(True)
+        robot.watch = HardwareWatch(
+            lambda: Reading(frozen, time.monotonic(), "right_arm"), lambda: health, limits, 30
+        )
+        robot.watch.begin()
+        j = names.index("right/joint1")
+        frames = 0
+        with pytest.raises(MeasuredStateError) as raised:
+            for frames in range(1, 200):
+                obs = robot.get_observation()
+                target = {n: obs[n] for n in names}
+                target["right/joint1"] = frozen[j] + 0.02 * frames  # the command moves on
+                robot.send_action(target)
+        message = str(raised.value)
+        assert "\n" not in message and "right/joint1" in message and "not recorded" in message
+        # 0.3 rad away after 15 frames (and the lag's 8), then the 0.5 s window (15 frames).
+        assert 15 + 15 <= frames <= 15 + 8 + 17, frames
+
+        robot.watch.begin()
+        health.live, health.devices = False, ()
+        health.episode_faults = ("right_hand stopped answering",)
+        with pytest.raises(MeasuredStateError, match="hardware not live: right_hand stopped"):
+            robot.get_observation()
+    finally:
+        robot.disconnect()

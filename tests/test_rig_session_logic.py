@@ -122,6 +122,10 @@ def test_watch_reports_a_device_that_is_not_live():
     watch = _watch(faulted)
     watch.begin()
     assert watch.check(np.zeros(4), np.zeros(4)) == "right_arm diverged 0.4 rad"
+    # The health part alone (what LeRobot's robot asks before it observes): no frame taken.
+    assert _watch(health).health_fault() == "right_hand holding (no fresh command)"
+    assert _watch(faulted).health_fault() == "right_arm diverged 0.4 rad"
+    assert _watch(Health(True, ())).health_fault() == ""
 
 
 def test_watch_observes_the_reading_and_keeps_its_age():

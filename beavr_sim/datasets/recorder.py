@@ -184,21 +184,24 @@ class HardwareWatch:
         self._recent.clear()
         self._diverged_frames = 0
 
+    def health_fault(self) -> str:
+        """The rig's fault now, as one line ("" while every device is live and this
+        episode has no fault): the first of its episode's faults, else the devices not live."""
+        health = self.health()
+        faults = tuple(getattr(health, "episode_faults", ()))
+        if not health.live:
+            return faults[0] if faults else _not_live(health.devices)
+        return faults[0] if faults else ""
+
     def check(self, state: np.ndarray, action: np.ndarray) -> str:
         """The frame's fault ("" when it is true); the first one is kept in :attr:`fault`."""
-        health = self.health()
+        fault = self.health_fault()
         if self._recent:
             asked = np.stack(self._recent)
             low, high = asked.min(axis=0), asked.max(axis=0)
         else:
             low = high = np.asarray(action, dtype=np.float64)
         self._recent.append(np.array(action, dtype=np.float64))
-        fault = ""
-        faults = tuple(getattr(health, "episode_faults", ()))
-        if not health.live:
-            fault = faults[0] if faults else _not_live(health.devices)
-        elif faults:
-            fault = faults[0]
         measured = np.asarray(state, dtype=np.float64)
         gap = np.maximum(np.maximum(low - measured, measured - high), 0.0)
         over = gap > self.limits.limit_rad

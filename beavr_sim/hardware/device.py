@@ -31,6 +31,12 @@ class MirrorError(RuntimeError):
     """Hardware mirroring cannot start (a device unreachable or misconfigured)."""
 
 
+class MeasuredStateError(RuntimeError):
+    """A mirrored rig's measured state is not live: a device not following (held, failed, in
+    outage, e-stopped), a fault this episode, or the joints away from the commands beyond the
+    rig's window. It is never observed as if it were live."""
+
+
 class Device(ABC):
     """One physical device. Subclasses implement the four ``_``-free hooks below."""
 

@@ -60,6 +60,9 @@ class BeavrSimRobotConfig(RobotConfig):
     hardware: str = "sim"
     #: With hardware: everything but the final write to the devices.
     dry_run: bool = False
+    #: With ``hardware=emulated``: faults the protocol emulators rehearse, as teleop's
+    #: ``--emulate-faults`` (``right_arm:freeze=2@5``, docs/hardware.md); None: none.
+    emulate_faults: str | None = None
     #: The twin's cameras in the observation (``front``, ``overhead``; ``head`` on the RX-1),
     #: rendered from the twin (real ones: ``cameras``).
     camera_names: list[str] = field(default_factory=lambda: ["front"])

@@ -24,6 +24,14 @@ stops delivering (its newest frame older than ``camera_max_age_s``, or its read 
 makes :meth:`BeavrSimRobot.get_observation` raise one line: a frozen frame is never handed to
 the recorder as a live one.
 
+The measured joints are judged as the teleop recorder judges them
+(:class:`beavr_sim.datasets.recorder.HardwareWatch`, the rig's own limits): ``get_observation``
+raises :class:`~beavr_sim.hardware.device.MeasuredStateError` when a device is not live or the
+episode has a fault, and ``send_action`` raises it (after sending: the guarded command is safe)
+when the observation it acted on had been away from the commands beyond the rig's window.
+``lerobot-record`` then saves none of the frame: the episode in progress is dropped, the ones
+saved before it are kept. A frozen or stale measured state is never recorded as live.
+
 Joints the embodiment's effectors do not own (the RX-1's torso and head) hold their pose: their
 values in an action are ignored, and the returned action shows the held ones.
 """
@@ -42,7 +50,9 @@ from lerobot.utils.errors import DeviceAlreadyConnectedError, DeviceNotConnected
 
 from beavr_sim.cameras.errors import CameraStoppedError
 from beavr_sim.cameras.real import DEPTH_SUFFIX, RealCameras
+from beavr_sim.datasets.recorder import HardwareWatch
 from beavr_sim.envs.beavr_env import BeavrEnv
+from beavr_sim.hardware.device import MeasuredStateError
 from beavr_sim.integrations.config_robot import (
     ROBOT_TYPE,
     BeavrSimRobotConfig,
@@ -50,7 +60,7 @@ from beavr_sim.integrations.config_robot import (
 )
 from beavr_sim.integrations.joints import action_dict, action_vector, joint_features
 from beavr_sim.integrations.options import check_embodiment
-from beavr_sim.teleop.mirroring import MirrorFollower, RigChoice, connect_mirror
+from beavr_sim.teleop.mirroring import MirrorFollower, RigChoice, connect_mirror, hardware_watch
 from beavr_sim.wire.records import JointCommand
 
 log = logging.getLogger(__name__)
@@ -90,6 +100,10 @@ class BeavrSimRobot(Robot):
         #: The twin stage every action goes through (None while not connected).
         self.stage = None
         self.mirror = None
+        #: The per-frame judge of the measured joints (with hardware; None in sim).
+        self.watch: HardwareWatch | None = None
+        #: The measured joints the last ``get_observation`` returned (with hardware).
+        self._observed: np.ndarray | None = None
         #: The last ``send_action``'s guard outcome (accepted and refused effectors).
         self.last_outcome = None
         self._closers: list[Callable[[], None]] = []
@@ -170,13 +184,14 @@ class BeavrSimRobot(Robot):
             stage = TwinStage(twin)
             q_measured = None
             if cfg.mirrors_hardware:
-                choice = RigChoice(cfg.hardware, cfg.dry_run)
+                choice = RigChoice(cfg.hardware, cfg.dry_run, cfg.emulate_faults)
                 self.mirror, q_measured = connect_mirror(choice, env, self._closers)
                 twin.follow_speed_caps(self.mirror.speed_caps)
             stage.reset(cfg.seed, robot_qpos=q_measured)
             if self.mirror is not None:
                 self.mirror.start(twin.action)
                 MirrorFollower(stage, self.mirror)
+                self.watch = hardware_watch(self.mirror, env, cfg.fps)
                 self._begin_episode(stage)
         except BaseException:
             self._close_all()
@@ -221,7 +236,8 @@ class BeavrSimRobot(Robot):
                 close()
             except Exception as exc:  # release everything we can
                 log.warning("closing %s: %r", self, exc)
-        self.twin = self.stage = self.mirror = self.real_cameras = None
+        self.twin = self.stage = self.mirror = self.real_cameras = self.watch = None
+        self._observed = None
 
     # ------------------------------------------------------------------ I/O
     def _require(self):
@@ -236,6 +252,8 @@ class BeavrSimRobot(Robot):
         from beavr_sim.hardware.mirror import Fixtures  # local: heavy (the guard: mink, scipy)
 
         self.mirror.begin_episode(stage.action.copy(), fixtures=Fixtures.of(stage.twin.env.data))
+        self.watch.begin()
+        self._observed = None
 
     def measured_positions(self) -> np.ndarray:
         """Measured joints in action order: the devices' with hardware, else the twin's."""
@@ -245,13 +263,29 @@ class BeavrSimRobot(Robot):
         return twin.env.agent_pos.astype(np.float64)
 
     def get_observation(self) -> dict[str, Any]:
+        """The measured joints (the twin's in sim) and the cameras' images; with hardware,
+        raises :class:`MeasuredStateError` (one line) when a device is not live."""
         twin = self._require()
-        obs: dict[str, Any] = action_dict(self.measured_positions(), self.joint_names)
+        if self.watch is not None:
+            q = self._observe_live(self.watch)
+        else:
+            q = self.measured_positions()
+        obs: dict[str, Any] = action_dict(q, self.joint_names)
         for camera in self.config.camera_names:
             obs[self.twin_names[camera]] = twin.env.render_camera(camera)
         if self.real_cameras is not None:
             obs.update(self._real_frames(self.real_cameras))
         return obs
+
+    def _observe_live(self, watch: HardwareWatch) -> np.ndarray:
+        fault = watch.health_fault()
+        if fault:
+            raise MeasuredStateError(
+                f"hardware not live: {fault}; no observation with a frozen measured state is "
+                "recorded: check the rig and record again"
+            )
+        self._observed = watch.observe()
+        return self._observed
 
     def _real_frames(self, cameras: RealCameras) -> dict[str, np.ndarray]:
         """The real cameras' newest frames; raises one line for a camera that stopped."""
@@ -285,6 +319,7 @@ class BeavrSimRobot(Robot):
         self.stage.step()
         self.last_outcome = outcome
         self.actions_sent += 1
+        self._judge(sent)
         if outcome.blocked:
             self.actions_refused += 1
             log.warning(
@@ -293,6 +328,19 @@ class BeavrSimRobot(Robot):
                 twin.last_refusal.reason() if twin.last_refusal else "",
             )
         return action_dict(sent, self.joint_names)
+
+    def _judge(self, sent: np.ndarray) -> None:
+        """The rig's rule on the observation this action was taken from (the teleop
+        recorder's: measured away from the commands in force beyond the window)."""
+        if self.watch is None or self._observed is None:
+            return
+        observed, self._observed = self._observed, None
+        fault = self.watch.check(observed, sent)
+        if fault:
+            raise MeasuredStateError(
+                f"measured state untrue: {fault}; this frame is not recorded (the guarded "
+                "command was sent): check the rig and record again"
+            )
 
     # ------------------------------------------------------------------ extras
     def reset_scene(self, seed: int | None = None) -> None:
