@@ -292,6 +292,15 @@ def test_emulated_rig_runs_the_real_driver_paths(tmp_path):
         assert measured["right/leap_1"] == pytest.approx(target["right/leap_1"], abs=0.05)
         summary = robot.mirror.summary()
         assert {"right_arm", "right_hand"} <= set(summary)
+        # No action for a while (LeRobot saving an episode): the devices hold for want of a
+        # command, and the next observation is still their measured joints, not an error.
+        deadline = time.monotonic() + 30.0
+        while not all(s["reason"] == "timeout" for s in robot.mirror.summary().values()):
+            assert time.monotonic() < deadline, robot.mirror.summary()
+            time.sleep(0.05)
+        held = _joints(robot.get_observation(), robot)
+        assert held["right/joint1"] == pytest.approx(target["right/joint1"], abs=0.01)
+        robot.send_action(target)  # and the rig follows again
     finally:
         robot.disconnect()
     assert robot.mirror is None

@@ -126,6 +126,15 @@ def test_watch_reports_a_device_that_is_not_live():
     assert _watch(health).health_fault() == "right_hand holding (no fresh command)"
     assert _watch(faulted).health_fault() == "right_arm diverged 0.4 rad"
     assert _watch(Health(True, ())).health_fault() == ""
+    # Waiting for commands (LeRobot's robot, before a frame's command): a command-timeout
+    # hold is live then; any other hold is not, and an episode fault never is.
+    waiting = Health(False, (Device("right_arm", State.HOLDING, "TIMEOUT", "no fresh command"),))
+    assert _watch(waiting).health_fault(waiting_for_commands=True) == ""
+    assert _watch(waiting).health_fault() == "right_arm holding (no fresh command)"
+    assert _watch(health).health_fault(waiting_for_commands=True) == (
+        "right_hand holding (no fresh command)"
+    )
+    assert _watch(faulted).health_fault(waiting_for_commands=True) == "right_arm diverged 0.4 rad"
 
 
 def test_watch_observes_the_reading_and_keeps_its_age():

@@ -125,6 +125,12 @@ class FollowLimits:
             raise ValueError("divergence limits must be positive, the window and lag >= 0")
 
 
+def _live_or_waiting(device) -> bool:
+    """Following, catching up, or holding for want of a fresh command."""
+    state, reason = device.state.name, getattr(device.reason, "name", device.reason)
+    return state in ("FOLLOWING", "CATCHING_UP") or (state == "HOLDING" and reason == "TIMEOUT")
+
+
 def _not_live(devices: Sequence) -> str:
     """The devices of a health snapshot that are not following, as one line."""
     parts = []
@@ -183,14 +189,22 @@ class HardwareWatch:
         self._recent.clear()
         self._diverged_frames = 0
 
-    def health_fault(self) -> str:
+    def health_fault(self, *, waiting_for_commands: bool = False) -> str:
         """The rig's fault now, as one line ("" while every device is live and this
-        episode has no fault): the first of its episode's faults, else the devices not live."""
+        episode has no fault): the first of its episode's faults, else the devices not live.
+
+        ``waiting_for_commands``: a device holding for want of a fresh command (a
+        command-timeout hold: the caller sent none for a while, e.g. LeRobot saving an
+        episode) counts as live; it stands where it was held and is read once a period."""
         health = self.health()
         faults = tuple(getattr(health, "episode_faults", ()))
-        if not health.live:
-            return faults[0] if faults else _not_live(health.devices)
-        return faults[0] if faults else ""
+        if faults:
+            return faults[0]
+        if health.live or (
+            waiting_for_commands and all(_live_or_waiting(d) for d in health.devices)
+        ):
+            return ""
+        return _not_live(health.devices)
 
     def check(self, state: np.ndarray, action: np.ndarray) -> str:
         """The frame's fault ("" when it is true); the first one is kept in :attr:`fault`."""

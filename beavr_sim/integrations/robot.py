@@ -278,7 +278,9 @@ class BeavrSimRobot(Robot):
         return obs
 
     def _observe_live(self, watch: HardwareWatch) -> np.ndarray:
-        fault = watch.health_fault()
+        # Before this frame's command: a device holding since the last one (LeRobot saving
+        # an episode sends none for a while) stands where it was held, read once a period.
+        fault = watch.health_fault(waiting_for_commands=True)
         if fault:
             raise MeasuredStateError(
                 f"hardware not live: {fault}; no observation with a frozen measured state is "
@@ -319,7 +321,6 @@ class BeavrSimRobot(Robot):
         self.stage.step()
         self.last_outcome = outcome
         self.actions_sent += 1
-        self._judge(sent)
         if outcome.blocked:
             self.actions_refused += 1
             log.warning(
@@ -327,6 +328,7 @@ class BeavrSimRobot(Robot):
                 ", ".join(outcome.blocked),
                 twin.last_refusal.reason() if twin.last_refusal else "",
             )
+        self._judge(sent)
         return action_dict(sent, self.joint_names)
 
     def _judge(self, sent: np.ndarray) -> None:
