@@ -15,6 +15,7 @@ import importlib
 import importlib.metadata
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -701,7 +702,10 @@ def test_lerobot_record_on_an_emulated_rig_keeps_its_true_episodes_and_ends_at_a
     assert result.returncode != 0, f"the session outlived its dead hand:\n{output[-3000:]}"
     errors = [line for line in output.splitlines() if "MeasuredStateError:" in line]
     assert errors, f"no MeasuredStateError:\n{output[-3000:]}"
-    assert "right_hand" in errors[-1] and "check the rig" in errors[-1], errors[-1]
+    # Named by the device (its outage) or by one of its joints (the state rule, had the
+    # outage come later than the window on a busy machine).
+    assert re.search(r"right_hand|right/leap_", errors[-1]), errors[-1]
+    assert "check the rig" in errors[-1], errors[-1]
 
     saved = read_episodes(root, repo_id)
     assert 1 <= len(saved) < episodes, len(saved)
