@@ -148,7 +148,8 @@ class HardwareWatch:
     ``reading``: the devices' measured joints and when the oldest of them was read
     (``HardwareMirror.latest_reading``: ``.q``, ``.t_oldest``, ``.oldest``); :meth:`observe`
     takes one as a frame's ``observation.state`` and keeps the oldest reading's age over the
-    episode (:attr:`max_reading_age_s`: reported, not judged; see docs/hardware.md).
+    episode (:attr:`max_reading_age_s`: reported, not judged; a device in a command-timeout
+    hold is not read, so a loaded machine's stalls age its reading while it stands still).
 
     ``health``: the mirror's cheap snapshot (``HardwareMirror.health``: ``.live``,
     ``.devices``: each ``.name``, ``.state`` (an enum: ``FOLLOWING``, ``CATCHING_UP``, ...),

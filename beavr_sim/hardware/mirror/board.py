@@ -149,12 +149,6 @@ class LinkPort:
         self.period = board.period
         self.dry_run = dry_run
 
-    @property
-    def state(self) -> LinkState:
-        """The device's state now."""
-        with self._board.cond:
-            return self._dev.state
-
     # ---------------------------------------------------------------- waiting
     def next_orders(self, seq_served: int) -> Orders:
         """Wait (at most a control period) for something to do; the orders then."""

@@ -317,7 +317,6 @@ class Link:
                 timeout = port.config.command_timeout_s  # episodes, holds (and resumes)
                 if time.monotonic() - d.t_submit > timeout:
                     self._hold(HoldReason.TIMEOUT, f"no fresh command within {timeout:g} s")
-                    self._read_held()
                 else:
                     self._read_when_idle()
                 return
@@ -346,16 +345,6 @@ class Link:
                     self._watch_divergence(measured, self._t_read)
         except Exception as exc:  # any driver failure is an outage
             self._outage(exc)
-
-    def _read_held(self) -> None:
-        """Held for want of fresh commands (a stalled twin loop, the pause between episodes):
-        the joints are still read once a period, so the measured state stays as old as a
-        period and a device that stops answering while idle is found (an outage) before the
-        next command; nothing is sent, so there is no divergence to watch."""
-        if self.port.state is not LinkState.HOLDING:  # a hold that met an outage and failed
-            return
-        if time.monotonic() - self._t_read >= self.port.period:
-            self._read()
 
     def _read_when_idle(self) -> None:
         """No new target for a control period: read the joints back (the writes read at most
