@@ -196,7 +196,7 @@ class HardwareWatch:
 
         ``waiting_for_commands``: a device holding for want of a fresh command (a
         command-timeout hold: the caller sent none for a while, e.g. LeRobot saving an
-        episode) counts as live; it stands where it was held and is read once a period."""
+        episode) counts as live: it stands where it was held, its last reading."""
         health = self.health()
         faults = tuple(getattr(health, "episode_faults", ()))
         if faults:

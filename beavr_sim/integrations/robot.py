@@ -279,7 +279,7 @@ class BeavrSimRobot(Robot):
 
     def _observe_live(self, watch: HardwareWatch) -> np.ndarray:
         # Before this frame's command: a device holding since the last one (LeRobot saving
-        # an episode sends none for a while) stands where it was held, read once a period.
+        # an episode sends none for a while) stands where it was held, its last reading.
         fault = watch.health_fault(waiting_for_commands=True)
         if fault:
             raise MeasuredStateError(
